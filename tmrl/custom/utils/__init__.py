@@ -1,0 +1,1 @@
+"""Compatibility package mirroring the original tmrl layout; holds no logic of its own."""

@@ -1,0 +1,182 @@
+"""Small helpers shared by every layer: partial application, products, cached properties and
+atomic file writes.
+
+Nothing here reads configuration or touches the disk at import.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+__all__ = [
+    "partial",
+    "partial_to_dict",
+    "default",
+    "prod",
+    "cached_property",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "dump",
+    "load",
+]
+
+
+def default(*args: Any, **kwargs: Any) -> Any:
+    """Placeholder callee of a bare ``partial()``.
+
+    ``partial(f, x=partial(y=1))`` replaces this placeholder by the default value of ``f``'s
+    parameter ``x``, so that only some arguments of a nested default need to be given.
+    """
+    raise ValueError("tmrl.util.default is a placeholder and is not meant to be called")
+
+
+def partial(func: Callable[..., Any] = default, *args: Any, **kwargs: Any) -> functools.partial:
+    """``functools.partial`` with tmrl's nested-default rule.
+
+    When a keyword argument is itself a bare ``partial(...)`` (no callee given), its callee
+    becomes the default value of that parameter in ``func``'s signature. Example::
+
+        def make(memory_cls=TorchMemory): ...
+        partial(make, memory_cls=partial(memory_size=10))  # TorchMemory with memory_size=10
+
+    Raises:
+        TypeError: a bare nested partial names a parameter that ``func`` has no default for.
+    """
+    if func is not default:
+        params = None
+        for key, value in kwargs.items():
+            if isinstance(value, functools.partial) and value.func is default:
+                if params is None:
+                    params = inspect.signature(func).parameters
+                param = params.get(key)
+                if param is None or param.default is inspect.Parameter.empty:
+                    raise TypeError(
+                        f"partial({_qualname(func)}, {key}=partial(...)): {key!r} has no default to extend"
+                    )
+                kwargs[key] = partial(param.default, *value.args, **value.keywords)
+    return functools.partial(func, *args, **kwargs)
+
+
+def _qualname(obj: Any) -> str:
+    module = getattr(obj, "__module__", None) or ""
+    name = getattr(obj, "__qualname__", None) or getattr(obj, "__name__", None) or repr(obj)
+    return f"{module}:{name}" if module else name
+
+
+def partial_to_dict(p: functools.partial, version: str = "3") -> dict[str, Any]:
+    """Describe a keyword-only partial as a plain dict (callee name, every parameter value).
+
+    Parameters left at their default are included; nested callables are described recursively.
+    Used to log the full set of hyperparameters of a run (for example to wandb).
+
+    Raises:
+        ValueError: the partial has positional arguments or keywords its callee does not take.
+    """
+    if p.args:
+        raise ValueError("partial_to_dict supports keyword arguments only")
+    params = inspect.signature(p.func).parameters
+    fields = {k: v.default for k, v in params.items() if v.default is not inspect.Parameter.empty}
+    accepts_kwargs = any(v.kind is inspect.Parameter.VAR_KEYWORD for v in params.values())
+    unknown = set(p.keywords) - set(params)
+    if unknown and not accepts_kwargs:
+        raise ValueError(f"{p} has keywords that {_qualname(p.func)} does not take: {sorted(unknown)}")
+    fields.update(p.keywords)
+    out: dict[str, Any] = {"__class__": _qualname(p.func)}
+    for key, value in fields.items():
+        if isinstance(value, functools.partial):
+            out[key] = partial_to_dict(value, version="")
+        elif inspect.isclass(value) or inspect.isfunction(value):
+            out[key] = partial_to_dict(functools.partial(value), version="")
+        else:
+            out[key] = value
+    if version:
+        out["__format_version__"] = version
+    return out
+
+
+def prod(iterable: Iterable[Any], start: Any = 1) -> Any:
+    """Product of the items (``start`` for an empty iterable), like ``math.prod``."""
+    return math.prod(iterable, start=start)
+
+
+class cached_property:  # noqa: N801 (named like the builtin decorator it mirrors)
+    """A property computed on first access and stored on the instance.
+
+    Works as a decorator or with a lambda assigned in a class body, as in the tmrl tutorial::
+
+        model_nograd = cached_property(lambda self: no_grad(copy_shared(self.model)))
+
+    Delete the attribute (``del obj.name``) to have it recomputed on next access.
+    """
+
+    def __init__(self, func: Callable[[Any], Any]):
+        self.func = func
+        self.name: str | None = None
+        self.__doc__ = func.__doc__
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, instance: Any, owner: type | None = None) -> Any:
+        if instance is None:
+            return self
+        if self.name is None:
+            raise TypeError("cached_property must be assigned in a class body")
+        cache = instance.__dict__
+        if self.name not in cache:
+            cache[self.name] = self.func(instance)
+        return cache[self.name]
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes | memoryview) -> Path:
+    """Write ``data`` to ``path`` atomically: a temporary file in the same folder, flushed and
+    synced, then renamed over ``path``. A crash leaves either the old file or the new one.
+
+    The parent folder is created when missing. Returns the path.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str, encoding: str = "utf-8") -> Path:
+    """Text version of :func:`atomic_write_bytes`."""
+    return atomic_write_bytes(path, text.encode(encoding))
+
+
+def dump(obj: Any, path: str | os.PathLike[str]) -> Path:
+    """Save a data-only object (nested containers, NumPy arrays, numbers, strings, bytes, None)
+    to ``path`` atomically, in tmrl's data-only format (no pickle)."""
+    from tmrl import wire
+
+    return atomic_write_bytes(path, wire.encode(obj))
+
+
+def load(path: str | os.PathLike[str]) -> Any:
+    """Read an object written by :func:`dump`. Nothing in the file can execute code.
+
+    Raises:
+        tmrl.wire.DecodeError: the file is not in tmrl's data-only format or is truncated.
+    """
+    from tmrl import wire
+
+    return wire.decode(Path(path).read_bytes())
