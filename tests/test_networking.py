@@ -1,0 +1,365 @@
+"""tmrl.networking without a network: Buffer, the column packing of samples, the spaces check and
+the standalone RolloutWorker. The helpers at the top (a counting environment, a JSON actor, a
+recording training class) are also used by tests/test_networking_e2e.py and by the subprocesses
+it starts."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+import pytest
+
+from tmrl import wire
+from tmrl.actor import ActorModule
+from tmrl.errors import UserError
+from tmrl.networking import (
+    Buffer,
+    PayloadError,
+    RolloutWorker,
+    SpacesMismatchError,
+    check_spaces,
+    describe_spaces,
+    pack_buffer,
+    unpack_buffer,
+)
+
+# ------------------------------------------------------------------------------------------------
+# helpers shared with the end-to-end tests
+
+
+class CountingEnv(gymnasium.Env):
+    """Obs: 3 floats; each reset and step puts a fresh sequence number in ``info["seq"]`` (and in
+    ``obs[0]``), so that a receiver can tell exactly which samples arrived."""
+
+    def __init__(self, obs_dim: int = 3, episode_length: int = 20):
+        self.observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)
+        self.episode_length = episode_length
+        self.seq = 0
+        self.t = 0
+
+    def _obs(self) -> np.ndarray:
+        obs = np.zeros(self.observation_space.shape, np.float32)
+        obs[0] = self.seq
+        return obs
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        self.t = 0
+        info = {"seq": self.seq}
+        obs = self._obs()
+        self.seq += 1
+        return obs, info
+
+    def step(self, action):
+        self.t += 1
+        info = {"seq": self.seq}
+        obs = self._obs()
+        self.seq += 1
+        return obs, float(action[0]), self.t >= self.episode_length, False, info
+
+
+class JsonActor(ActorModule):
+    """A one-number policy (``bias``) saved as JSON: the tutorial's style of user actor."""
+
+    def __init__(self, observation_space: Any, action_space: Any):
+        super().__init__(observation_space, action_space)
+        self.bias = 0.0
+
+    def act(self, obs: Any, test: bool = False) -> np.ndarray:
+        return np.array([self.bias], np.float32)
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        Path(path).write_text(json.dumps({"bias": self.bias}))
+
+    def load(self, path: str | os.PathLike[str], device: Any) -> "JsonActor":
+        self.bias = json.loads(Path(path).read_text())["bias"]
+        return self
+
+    def to_device(self, device: Any) -> "JsonActor":
+        return self
+
+
+class RecordingTraining:
+    """A training class for the trainer seam: each epoch it collects samples until it has seen
+    ``samples_per_epoch`` new ones, records their ``seq`` per worker in a JSON-lines log and
+    broadcasts a JsonActor whose bias is the epoch number."""
+
+    def __init__(self, log_path: str, epochs: int = 1000, samples_per_epoch: int = 20,
+                 obs_dim: int = 3, poll: float = 0.005):
+        self.log_path = log_path
+        self.epochs = epochs
+        self.epoch = 0
+        self.samples_per_epoch = samples_per_epoch
+        self.obs_dim = obs_dim
+        self.poll = poll
+        env = CountingEnv(obs_dim)
+        self.actor = JsonActor(env.observation_space, env.action_space)
+
+    def run_epoch(self, interface: Any) -> list[dict]:
+        import time
+
+        got = 0
+        with open(self.log_path, "a") as log:
+            while got < self.samples_per_epoch:
+                buf = interface.retrieve_buffer()
+                if len(buf):
+                    seqs: dict[str, list[int]] = {}
+                    for sample, src in zip(buf.memory, buf.sources):
+                        seqs.setdefault(str(src), []).append(int(sample[5]["seq"]))
+                    log.write(json.dumps({"epoch": self.epoch, "seqs": seqs,
+                                          "ret": buf.stat_train_return}) + "\n")
+                    log.flush()
+                    got += len(buf)
+                else:
+                    time.sleep(self.poll)
+        self.epoch += 1
+        self.actor.bias = float(self.epoch)
+        interface.broadcast_model(self.actor)
+        return [{"epoch": self.epoch}]
+
+    # checkpoint functions (JSON: the trainer's dump/load hooks)
+    @staticmethod
+    def dump(run: "RecordingTraining", path: str) -> None:
+        from tmrl.util import atomic_write_text
+
+        atomic_write_text(path, json.dumps({"log_path": run.log_path, "epochs": run.epochs, "epoch": run.epoch,
+                                            "samples_per_epoch": run.samples_per_epoch, "obs_dim": run.obs_dim}))
+
+    @staticmethod
+    def load(path: str) -> "RecordingTraining":
+        d = json.loads(Path(path).read_text())
+        run = RecordingTraining(d["log_path"], d["epochs"], d["samples_per_epoch"], d["obs_dim"])
+        run.epoch = d["epoch"]
+        run.actor.bias = float(run.epoch)
+        return run
+
+
+def read_log(path: str | os.PathLike[str]) -> list[dict]:
+    p = Path(path)
+    if not p.exists():
+        return []
+    return [json.loads(line) for line in p.read_text().splitlines() if line.strip()]
+
+
+def received_seqs(path: str | os.PathLike[str]) -> dict[str, list[int]]:
+    out: dict[str, list[int]] = {}
+    for entry in read_log(path):
+        for src, seqs in entry["seqs"].items():
+            out.setdefault(src, []).extend(seqs)
+    return out
+
+
+def make_worker(tmp_path: Path, standalone: bool = True, obs_dim: int = 3, **kwargs: Any) -> RolloutWorker:
+    return RolloutWorker(
+        env_cls=lambda: CountingEnv(obs_dim), actor_module_cls=JsonActor, standalone=standalone,
+        model_path=str(tmp_path / f"worker_{os.getpid()}_{id(kwargs)}.json"), model_history=0,
+        **kwargs,
+    )
+
+
+# ------------------------------------------------------------------------------------------------
+# Buffer
+
+
+def _sample(i: int, act: Any = "arr") -> tuple:
+    a = np.array([i], np.float32) if act == "arr" else act
+    return (a, np.full(3, i, np.float32), float(-i), False, i % 5 == 4, {"seq": i})
+
+
+def test_buffer_append_clear_len_and_maxlen_drops_oldest():
+    b = Buffer(maxlen=3)
+    for i in range(5):
+        b.append_sample(_sample(i))
+    assert len(b) == 3
+    assert [s[5]["seq"] for s in b.memory] == [2, 3, 4]
+    assert b.dropped == 2
+    b.stat_train_return = 7.0
+    b.clear()
+    assert len(b) == 0 and b.stat_train_return == 7.0
+
+
+def test_buffer_iadd_keeps_stats_per_worker_and_fills_sources():
+    a, b = Buffer(maxlen=100), Buffer(maxlen=100)
+    a.source_id, b.source_id = 1, 2
+    a.append_sample(_sample(0))
+    b.append_sample(_sample(1))
+    b.append_sample(_sample(2))
+    a.stat_train_return, a.stat_train_steps = -100.0, 10
+    b.stat_train_return, b.stat_train_steps = -300.0, 21
+    merged = Buffer(maxlen=100)
+    merged += a
+    merged += b
+    assert merged.sources == [1, 2, 2]
+    # the second merge does not overwrite the first worker's statistics
+    assert merged.stats[1]["stat_train_return"] == -100.0
+    assert merged.stat_train_return == pytest.approx(-200.0)
+    assert merged.stat_train_steps == 16  # round(15.5)
+    empty = Buffer(maxlen=5)
+    assert empty.stat_test_return == 0.0 and empty.stat_test_steps == 0
+
+
+# ------------------------------------------------------------------------------------------------
+# column packing
+
+
+def _same(x: Any, y: Any) -> bool:
+    if isinstance(x, np.ndarray):
+        return isinstance(y, np.ndarray) and x.dtype == y.dtype and np.array_equal(x, y)
+    if isinstance(x, (tuple, list)):
+        return type(x) is type(y) and len(x) == len(y) and all(_same(a, b) for a, b in zip(x, y))
+    if isinstance(x, dict):
+        return isinstance(y, dict) and x.keys() == y.keys() and all(_same(x[k], y[k]) for k in x)
+    return type(x) is type(y) and x == y or (isinstance(x, float) and isinstance(y, float) and x == y)
+
+
+def _roundtrip(buf: Buffer, src: int = 9) -> Buffer:
+    return unpack_buffer(wire.decode(wire.encode(pack_buffer(buf, src, 0))), maxlen=10_000)
+
+
+def test_pack_roundtrip_uniform_samples_with_reset_none_actions_is_exact_and_small():
+    b = Buffer(maxlen=10_000)
+    for i in range(1000):
+        b.append_sample(_sample(i, act=None if i % 100 == 0 else "arr"))
+    b.source_id = 9
+    b.stat_test_return = 3.5
+    data = wire.encode(pack_buffer(b, 9, 0))
+    assert len(data) / 1000 < 40  # a per-sample encoding costs ~96 B here
+    out = unpack_buffer(wire.decode(data), maxlen=10_000)
+    assert len(out) == 1000 and out.sources == [9] * 1000
+    assert all(_same(s, r) for s, r in zip(b.memory, out.memory))
+    assert out.stats == {9: {"stat_test_return": 3.5}}
+
+
+def test_pack_roundtrip_mixed_structures_falls_back_exactly():
+    b = Buffer(maxlen=100)
+    samples = [
+        (None, (np.zeros((2, 2), np.uint8), [1.0, 2]), np.float32(1.5), True, False, {"a": "x", "crc": (None, 1)}),
+        (np.array([1.0]), (np.ones((2, 2), np.uint8), [3.0, 4]), np.float32(2.5), False, True, {"a": "y", "crc": (np.zeros(2), 2)}),
+        (np.array([2.0]), (np.ones((3, 2), np.uint8), [5.0]), 7, False, False, {"b": 1}),
+    ]
+    for s in samples:
+        b.append_sample(s)
+    out = _roundtrip(b)
+    assert all(_same(s, r) for s, r in zip(samples, out.memory)), out.memory
+
+
+def test_pack_roundtrip_non_tuple_samples_and_empty_buffer():
+    b = Buffer(maxlen=10)
+    b.append_sample([1, 2, 3])
+    assert _roundtrip(b).memory == [[1, 2, 3]]
+    assert len(_roundtrip(Buffer(maxlen=10))) == 0
+
+
+@pytest.mark.parametrize("payload", [
+    None, {"kind": "samples"}, {"kind": "samples", "v": 1, "n": 2, "src": 1, "cols": [("R", [1])] * 6},
+    {"kind": "samples", "v": 1, "n": 1, "src": 1, "cols": [("?", 1)] * 6},
+    {"kind": "samples", "v": 1, "n": 1, "src": 1, "cols": [("A", np.zeros(3))] * 6},
+    {"kind": "samples", "v": 99, "n": 0, "src": 1, "cols": []},
+])
+def test_unpack_rejects_malformed_payloads_with_payload_error(payload):
+    with pytest.raises(PayloadError):
+        unpack_buffer(payload, maxlen=10)
+
+
+# ------------------------------------------------------------------------------------------------
+# spaces
+
+
+def test_check_spaces_names_both_sides():
+    box3 = gymnasium.spaces.Box(-1, 1, (3,), np.float32)
+    box4 = gymnasium.spaces.Box(-1, 1, (4,), np.float32)
+    act = gymnasium.spaces.Box(-1, 1, (1,), np.float32)
+    check_spaces(describe_spaces(box3, act), describe_spaces(box3, act))
+    with pytest.raises(SpacesMismatchError) as err:
+        check_spaces(describe_spaces(box3, act), describe_spaces(box4, act))
+    msg = str(err.value)
+    assert "(4,)" in msg and "(3,)" in msg and "observation" in msg and "\n" not in msg
+    tup = gymnasium.spaces.Tuple((box3, gymnasium.spaces.Discrete(2)))
+    d = describe_spaces(tup, act)
+    assert wire.decode(wire.encode(d)) == d
+
+
+# ------------------------------------------------------------------------------------------------
+# standalone worker
+
+
+def test_standalone_worker_collects_samples_with_reset_action_none_and_truncation(tmp_path):
+    w = make_worker(tmp_path, max_samples_per_episode=5)
+    assert not w.connected
+    w.collect_train_episode()
+    mem = w.buffer.memory
+    assert len(mem) == 6  # reset sample + 5 steps
+    assert mem[0][0] is None and mem[0][2] == 0.0 and mem[0][3] is False and mem[0][4] is False
+    assert [s[5]["seq"] for s in mem] == list(range(6))
+    assert mem[-1][4] is True and not any(s[4] for s in mem[:-1])  # cut at max_samples_per_episode
+    assert w.buffer.stat_train_steps == 5
+    w.send_and_clear_buffer()  # standalone: nothing to send to, no error
+    assert len(w.buffer) == 0
+    assert w.update_actor_weights() == 0 and w.ignore_actor_weights() == 0
+    w.run_episodes(max_samples_per_episode=3, nb_episodes=2)
+    assert w.buffer.stat_test_steps == 3 and len(w.buffer) == 0
+
+
+def test_standalone_worker_terminated_episode_is_not_truncated_and_default_action_used(tmp_path):
+    class RTEnv(CountingEnv):
+        default_action = np.array([0.25], np.float32)
+
+    w = RolloutWorker(env_cls=lambda: RTEnv(episode_length=3), actor_module_cls=JsonActor, standalone=True,
+                      model_path=str(tmp_path / "m.json"), model_history=0, max_samples_per_episode=3)
+    w.collect_train_episode()
+    mem = w.buffer.memory
+    assert np.array_equal(mem[0][0], RTEnv.default_action)
+    assert mem[-1][3] is True and mem[-1][4] is False
+
+
+def test_worker_crc_debug_stores_full_transition_before_compression(tmp_path):
+    seen = []
+
+    def compressor(act, obs, rew, terminated, truncated, info):
+        seen.append(info["crc_sample"])
+        return act, obs[:1], rew, terminated, truncated, info
+
+    w = make_worker(tmp_path, max_samples_per_episode=2, crc_debug=True, sample_compressor=compressor)
+    w.collect_train_episode()
+    assert seen[0][0] is None  # reset: no previous observation
+    prev_obs, act, new_obs, rew, term, trunc = seen[1]
+    assert prev_obs[0] == 0 and new_obs[0] == 1 and new_obs.shape == (3,)
+    assert w.buffer.memory[1][1].shape == (1,)  # compressed sample, full transition in info
+    assert seen[2][5] is True  # the cut is visible in the stored transition
+
+
+def test_worker_loads_existing_model_file_at_start(tmp_path):
+    path = tmp_path / "pre.json"
+    path.write_text(json.dumps({"bias": 0.75}))
+    w = RolloutWorker(env_cls=CountingEnv, actor_module_cls=JsonActor, standalone=True, model_path=str(path),
+                      model_history=0)
+    assert w.act(np.zeros(3, np.float32))[0] == pytest.approx(0.75)
+
+
+def test_worker_refuses_unsendable_sample_with_user_error(tmp_path, monkeypatch):
+    w = make_worker(tmp_path, max_samples_per_episode=1)
+
+    class FakeLink:
+        connected = True
+
+        def send_samples(self, obj):
+            wire.encode(obj)
+
+    w._link = FakeLink()
+    w.buffer.append_sample((None, object(), 0.0, False, False, {}))
+    with pytest.raises(UserError, match="sample_compressor"):
+        w.send_and_clear_buffer()
+
+
+def test_run_env_benchmark_rejects_bad_steps_and_envs_without_benchmarks(tmp_path):
+    w = make_worker(tmp_path)
+    with pytest.raises(UserError):
+        w.run_env_benchmark(math.inf)
+    with pytest.raises(UserError, match="benchmark"):
+        w.run_env_benchmark(3)

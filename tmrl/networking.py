@@ -1,0 +1,1233 @@
+"""The distributed pipeline: :class:`Server`, :class:`RolloutWorker`, :class:`Trainer` and their
+:class:`Buffer` of samples.
+
+Workers collect samples and send them to the trainer through the server; the trainer trains and
+broadcasts its actor's weights back to every worker. Everything crosses the network through
+:mod:`tmrl.transport` (tlspyo underneath) as data only (:mod:`tmrl.wire`): never pickle.
+
+Two payloads travel:
+
+- **Samples** (worker -> trainer): a :class:`Buffer` packed column by column
+  (:func:`pack_buffer`): samples that share a structure become a few stacked NumPy arrays, which is
+  both smaller on the wire and much faster to encode than one small object per sample. Each
+  payload carries the worker's random source id, a sequence number and the worker's episode
+  statistics.
+- **Weights** (trainer -> workers): the bytes of the file written by ``actor.save``, with a short
+  description of the actor's observation and action spaces, so that a worker built for another
+  environment fails with a clear error instead of loading nonsense.
+
+Nothing here reads the configuration at import: defaults that come from ``config.json`` are
+resolved when an object is built.
+"""
+
+from __future__ import annotations
+
+import datetime
+import itertools
+import logging
+import math
+import os
+import secrets
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+from tmrl.errors import UserError
+
+__all__ = [
+    "Buffer",
+    "Server",
+    "RolloutWorker",
+    "Trainer",
+    "TrainerInterface",
+    "pack_buffer",
+    "unpack_buffer",
+    "describe_spaces",
+    "SpacesMismatchError",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Version of the sample and weight payloads (inside the wire format's own versioning).
+PAYLOAD_VERSION = 1
+
+
+class _FromConfig:
+    """Default of an argument whose ``None`` has a meaning of its own (for example
+    ``checkpoint_path=None``: no checkpoint); the real default is read from the config."""
+
+    def __repr__(self) -> str:
+        return "<from config>"
+
+
+FROM_CONFIG: Any = _FromConfig()
+
+
+def _cfg(name: str, value: Any, fallback: Any = None) -> Any:
+    """``value`` unless it is ``None``/``FROM_CONFIG``; otherwise ``config_constants.<name>``.
+
+    The config module is imported here, at construction time, never at import of this module.
+    ``fallback`` is used when the config module does not define ``name``.
+    """
+    if value is not None and value is not FROM_CONFIG:
+        return value
+    from tmrl.config import config_constants as cc
+
+    return getattr(cc, name, fallback)
+
+
+def _cfg_keep_none(name: str, value: Any, fallback: Any = None) -> Any:
+    """Like :func:`_cfg`, but an explicit ``None`` is kept (only ``FROM_CONFIG`` reads config)."""
+    if value is not FROM_CONFIG:
+        return value
+    from tmrl.config import config_constants as cc
+
+    return getattr(cc, name, fallback)
+
+
+# ================================================================================================
+# Buffer
+
+
+_STAT_NAMES = ("stat_train_return", "stat_test_return", "stat_train_steps", "stat_test_steps")
+
+
+class Buffer:
+    """Samples on their way from a worker to the trainer, with episode statistics.
+
+    A sample is ``(act, new_obs, rew, terminated, truncated, info)`` (see docs/internals.md).
+
+    Attributes:
+        memory: the list of samples, oldest first.
+        sources: ``None`` or a list as long as ``memory``: the integer source id of the worker that
+            produced each sample. The trainer fills it when it merges buffers from several workers.
+        maxlen: the most samples kept; beyond it the oldest are dropped and counted in ``dropped``.
+        stats: per source id (``None`` for the local worker), the latest ``stat_*`` values it
+            reported. ``stat_train_return``, ``stat_test_return``, ``stat_train_steps`` and
+            ``stat_test_steps`` read the mean over sources of their latest value (0 when none
+            reported), so that merging a buffer from one worker does not overwrite another's.
+            Setting one of them records it for this buffer's ``source_id``.
+        source_id: the id under which values set on this buffer are recorded (``None`` locally).
+
+    Args:
+        maxlen: capacity in samples; ``None`` reads ``BUFFERS_MAXLEN`` from the config.
+    """
+
+    def __init__(self, maxlen: int | None = None):
+        self.maxlen = int(_cfg("BUFFERS_MAXLEN", maxlen, 500_000))
+        if self.maxlen <= 0:
+            raise UserError(f"Buffer maxlen must be positive, got {self.maxlen}: set BUFFERS_MAXLEN > 0")
+        self.memory: list[Any] = []
+        self.sources: list[int] | None = None
+        self.stats: dict[int | None, dict[str, float]] = {}
+        self.source_id: int | None = None
+        self.dropped = 0
+
+    # --- statistics, kept per source -------------------------------------------------------------
+
+    def _get_stat(self, name: str) -> float:
+        values = [d[name] for d in self.stats.values() if name in d]
+        if not values:
+            return 0 if name.endswith("steps") else 0.0
+        mean = sum(values) / len(values)
+        return int(round(mean)) if name.endswith("steps") else float(mean)
+
+    def _set_stat(self, name: str, value: float) -> None:
+        self.stats.setdefault(self.source_id, {})[name] = value
+
+    stat_train_return = property(
+        lambda self: self._get_stat("stat_train_return"),
+        lambda self, v: self._set_stat("stat_train_return", float(v)),
+        doc="Return of the latest train episode (mean over sources).",
+    )
+    stat_test_return = property(
+        lambda self: self._get_stat("stat_test_return"),
+        lambda self, v: self._set_stat("stat_test_return", float(v)),
+        doc="Return of the latest test episode (mean over sources).",
+    )
+    stat_train_steps = property(
+        lambda self: self._get_stat("stat_train_steps"),
+        lambda self, v: self._set_stat("stat_train_steps", int(v)),
+        doc="Length of the latest train episode (mean over sources).",
+    )
+    stat_test_steps = property(
+        lambda self: self._get_stat("stat_test_steps"),
+        lambda self, v: self._set_stat("stat_test_steps", int(v)),
+        doc="Length of the latest test episode (mean over sources).",
+    )
+
+    # --- samples ---------------------------------------------------------------------------------
+
+    def clip_to_maxlen(self) -> None:
+        """Drop the oldest samples beyond ``maxlen`` (counted in ``dropped``, logged)."""
+        excess = len(self.memory) - self.maxlen
+        if excess > 0:
+            del self.memory[:excess]
+            if self.sources is not None:
+                del self.sources[:excess]
+            self.dropped += excess
+            logger.warning("buffer full (%d samples): dropped the %d oldest, %d so far",
+                           self.maxlen, excess, self.dropped)
+
+    def append_sample(self, sample: Any) -> None:
+        """Append one sample ``(act, new_obs, rew, terminated, truncated, info)``."""
+        self.memory.append(sample)
+        if self.sources is not None:
+            self.sources.append(-1 if self.source_id is None else self.source_id)
+        if len(self.memory) > self.maxlen:
+            self.clip_to_maxlen()
+
+    def clear(self) -> None:
+        """Remove every sample; the statistics are kept."""
+        self.memory = []
+        self.sources = None
+
+    def __len__(self) -> int:
+        return len(self.memory)
+
+    def _sources_or_default(self) -> list[int] | None:
+        if self.sources is not None:
+            return self.sources
+        if self.source_id is not None:
+            return [self.source_id] * len(self.memory)
+        return None
+
+    def __iadd__(self, other: "Buffer") -> "Buffer":
+        mine = self._sources_or_default()
+        theirs = other._sources_or_default()
+        if mine is not None or theirs is not None:
+            mine = list(mine) if mine is not None else [-1] * len(self.memory)
+            theirs = theirs if theirs is not None else [-1] * len(other.memory)
+            self.sources = mine + list(theirs)
+        self.memory += other.memory
+        for key, values in other.stats.items():
+            self.stats.setdefault(key, {}).update(values)
+        self.dropped += other.dropped
+        if len(self.memory) > self.maxlen:
+            self.clip_to_maxlen()
+        return self
+
+    def __repr__(self) -> str:
+        return f"Buffer({len(self.memory)} samples, maxlen={self.maxlen}, sources={len(self.stats)})"
+
+
+# ================================================================================================
+# Column packing of samples for the wire
+
+
+class PayloadError(UserError, ValueError):
+    """A received payload does not have the structure tmrl sends (corrupt or foreign)."""
+
+
+def _all_type(values: Sequence[Any], types: tuple[type, ...]) -> bool:
+    return all(type(v) in types for v in values)
+
+
+def _pack_column(values: Sequence[Any], depth: int = 0) -> tuple:
+    """Pack a list of values into a tagged, wire-friendly column (see :func:`_unpack_column`)."""
+    n = len(values)
+    if n == 0 or depth > 20:
+        return ("R", list(values))
+    first = values[0]
+    t = type(first)
+    if t is np.ndarray:
+        if first.ndim >= 1 and first.dtype.kind in "biufc":
+            dt, shape = first.dtype, first.shape
+            if all(type(v) is np.ndarray and v.dtype == dt and v.shape == shape for v in values):
+                return ("A", np.stack(values))
+        return ("R", list(values))
+    if t is bool or t is np.bool_:
+        if _all_type(values, (bool, np.bool_)):
+            return ("B", np.fromiter(values, dtype=np.bool_, count=n))
+        return ("R", list(values))
+    if t is float or t is np.float64:
+        if _all_type(values, (float, np.float64)):
+            return ("F", np.fromiter(values, dtype=np.float64, count=n))
+        return ("R", list(values))
+    if t is np.float32:
+        if _all_type(values, (np.float32,)):
+            return ("f", np.fromiter(values, dtype=np.float32, count=n))
+        return ("R", list(values))
+    if t is int:
+        if _all_type(values, (int,)) and all(-(2**63) <= v < 2**63 for v in values):
+            return ("I", np.fromiter(values, dtype=np.int64, count=n))
+        return ("R", list(values))
+    if first is None or any(v is None for v in values):
+        mask = np.fromiter((v is None for v in values), dtype=np.bool_, count=n)
+        if mask.all():
+            return ("0",)
+        rest = [v for v in values if v is not None]
+        return ("N", mask, _pack_column(rest, depth + 1))
+    if t is tuple or t is list:
+        length = len(first)
+        if all(type(v) is t and len(v) == length for v in values):
+            subs = [_pack_column([v[i] for v in values], depth + 1) for i in range(length)]
+            return ("T" if t is tuple else "L", subs)
+        return ("R", list(values))
+    if t is dict:
+        keys = tuple(first.keys())
+        if all(type(k) is str for k in keys) and all(
+            type(v) is dict and len(v) == len(keys) and tuple(v.keys()) == keys for v in values
+        ):
+            subs = [_pack_column([v[k] for v in values], depth + 1) for k in keys]
+            return ("D", list(keys), subs)
+        return ("R", list(values))
+    return ("R", list(values))
+
+
+def _unpack_column(col: Any, n: int, depth: int = 0) -> list[Any]:
+    """Inverse of :func:`_pack_column`; raises :class:`PayloadError` on a malformed column."""
+    if depth > 22 or not isinstance(col, tuple) or not col or not isinstance(col[0], str):
+        raise PayloadError("malformed sample column in a received payload")
+    tag = col[0]
+    if tag == "R":
+        out = col[1] if len(col) == 2 and isinstance(col[1], list) else None
+    elif tag == "A":
+        arr = col[1] if len(col) == 2 else None
+        out = list(arr) if isinstance(arr, np.ndarray) and arr.ndim >= 2 else None
+    elif tag in "BFfI":
+        arr = col[1] if len(col) == 2 else None
+        if not isinstance(arr, np.ndarray) or arr.ndim != 1:
+            out = None
+        elif tag == "f":
+            out = list(arr)
+        else:
+            out = arr.tolist()
+    elif tag == "0":
+        out = [None] * n
+    elif tag == "N":
+        if len(col) != 3 or not isinstance(col[1], np.ndarray) or col[1].dtype != np.bool_ or len(col[1]) != n:
+            raise PayloadError("malformed None mask in a received payload")
+        mask = col[1]
+        rest = iter(_unpack_column(col[2], int(n - mask.sum()), depth + 1))
+        out = [None if m else next(rest) for m in mask.tolist()]
+    elif tag in ("T", "L"):
+        if len(col) != 2 or not isinstance(col[1], list):
+            raise PayloadError("malformed tuple column in a received payload")
+        subs = [_unpack_column(c, n, depth + 1) for c in col[1]]
+        if not subs:
+            out = [() if tag == "T" else [] for _ in range(n)]
+        elif tag == "T":
+            out = list(zip(*subs))
+        else:
+            out = [list(x) for x in zip(*subs)]
+    elif tag == "D":
+        if len(col) != 3 or not isinstance(col[1], list) or not isinstance(col[2], list) or len(col[1]) != len(col[2]):
+            raise PayloadError("malformed dict column in a received payload")
+        keys = col[1]
+        subs = [_unpack_column(c, n, depth + 1) for c in col[2]]
+        out = [dict(zip(keys, vals)) for vals in zip(*subs)] if keys else [{} for _ in range(n)]
+    else:
+        raise PayloadError(f"unknown column tag {tag!r} in a received payload")
+    if out is None or len(out) != n:
+        raise PayloadError("sample column of the wrong length in a received payload")
+    return out
+
+
+def pack_buffer(buffer: Buffer, source_id: int, seq: int) -> dict[str, Any]:
+    """Describe ``buffer`` as a data-only dict for :mod:`tmrl.wire`, column by column.
+
+    Args:
+        buffer: the samples and statistics to send.
+        source_id: the sending worker's id.
+        seq: the sending worker's payload counter (lets the trainer count lost payloads).
+
+    Raises:
+        UserError: a sample holds something the wire cannot carry (named in the message).
+    """
+    memory = buffer.memory
+    n = len(memory)
+    if n and all(type(s) is tuple and len(s) == 6 for s in memory):
+        cols: Any = [_pack_column(c) for c in zip(*memory)]
+    else:
+        cols = ("R", list(memory))
+    own = buffer.stats.get(buffer.source_id, {})
+    return {"v": PAYLOAD_VERSION, "kind": "samples", "src": int(source_id), "seq": int(seq),
+            "n": n, "cols": cols, "stats": dict(own)}
+
+
+def unpack_buffer(payload: Any, maxlen: int | None = None) -> Buffer:
+    """Rebuild the :class:`Buffer` sent by :func:`pack_buffer`; ``sources`` is filled with the
+    sender's id and its statistics are recorded under that id.
+
+    Raises:
+        PayloadError: the payload does not have the structure :func:`pack_buffer` produces.
+    """
+    if not isinstance(payload, dict) or payload.get("kind") != "samples":
+        raise PayloadError("received an object that is not a tmrl sample payload")
+    if payload.get("v") != PAYLOAD_VERSION:
+        raise PayloadError(f"sample payload version {payload.get('v')!r} is not {PAYLOAD_VERSION}: "
+                           "run the same tmrl version on workers and trainer")
+    n, src, cols = payload.get("n"), payload.get("src"), payload.get("cols")
+    if type(n) is not int or n < 0 or type(src) is not int:
+        raise PayloadError("malformed sample payload header")
+    if isinstance(cols, list):
+        if len(cols) != 6:
+            raise PayloadError("sample payload does not have 6 columns")
+        columns = [_unpack_column(c, n) for c in cols]
+        memory = list(zip(*columns)) if n else []
+    else:
+        memory = _unpack_column(cols, n)
+    buf = Buffer(maxlen=max(maxlen or 0, n, 1))
+    buf.memory = memory
+    buf.sources = [src] * n
+    stats = payload.get("stats")
+    if isinstance(stats, dict):
+        clean = {k: v for k, v in stats.items() if k in _STAT_NAMES and isinstance(v, (int, float))}
+        if clean:
+            buf.stats[src] = clean
+    return buf
+
+
+# ================================================================================================
+# Spaces description (sent with the weights)
+
+
+class SpacesMismatchError(UserError):
+    """The worker's observation or action space differs from the trainer's."""
+
+
+def _describe_space(space: Any) -> Any:
+    name = type(space).__name__
+    if hasattr(space, "spaces") and isinstance(space.spaces, (tuple, list)):
+        return {"type": name, "spaces": [_describe_space(s) for s in space.spaces]}
+    if hasattr(space, "spaces") and isinstance(space.spaces, dict):
+        return {"type": name, "keys": [str(k) for k in space.spaces],
+                "spaces": [_describe_space(s) for s in space.spaces.values()]}
+    out: dict[str, Any] = {"type": name}
+    shape = getattr(space, "shape", None)
+    if shape is not None:
+        out["shape"] = [int(x) for x in shape]
+    dtype = getattr(space, "dtype", None)
+    if dtype is not None:
+        out["dtype"] = str(np.dtype(dtype))
+    n = getattr(space, "n", None)
+    if n is not None and np.ndim(n) == 0:
+        out["n"] = int(n)
+    return out
+
+
+def describe_spaces(observation_space: Any, action_space: Any) -> dict[str, Any]:
+    """A small data-only description (types, shapes, dtypes) of an actor's spaces."""
+    return {"observation": _describe_space(observation_space), "action": _describe_space(action_space)}
+
+
+def _space_str(d: Any) -> str:
+    if not isinstance(d, dict):
+        return repr(d)
+    if "spaces" in d:
+        inner = ", ".join(_space_str(s) for s in d["spaces"])
+        return f"{d.get('type')}({inner})"
+    parts = [f"shape={tuple(d['shape'])}" if "shape" in d else "", d.get("dtype", ""),
+             f"n={d['n']}" if "n" in d else ""]
+    return f"{d.get('type')}({', '.join(p for p in parts if p)})"
+
+
+def check_spaces(mine: dict[str, Any], theirs: Any) -> None:
+    """Raise :class:`SpacesMismatchError` naming both sides when the descriptions differ."""
+    if not isinstance(theirs, dict):
+        return
+    for key in ("observation", "action"):
+        if key in theirs and theirs[key] != mine[key]:
+            raise SpacesMismatchError(
+                f"the trainer's {key} space is {_space_str(theirs[key])} but this worker's is "
+                f"{_space_str(mine[key])}: run the worker and the trainer with the same environment "
+                f"(and the same config.json)"
+            )
+
+
+# ================================================================================================
+# Server
+
+
+class Server:
+    """The central relay: one :class:`Trainer` and up to ``max_workers`` :class:`RolloutWorker`
+    connect to it. It forwards samples to the trainer and the trainer's weights to every worker
+    (the latest weights also to workers that connect later).
+
+    The relay runs in a child process from construction until :meth:`stop` or the end of this
+    process: a ``Server`` that is not kept in a variable keeps running.
+
+    Args:
+        port: public port (``PORT`` in the config when ``None``).
+        password: shared password (``PASSWORD``).
+        local_port: accepted for compatibility with tmrl 0.7, unused.
+        header_size: tlspyo header size in bytes (``HEADER_SIZE``); the same on every process.
+        security: ``"TLS"`` or ``None`` for plain TCP (``SECURITY`` by default).
+        keys_dir: folder holding ``key.pem`` and ``certificate.pem`` (``CREDENTIALS_DIRECTORY``).
+        max_workers: most workers at once; ``None`` or negative for no limit (``NB_WORKERS``).
+
+    Raises:
+        UserError: the port cannot be bound, TLS credentials are missing, or plain TCP is refused.
+    """
+
+    _alive: list["Server"] = []  # why: keeps every Server reachable until stop() (see docstring)
+
+    def __init__(
+        self,
+        port: int | None = None,
+        password: str | None = None,
+        local_port: int | None = None,
+        header_size: int | None = None,
+        security: str | None = FROM_CONFIG,
+        keys_dir: str | os.PathLike[str] | None = None,
+        max_workers: int | None = FROM_CONFIG,
+    ):
+        from tmrl.transport import RelayServer
+
+        port = int(_cfg("PORT", port, 55555))
+        password = _cfg("PASSWORD", password, "")
+        header_size = int(_cfg("HEADER_SIZE", header_size, 10))
+        security = _cfg_keep_none("SECURITY", security, "TLS")
+        keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
+        max_workers = _cfg_keep_none("NB_WORKERS", max_workers, None)
+        if max_workers is not None and int(max_workers) < 0:
+            max_workers = None
+        self.port = port
+        self._relay = RelayServer(
+            port=port, password=password, local_port=local_port, header_size=header_size,
+            security=security, keys_dir=str(keys_dir) if keys_dir is not None else None,
+            max_workers=max_workers, allow_plain_tcp=bool(_cfg("ALLOW_PLAIN_TCP", None, False)),
+        )
+        Server._alive.append(self)
+        logger.info("server listening on port %d (%s)", port, "TLS" if security else "plain TCP")
+
+    @property
+    def running(self) -> bool:
+        """Whether the relay process is running."""
+        return bool(self._relay.running)
+
+    def stop(self) -> None:
+        """Stop the relay (idempotent)."""
+        self._relay.stop()
+        if self in Server._alive:
+            Server._alive.remove(self)
+
+    def __enter__(self) -> "Server":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+
+# ================================================================================================
+# Trainer side
+
+
+class TrainerInterface:
+    """The trainer's side of the network, as ``TrainingOffline.run_epoch`` sees it:
+    :meth:`retrieve_buffer` and :meth:`broadcast_model`.
+
+    Statistics are kept per worker across calls: the buffer returned by :meth:`retrieve_buffer`
+    reports, for each worker, the latest episode statistics it ever sent.
+    """
+
+    def __init__(
+        self,
+        server_ip: str | None = None,
+        server_port: int | None = None,
+        password: str | None = None,
+        local_com_port: int | None = None,
+        header_size: int | None = None,
+        max_buf_len: int | None = None,
+        security: str | None = FROM_CONFIG,
+        keys_dir: str | os.PathLike[str] | None = None,
+        hostname: str | None = None,
+        model_path: str | os.PathLike[str] | None = None,
+    ):
+        from tmrl.transport import TrainerLink
+
+        self.model_path = Path(_cfg("MODEL_PATH_TRAINER", model_path, "model_trainer.tmod"))
+        self.server_ip = _cfg("SERVER_IP_FOR_TRAINER", server_ip, "127.0.0.1")
+        self.maxlen = int(_cfg("BUFFERS_MAXLEN", None, 500_000))
+        security = _cfg_keep_none("SECURITY", security, "TLS")
+        keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
+        self._link = TrainerLink(
+            self.server_ip, int(_cfg("PORT", server_port, 55555)), _cfg("PASSWORD", password, ""),
+            local_port=local_com_port, header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
+            security=security, keys_dir=str(keys_dir) if keys_dir is not None else None,
+            hostname=_cfg("HOSTNAME", hostname, "default"),
+            allow_plain_tcp=bool(_cfg("ALLOW_PLAIN_TCP", None, False)),
+        )
+        self._stats: dict[int | None, dict[str, float]] = {}
+        self._last_seq: dict[int, int] = {}
+        self.lost_payloads = 0
+        self.rejected_payloads = 0
+        self.received_samples = 0
+        self.weights_version = 0
+        self._last_weights: bytes | None = None
+        self._was_connected = False
+        logger.info("trainer connecting to the server at %s", self.server_ip)
+
+    @property
+    def connected(self) -> bool:
+        return bool(self._link.connected)
+
+    def wait_connected(self, timeout: float | None = None) -> bool:
+        return bool(self._link.wait_connected(timeout))
+
+    def _rebroadcast_on_reconnect(self) -> None:
+        # why: a restarted server has lost the latest weights; workers that (re)connect to it
+        # would otherwise wait for the next training step, which may itself wait for samples.
+        connected = self._link.connected
+        if connected and not self._was_connected and self._last_weights is not None:
+            self._link.broadcast_weights(self._last_weights)
+        self._was_connected = connected
+
+    def retrieve_buffer(self) -> Buffer:
+        """Every sample received since the last call (possibly none), never blocking.
+
+        ``sources`` gives each sample's worker id; malformed payloads are logged and dropped.
+        """
+        self._rebroadcast_on_reconnect()
+        res = Buffer(maxlen=self.maxlen)
+        res.sources = []
+        for payload in self._link.receive_samples():
+            try:
+                buf = unpack_buffer(payload, maxlen=self.maxlen)
+            except PayloadError as err:
+                self.rejected_payloads += 1
+                logger.warning("dropped a payload from the server: %s", err)
+                continue
+            src, seq = payload["src"], payload.get("seq")
+            if isinstance(seq, int):
+                last = self._last_seq.get(src)
+                if last is not None and seq > last + 1:
+                    self.lost_payloads += seq - last - 1
+                    logger.warning("worker %d: %d sample payloads never arrived (%d in total)",
+                                   src, seq - last - 1, self.lost_payloads)
+                self._last_seq[src] = seq
+            for key, values in buf.stats.items():
+                self._stats.setdefault(key, {}).update(values)
+            res += buf
+        self.received_samples += len(res)
+        res.stats = {k: dict(v) for k, v in self._stats.items()}
+        return res
+
+    def broadcast_model(self, model: Any) -> None:
+        """Send ``model``'s weights (an ``ActorModule``) to every worker.
+
+        The actor saves itself to a temporary file next to ``model_path``, which then replaces
+        ``model_path`` (the trainer keeps a local copy) and whose bytes are broadcast.
+        """
+        from tmrl import wire
+
+        self.model_path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.model_path.name}.", suffix=".tmp", dir=self.model_path.parent)
+        os.close(fd)
+        try:
+            model.save(tmp)
+            data = Path(tmp).read_bytes()
+            os.replace(tmp, self.model_path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        obs_space = getattr(model, "observation_space", None)
+        act_space = getattr(model, "action_space", None)
+        spaces = describe_spaces(obs_space, act_space) if obs_space is not None and act_space is not None else None
+        self.weights_version += 1
+        envelope = wire.encode({"v": PAYLOAD_VERSION, "kind": "weights", "version": self.weights_version,
+                                "spaces": spaces, "actor": data})
+        self._last_weights = envelope
+        self._link.broadcast_weights(envelope)
+
+    def close(self) -> None:
+        """Disconnect (idempotent)."""
+        self._link.close()
+
+
+def _default_dump(run_instance: Any, path: str) -> None:
+    from tmrl.checkpoint import save_checkpoint
+
+    save_checkpoint(run_instance, path)
+
+
+def _default_load(path: str) -> Any:
+    from tmrl.checkpoint import load_checkpoint
+
+    return load_checkpoint(path)
+
+
+class Trainer:
+    """Where training happens: runs ``training_cls`` epoch after epoch, feeding it the samples of
+    every worker and broadcasting its actor's weights, with a checkpoint after each epoch.
+
+    Args:
+        training_cls: a callable (usually a ``partial`` of ``TorchTrainingOffline``) building the
+            training instance; ``None`` uses ``config_objects.TRAINER``.
+        server_ip: the server's address (``SERVER_IP_FOR_TRAINER``).
+        server_port: the server's port (``PORT``).
+        password: the server's password (``PASSWORD``).
+        local_com_port: accepted for compatibility with tmrl 0.7, unused.
+        header_size: tlspyo header size (``HEADER_SIZE``).
+        max_buf_len: accepted for compatibility with tmrl 0.7, unused (the transport bounds memory).
+        security: ``"TLS"`` or ``None`` (``SECURITY``).
+        keys_dir: credentials folder (``CREDENTIALS_DIRECTORY``).
+        hostname: TLS hostname of the server certificate (``HOSTNAME``).
+        model_path: where the trainer keeps a copy of the latest weights (``MODEL_PATH_TRAINER``).
+        checkpoint_path: checkpoint file, written after every epoch and resumed from at start;
+            ``None`` for no checkpoint (by default ``CHECKPOINT_PATH``).
+        dump_run_instance_fn: ``fn(run_instance, path)`` writing a checkpoint
+            (default: :func:`tmrl.checkpoint.save_checkpoint`).
+        load_run_instance_fn: ``fn(path) -> run_instance`` (default: :func:`tmrl.checkpoint.load_checkpoint`).
+        updater_fn: ``fn(run_instance, training_cls) -> run_instance`` applied after loading a
+            checkpoint, for example to change hyperparameters of a resumed run.
+    """
+
+    def __init__(
+        self,
+        training_cls: Callable[[], Any] | None = None,
+        server_ip: str | None = None,
+        server_port: int | None = None,
+        password: str | None = None,
+        local_com_port: int | None = None,
+        header_size: int | None = None,
+        max_buf_len: int | None = None,
+        security: str | None = FROM_CONFIG,
+        keys_dir: str | os.PathLike[str] | None = None,
+        hostname: str | None = None,
+        model_path: str | os.PathLike[str] | None = None,
+        checkpoint_path: str | os.PathLike[str] | None = FROM_CONFIG,
+        dump_run_instance_fn: Callable[[Any, str], None] | None = None,
+        load_run_instance_fn: Callable[[str], Any] | None = None,
+        updater_fn: Callable[[Any, Any], Any] | None = None,
+    ):
+        if training_cls is None:
+            from tmrl.config import config_objects
+
+            training_cls = config_objects.TRAINER
+        self.training_cls = training_cls
+        cp = _cfg_keep_none("CHECKPOINT_PATH", checkpoint_path, None)
+        self.checkpoint_path = str(cp) if cp is not None else None
+        self.dump_run_instance_fn = dump_run_instance_fn or _default_dump
+        self.load_run_instance_fn = load_run_instance_fn or _default_load
+        self.updater_fn = updater_fn
+        self.run_instance: Any = None
+        self.interface = TrainerInterface(
+            server_ip=server_ip, server_port=server_port, password=password, local_com_port=local_com_port,
+            header_size=header_size, max_buf_len=max_buf_len, security=security, keys_dir=keys_dir,
+            hostname=hostname, model_path=model_path,
+        )
+
+    def _load_or_create(self) -> Any:
+        path = self.checkpoint_path
+        if path is not None and os.path.exists(path):
+            t0 = time.perf_counter()
+            run_instance = self.load_run_instance_fn(path)
+            logger.info("resumed from checkpoint %s (epoch %s) in %.1f s", path,
+                        getattr(run_instance, "epoch", "?"), time.perf_counter() - t0)
+            if self.updater_fn is not None:
+                run_instance = self.updater_fn(run_instance, self.training_cls)
+            # why: workers that (re)connect must get the resumed weights without waiting for
+            # the next training step (which may itself wait for their samples).
+            agent = getattr(run_instance, "agent", None)
+            if agent is not None and hasattr(agent, "get_actor"):
+                try:
+                    self.interface.broadcast_model(agent.get_actor())
+                except Exception:  # noqa: BLE001 (a user actor that cannot save yet is not fatal here)
+                    logger.exception("could not broadcast the resumed actor")
+        else:
+            run_instance = self.training_cls()
+            if path is not None:
+                self.dump_run_instance_fn(run_instance, path)
+        return run_instance
+
+    def _iterate_epochs(self) -> Iterable[Any]:
+        run_instance = self._load_or_create()
+        self.run_instance = run_instance
+        while run_instance.epoch < run_instance.epochs:
+            stats = run_instance.run_epoch(interface=self.interface)
+            if self.checkpoint_path is not None:
+                t0 = time.perf_counter()
+                self.dump_run_instance_fn(run_instance, self.checkpoint_path)
+                logger.info("checkpoint saved in %.2f s", time.perf_counter() - t0)
+            yield stats
+
+    def run(self) -> None:
+        """Train until ``training_cls``'s number of epochs is reached; the network link is
+        closed at the end (also on Ctrl-C, which propagates as ``KeyboardInterrupt``)."""
+        try:
+            for _ in self._iterate_epochs():
+                pass
+        finally:
+            self.interface.close()
+
+    def run_with_wandb(self, entity: str | None = None, project: str | None = None,
+                       run_id: str | None = None, key: str | None = None) -> None:
+        """Like :meth:`run`, logging every epoch's statistics to Weights & Biases.
+
+        Args:
+            entity, project, run_id: wandb identifiers (``WANDB_ENTITY``, ``WANDB_PROJECT``,
+                ``WANDB_RUN_ID`` from the config when ``None``).
+            key: wandb API key (``WANDB_KEY``); set as ``WANDB_API_KEY`` for this process.
+
+        Raises:
+            UserError: wandb is not installed.
+        """
+        try:
+            import wandb
+        except ImportError as err:
+            raise UserError('wandb is not installed: pip install "tmrl[wandb]"') from err
+        from tmrl.util import partial_to_dict
+
+        entity = _cfg("WANDB_ENTITY", entity, None)
+        project = _cfg("WANDB_PROJECT", project, "tmrl")
+        run_id = _cfg("WANDB_RUN_ID", run_id, None)
+        key = _cfg("WANDB_KEY", key, None)
+        if key:
+            os.environ["WANDB_API_KEY"] = key
+        try:
+            config = partial_to_dict(self.training_cls)
+        except (ValueError, TypeError):
+            config = {}
+        resume = self.checkpoint_path is not None and os.path.exists(self.checkpoint_path)
+        wandb_dir = tempfile.mkdtemp(prefix="tmrl-wandb-")
+        wandb.init(dir=wandb_dir, entity=entity, project=project, id=run_id,
+                   resume="allow" if resume else None, config=config)
+        try:
+            for stats in self._iterate_epochs():
+                for entry in stats if isinstance(stats, list) else [stats]:
+                    if entry is None:
+                        continue
+                    wandb.log({k: v for k, v in dict(entry).items() if isinstance(v, (int, float))})
+        finally:
+            self.interface.close()
+            wandb.finish()
+
+
+# ================================================================================================
+# Rollout worker
+
+
+class RolloutWorker:
+    """Runs the current policy in an environment; sends the samples to the server and loads the
+    weights the trainer broadcasts. In standalone mode (``standalone=True``) it connects to
+    nothing, for deployment and tests.
+
+    Args:
+        env_cls: callable building the Gymnasium environment (e.g. ``partial(GenericGymEnv, id=...)``).
+        actor_module_cls: callable ``(observation_space=, action_space=)`` building the
+            ``ActorModule``.
+        sample_compressor: ``fn(prev_act, obs, rew, terminated, truncated, info)`` returning the
+            same 6 values, smaller (the memory decompresses); ``None`` sends samples as they are.
+        device: device of the policy (``"cpu"``, ``"cuda"``).
+        max_samples_per_episode: episodes are cut (``truncated=True``) after this many steps.
+        model_path: where the worker keeps its copy of the latest weights (``MODEL_PATH_WORKER``);
+            loaded at start when it exists.
+        obs_preprocessor: ``fn(obs) -> obs`` applied to every observation from the environment.
+        crc_debug: store the full transition ``(prev_obs, act, new_obs, rew, terminated,
+            truncated)`` in ``info["crc_sample"]`` before compression, for the memory to check its
+            rebuilt transitions against (debugging custom pipelines only).
+        model_path_history: prefix of the files of the saved history of weights
+            (``MODEL_PATH_SAVE_HISTORY``).
+        model_history: save every ``model_history``-th received model (``0`` or negative: never;
+            ``MODEL_HISTORY``).
+        standalone: do not connect to a server.
+        server_ip, server_port, password: the server (``SERVER_IP_FOR_WORKER``, ``PORT``, ``PASSWORD``).
+        local_port, max_buf_len: accepted for compatibility with tmrl 0.7, unused.
+        header_size: tlspyo header size (``HEADER_SIZE``).
+        security, keys_dir, hostname: TLS settings (``SECURITY``, ``CREDENTIALS_DIRECTORY``, ``HOSTNAME``).
+
+    Raises:
+        UserError: bad connection settings (see :mod:`tmrl.transport`).
+    """
+
+    def __init__(
+        self,
+        env_cls: Callable[[], Any],
+        actor_module_cls: Callable[..., Any],
+        sample_compressor: Callable[..., tuple] | None = None,
+        device: str = "cpu",
+        max_samples_per_episode: float = math.inf,
+        model_path: str | os.PathLike[str] | None = None,
+        obs_preprocessor: Callable[[Any], Any] | None = None,
+        crc_debug: bool = False,
+        model_path_history: str | os.PathLike[str] | None = None,
+        model_history: int | None = None,
+        standalone: bool = False,
+        server_ip: str | None = None,
+        server_port: int | None = None,
+        password: str | None = None,
+        local_port: int | None = None,
+        header_size: int | None = None,
+        max_buf_len: int | None = None,
+        security: str | None = FROM_CONFIG,
+        keys_dir: str | os.PathLike[str] | None = None,
+        hostname: str | None = None,
+    ):
+        self.obs_preprocessor = obs_preprocessor
+        self.get_local_buffer_sample = sample_compressor
+        self.env = env_cls()
+        obs_space = self.env.observation_space
+        act_space = self.env.action_space
+        self.spaces = describe_spaces(obs_space, act_space)
+        self.model_path = Path(_cfg("MODEL_PATH_WORKER", model_path, "model_worker.tmod"))
+        self.model_path_history = str(_cfg("MODEL_PATH_SAVE_HISTORY", model_path_history, "model_history_"))
+        self.model_history = int(_cfg("MODEL_HISTORY", model_history, 0))
+        self.device = device
+        self.actor = actor_module_cls(observation_space=obs_space, action_space=act_space).to_device(device)
+        if self.model_path.is_file():
+            logger.debug("loading weights from %s", self.model_path)
+            self.actor = self.actor.load(str(self.model_path), device=device)
+        self.standalone = standalone
+        self.max_samples_per_episode = max_samples_per_episode
+        self.crc_debug = crc_debug
+        self.source_id = secrets.randbelow(2**31 - 1) + 1
+        self.buffer = Buffer()
+        self.buffer.source_id = self.source_id
+        self._seq = 0
+        self._cur_hist_cpt = 0
+        self.weights_version = 0
+        self.debug_ts_cpt = 0
+        self.debug_ts_res_cpt = 0
+        self.server_ip = _cfg("SERVER_IP_FOR_WORKER", server_ip, "127.0.0.1")
+        self._link: Any = None
+        if not standalone:
+            from tmrl.transport import WorkerLink
+
+            security = _cfg_keep_none("SECURITY", security, "TLS")
+            keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
+            self._link = WorkerLink(
+                self.server_ip, int(_cfg("PORT", server_port, 55555)), _cfg("PASSWORD", password, ""),
+                local_port=local_port, header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
+                security=security, keys_dir=str(keys_dir) if keys_dir is not None else None,
+                hostname=_cfg("HOSTNAME", hostname, "default"),
+                allow_plain_tcp=bool(_cfg("ALLOW_PLAIN_TCP", None, False)),
+            )
+            logger.info("worker %d connecting to the server at %s", self.source_id, self.server_ip)
+
+    # --- connection ------------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        """Whether the worker is connected to the server (``False`` in standalone mode)."""
+        return self._link is not None and bool(self._link.connected)
+
+    def wait_connected(self, timeout: float | None = None) -> bool:
+        """Wait until connected to the server; ``False`` on timeout or in standalone mode."""
+        return self._link is not None and bool(self._link.wait_connected(timeout))
+
+    def close(self) -> None:
+        """Send what was handed to the network, then disconnect (idempotent)."""
+        if self._link is not None:
+            self._link.close()
+
+    def __enter__(self) -> "RolloutWorker":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # --- stepping --------------------------------------------------------------------------------
+
+    def act(self, obs: Any, test: bool = False) -> Any:
+        """The actor's action for ``obs`` (``test=True``: deterministic)."""
+        return self.actor.act_(obs, test=test)
+
+    def _record(self, act: Any, new_obs: Any, rew: float, terminated: bool, truncated: bool, info: dict) -> None:
+        if self.get_local_buffer_sample is not None:
+            sample = self.get_local_buffer_sample(act, new_obs, rew, terminated, truncated, info)
+        else:
+            sample = (act, new_obs, rew, terminated, truncated, info)
+        self.buffer.append_sample(sample)
+
+    def reset(self, collect_samples: bool) -> tuple[Any, dict]:
+        """Start an episode; when ``collect_samples``, record its first sample, whose action is
+        the environment's ``default_action`` (real-time environments) or ``None``.
+
+        Returns:
+            ``(obs, info)`` after the ``obs_preprocessor``.
+        """
+        act = getattr(self.env.unwrapped, "default_action", None)
+        new_obs, info = self.env.reset()
+        if self.obs_preprocessor is not None:
+            new_obs = self.obs_preprocessor(new_obs)
+        if collect_samples:
+            if self.crc_debug:
+                self.debug_ts_cpt += 1
+                self.debug_ts_res_cpt = 0
+                info["crc_sample"] = (None, act, new_obs, 0.0, False, False)
+                info["crc_sample_ts"] = (self.debug_ts_cpt, self.debug_ts_res_cpt)
+            self._record(act, new_obs, 0.0, False, False, info)
+        return new_obs, info
+
+    def step(self, obs: Any, test: bool, collect_samples: bool, last_step: bool = False) -> tuple:
+        """One transition: act on ``obs``, step the environment, record the sample.
+
+        Args:
+            obs: the previous observation.
+            test: passed to the actor (deterministic action).
+            collect_samples: record the sample for the trainer.
+            last_step: the episode is cut after this step: ``truncated`` is set unless ``terminated``.
+
+        Returns:
+            ``(new_obs, rew, terminated, truncated, info)``.
+        """
+        act = self.act(obs, test=test)
+        new_obs, rew, terminated, truncated, info = self.env.step(act)
+        if self.obs_preprocessor is not None:
+            new_obs = self.obs_preprocessor(new_obs)
+        if last_step and not terminated:
+            truncated = True
+        if collect_samples:
+            if self.crc_debug:
+                self.debug_ts_cpt += 1
+                self.debug_ts_res_cpt += 1
+                info["crc_sample"] = (obs, act, new_obs, rew, terminated, truncated)
+                info["crc_sample_ts"] = (self.debug_ts_cpt, self.debug_ts_res_cpt)
+            self._record(act, new_obs, rew, terminated, truncated, info)
+        return new_obs, rew, terminated, truncated, info
+
+    @staticmethod
+    def _steps(max_samples: float) -> Iterable[int]:
+        return itertools.count() if max_samples == math.inf else range(int(max_samples))
+
+    def collect_train_episode(self, max_samples: float | None = None) -> None:
+        """Run one train episode of at most ``max_samples`` steps into the buffer (cut episodes
+        end with ``truncated=True``) and record its return and length."""
+        max_samples = self.max_samples_per_episode if max_samples is None else max_samples
+        ret, steps = 0.0, 0
+        obs, _ = self.reset(collect_samples=True)
+        for i in self._steps(max_samples):
+            obs, rew, terminated, truncated, _ = self.step(obs, test=False, collect_samples=True,
+                                                           last_step=i == max_samples - 1)
+            ret += rew
+            steps += 1
+            if terminated or truncated:
+                break
+        self.buffer.stat_train_return = ret
+        self.buffer.stat_train_steps = steps
+
+    def run_episode(self, max_samples: float | None = None, train: bool = False) -> float:
+        """Run one episode without recording samples (a test episode unless ``train``); record
+        its return and length as test statistics. Returns the episode's return."""
+        max_samples = self.max_samples_per_episode if max_samples is None else max_samples
+        ret, steps = 0.0, 0
+        obs, _ = self.reset(collect_samples=False)
+        for _ in self._steps(max_samples):
+            obs, rew, terminated, truncated, _ = self.step(obs, test=not train, collect_samples=False)
+            ret += rew
+            steps += 1
+            if terminated or truncated:
+                break
+        self.buffer.stat_test_return = ret
+        self.buffer.stat_test_steps = steps
+        return ret
+
+    def run_episodes(self, max_samples_per_episode: float | None = None, nb_episodes: float = math.inf,
+                     train: bool = False) -> None:
+        """Run ``nb_episodes`` episodes with :meth:`run_episode` (deployment)."""
+        for _ in self._steps(nb_episodes):
+            self.run_episode(max_samples_per_episode, train=train)
+
+    def run(self, test_episode_interval: int = 0, nb_episodes: float = math.inf, verbose: bool = True,
+            expert: bool = False) -> None:
+        """Collect train episodes, sending each to the server and loading new weights between
+        episodes.
+
+        Args:
+            test_episode_interval: run a test episode before every ``test_episode_interval``-th
+                train episode (0: never; never in CRC debug mode).
+            nb_episodes: number of train episodes.
+            verbose: log each phase at INFO level.
+            expert: send samples but never load weights nor run test episodes.
+        """
+        log = logger.info if verbose else logger.debug
+        for episode in self._steps(nb_episodes):
+            if (not expert and test_episode_interval and episode % test_episode_interval == 0
+                    and not self.crc_debug):
+                log("running a test episode")
+                self.run_episode(self.max_samples_per_episode, train=False)
+            log("collecting a %s episode", "expert" if expert else "train")
+            self.collect_train_episode(self.max_samples_per_episode)
+            self.send_and_clear_buffer()
+            if expert:
+                self.ignore_actor_weights()
+            else:
+                self.update_actor_weights(verbose=verbose)
+
+    def run_synchronous(self, test_episode_interval: int = 0, nb_steps: float = math.inf,
+                        initial_steps: int = 1, max_steps_per_update: float = math.inf,
+                        end_episodes: bool = True, verbose: bool = False) -> None:
+        """Collect ``nb_steps`` steps while keeping pace with the trainer: at most
+        ``max_steps_per_update`` environment steps per model received (for environments that can
+        be stepped as fast as wanted).
+
+        Args:
+            test_episode_interval: a test episode every ``test_episode_interval`` train episodes
+                (0: never; needs ``end_episodes``).
+            nb_steps: steps to collect after the initial ones.
+            initial_steps: steps collected before waiting for the first model.
+            max_steps_per_update: most environment steps per received model (may be fractional).
+            end_episodes: only pause (send and wait for a model) between episodes.
+            verbose: log at INFO level.
+        """
+        log = logger.info if verbose else logger.debug
+        max_len = self.max_samples_per_episode
+
+        def one_step(obs: Any, steps: int) -> tuple:
+            return self.step(obs, test=False, collect_samples=True, last_step=steps == max_len - 1)
+
+        # initial samples, whole episodes unless end_episodes is False
+        iteration, done = 0, False
+        obs: Any = None
+        while iteration < initial_steps:
+            obs, _ = self.reset(collect_samples=True)
+            done, steps, ret = False, 0, 0.0
+            iteration += 1
+            while not done and (end_episodes or iteration < initial_steps):
+                obs, rew, terminated, truncated, _ = one_step(obs, steps)
+                iteration += 1
+                steps += 1
+                ret += rew
+                done = terminated or truncated
+            self.buffer.stat_train_return = ret
+            self.buffer.stat_train_steps = steps
+            log("sending %d initial samples", len(self.buffer))
+            self.send_and_clear_buffer()
+
+        models = 1
+        ratio = (iteration + 1) / models
+        while ratio > max_steps_per_update:
+            self.send_and_clear_buffer()
+            models += self.update_actor_weights(verbose=verbose, blocking=True)
+            ratio = (iteration + 1) / models
+
+        iteration, episode, steps, ret = 0, 0, 0, 0.0
+        while iteration < nb_steps:
+            if done:
+                if test_episode_interval > 0 and episode % test_episode_interval == 0 and end_episodes:
+                    log("running a test episode")
+                    self.run_episode(self.max_samples_per_episode, train=False)
+                obs, _ = self.reset(collect_samples=True)
+                done, steps, ret = False, 0, 0.0
+                iteration += 1
+                episode += 1
+            while not done and (end_episodes or ratio <= max_steps_per_update):
+                obs, rew, terminated, truncated, _ = one_step(obs, steps)
+                iteration += 1
+                steps += 1
+                ret += rew
+                done = terminated or truncated
+                if not end_episodes:
+                    ratio = (iteration + 1) / models
+                    while ratio > max_steps_per_update:
+                        if not done:
+                            self.send_and_clear_buffer()
+                        models += self.update_actor_weights(verbose=verbose, blocking=True)
+                        ratio = (iteration + 1) / models
+            if end_episodes:
+                ratio = (iteration + 1) / models
+                while ratio > max_steps_per_update:
+                    if not done:
+                        self.send_and_clear_buffer()
+                    models += self.update_actor_weights(verbose=verbose, blocking=True)
+                    ratio = (iteration + 1) / models
+            if done:
+                self.buffer.stat_train_return = ret
+                self.buffer.stat_train_steps = steps
+            self.send_and_clear_buffer()
+
+    def run_env_benchmark(self, nb_steps: int, test: bool = False, verbose: bool = True) -> Any:
+        """Step the environment ``nb_steps`` times (one episode at most) and return its
+        ``benchmarks()`` (rtgym-style environments created with ``"benchmark": True``).
+
+        Raises:
+            UserError: ``nb_steps`` is not a positive finite number, or the environment has no
+                ``benchmarks()`` method.
+        """
+        if not isinstance(nb_steps, int) or nb_steps <= 0:
+            raise UserError(f"run_env_benchmark needs a positive integer number of steps, got {nb_steps!r}")
+        obs, _ = self.reset(collect_samples=False)
+        for _ in range(nb_steps):
+            obs, _, terminated, truncated, _ = self.step(obs, test=test, collect_samples=False)
+            if terminated or truncated:
+                break
+        bench = getattr(self.env.unwrapped, "benchmarks", None)
+        if bench is None:
+            raise UserError("this environment has no benchmarks(): benchmarks need a real-time "
+                            "environment created with \"benchmark\": true in its config")
+        res = bench()
+        if verbose:
+            logger.info("benchmark results: %s", res)
+        return res
+
+    # --- network ---------------------------------------------------------------------------------
+
+    def send_and_clear_buffer(self) -> None:
+        """Hand the buffered samples to the network and clear the buffer.
+
+        While the server is unreachable the transport keeps them (bounded) and sends them on
+        reconnection. In standalone mode the samples are simply dropped.
+        """
+        if self._link is None:
+            self.buffer.clear()
+            return
+        try:
+            payload = pack_buffer(self.buffer, self.source_id, self._seq)
+            self._link.send_samples(payload)
+        except TypeError as err:
+            raise UserError(
+                f"a sample holds something that cannot be sent ({err}): keep observations, actions "
+                "and info values to numbers, strings, bytes, NumPy arrays and containers of those "
+                "(drop the rest in a sample_compressor)"
+            ) from err
+        self._seq += 1
+        self.buffer.clear()
+
+    def _load_weights(self, envelope: bytes, verbose: bool) -> None:
+        from tmrl import wire
+
+        msg = wire.decode(envelope)
+        if not isinstance(msg, dict) or msg.get("kind") != "weights" or not isinstance(msg.get("actor"), bytes):
+            raise PayloadError("received weights in an unknown format: run the same tmrl version everywhere")
+        check_spaces(self.spaces, msg.get("spaces"))
+        data = msg["actor"]
+        from tmrl.util import atomic_write_bytes
+
+        atomic_write_bytes(self.model_path, data)
+        if self.model_history > 0:
+            self._cur_hist_cpt += 1
+            if self._cur_hist_cpt >= self.model_history:
+                self._cur_hist_cpt = 0
+                stamp = datetime.datetime.now().strftime("%d_%m_%Y_%H_%M_%S")
+                atomic_write_bytes(f"{self.model_path_history}{stamp}_{self.weights_version + 1}.tmod", data)
+                if verbose:
+                    logger.info("weights saved in the history")
+        self.actor = self.actor.load(str(self.model_path), device=self.device)
+        self.weights_version = int(msg.get("version", self.weights_version + 1))
+        if verbose:
+            logger.info("weights updated (version %d)", self.weights_version)
+
+    def update_actor_weights(self, verbose: bool = True, blocking: bool = False) -> int:
+        """Load the newest weights broadcast by the trainer, if any arrived.
+
+        Args:
+            verbose: log at INFO level.
+            blocking: wait until weights arrive.
+
+        Returns:
+            The number of models loaded (0 or 1: only the newest broadcast matters).
+
+        Raises:
+            SpacesMismatchError: the trainer's actor has other observation or action spaces.
+        """
+        if self._link is None:
+            return 0
+        while True:
+            envelope = self._link.latest_weights(block=blocking, timeout=1.0 if blocking else None)
+            if envelope is not None or not blocking:
+                break
+        if envelope is None:
+            return 0
+        self._load_weights(envelope, verbose)
+        return 1
+
+    def ignore_actor_weights(self) -> int:
+        """Discard weights received from the trainer (expert workers). Returns how many were discarded."""
+        if self._link is None:
+            return 0
+        return 0 if self._link.latest_weights(block=False) is None else 1
