@@ -1,0 +1,338 @@
+"""``python -m tmrl``: the command line.
+
+One command per run (``--server``, ``--trainer``, ``--worker``, ...), plus ``-d/--config`` to
+override ``config.json`` for that run. This module only parses arguments, prepares the data folder
+and the configuration, and hands over to the module that does the work:
+
+==========================  ===============================================================
+flag                        calls
+==========================  ===============================================================
+``--server``                ``tmrl.roles.run_server(cfg)``
+``--trainer [--wandb]``     ``tmrl.roles.run_trainer(cfg, wandb=...)``
+``--worker``                ``tmrl.roles.run_worker(cfg, "train")``
+``--expert``                ``tmrl.roles.run_worker(cfg, "expert")``
+``--test``                  ``tmrl.roles.run_worker(cfg, "test")``
+``--benchmark``             ``tmrl.roles.run_benchmark(cfg)``
+``--demo [ARGS...]``        ``tmrl.sim.demo.main(argv)`` (the arguments after ``--demo``)
+``--check-environment``     ``tmrl.tools.check_environment(cfg)``
+``--record-reward``         ``tmrl.tools.record_reward(cfg, use_keyboard=...)``
+``--doctor``                ``tmrl.tools.doctor(cfg)``
+``--install``               :func:`tmrl.config.loader.install`, then
+                            ``tmrl.transport.ensure_credentials(directory)`` when it exists
+==========================  ===============================================================
+
+A hook may return an ``int`` exit code (``None`` means 0). The override given with ``-d`` is
+validated, then stored as JSON in ``$TMRL_CONFIG_OVERRIDE`` so that
+:func:`tmrl.config.loader.load_config` applies it in this process and in every child process.
+
+Exit codes: 0 success, 2 a user mistake (:class:`tmrl.errors.UserError`, one line on stderr, no
+traceback) or a command that has not landed yet, 1 a bug (traceback and a request to report it),
+130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import sys
+import traceback
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from tmrl.errors import UserError
+
+__all__ = ["main", "build_parser", "HOOKS"]
+
+logger = logging.getLogger(__name__)
+
+ISSUES_HINT = (
+    "This is a bug in tmrl, not a mistake of yours. Please report it on the project's issue tracker, "
+    "with the traceback above and the command you ran."
+)
+
+#: command -> (module, function) it dispatches to.
+HOOKS: dict[str, tuple[str, str]] = {
+    "server": ("tmrl.roles", "run_server"),
+    "trainer": ("tmrl.roles", "run_trainer"),
+    "worker": ("tmrl.roles", "run_worker"),
+    "expert": ("tmrl.roles", "run_worker"),
+    "test": ("tmrl.roles", "run_worker"),
+    "benchmark": ("tmrl.roles", "run_benchmark"),
+    "demo": ("tmrl.sim.demo", "main"),
+    "check_environment": ("tmrl.tools", "check_environment"),
+    "record_reward": ("tmrl.tools", "record_reward"),
+    "doctor": ("tmrl.tools", "doctor"),
+}
+
+_SECRET_KEYS = ("PASSWORD", "WANDB_KEY")
+
+_DESCRIPTION = """\
+tmrl: distributed real-time reinforcement learning (TrackMania, a simulated track, any Gymnasium
+environment). A run has three parts that can live on different machines: a server that relays
+samples and weights, a trainer, and one or more workers that collect samples.
+
+Configuration: config.json in the data folder ($TMRL_DATA, or ~/TmrlData when unset). Commands that
+need the folder create it; --install creates it and says where everything is.
+"""
+
+_EPILOG = """\
+examples:
+  python -m tmrl --install                 create the data folder and config.json (random PASSWORD)
+  python -m tmrl --demo                    train on the built-in simulator, all parts on this machine
+  python -m tmrl --server                  then, in two other terminals: --trainer and --worker
+  python -m tmrl --trainer -d '{"ALG": {"ALGORITHM": "REDQSAC"}}'
+  python -m tmrl --print-config -d "{'CUDA_TRAINING': True}"
+
+exit codes: 0 success, 1 a bug in tmrl (please report it), 2 a mistake in the command or the
+configuration (one line says what to change), 130 interrupted.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m tmrl`` (exactly one command per run)."""
+    parser = argparse.ArgumentParser(
+        prog="python -m tmrl",
+        description=_DESCRIPTION,
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    commands = parser.add_argument_group("commands (choose one)")
+    group = commands.add_mutually_exclusive_group()
+    add = group.add_argument
+    add("--server", action="store_const", const="server", dest="command",
+        help="run the server: relays samples from the workers to the trainer and weights back")
+    add("--trainer", action="store_const", const="trainer", dest="command",
+        help="run the trainer: learns from the samples and broadcasts the weights; checkpoints "
+             "after each epoch (resumes unless RESET_TRAINING is true)")
+    add("--worker", action="store_const", const="worker", dest="command",
+        help="run a rollout worker: acts in the environment with the latest weights, sends samples")
+    add("--expert", action="store_const", const="expert", dest="command",
+        help="run a worker that keeps its current model (ignores weight updates) and sends samples; "
+             "useful to collect samples from an expert policy")
+    add("--test", action="store_const", const="test", dest="command",
+        help="run the policy in the environment without training or a server (no samples sent)")
+    add("--benchmark", action="store_const", const="benchmark", dest="command",
+        help="measure the environment's real-time step durations (sets RTGYM_CONFIG.benchmark)")
+    add("--demo", action="store_const", const="demo", dest="command",
+        help="train on the built-in simulated track with server, trainer and worker on this machine; "
+             "arguments after --demo go to the demo (see --demo --help)")
+    add("--record-reward", action="store_const", const="record_reward", dest="command",
+        help="record a reward trajectory in TrackMania: start at the start line, cross the finish")
+    add("--check-environment", action="store_const", const="check_environment", dest="command",
+        help="show what the agent sees (images or lidar) and the rewards, to check the setup")
+    add("--install", action="store_const", const="install", dest="command",
+        help="create the data folder, config.json (random PASSWORD, never overwritten) and TLS "
+             "credentials, and print where they are")
+    add("--doctor", action="store_const", const="doctor", dest="command",
+        help="check this machine (packages, GPU, data folder, config, ports) and say what to fix")
+    add("--print-config", action="store_const", const="print_config", dest="command",
+        help="print the effective configuration (config.json with defaults and --config applied; "
+             "secrets hidden) and exit")
+    add("--version", action="store_const", const="version", dest="command", help="print the version")
+
+    options = parser.add_argument_group("run options")
+    options.add_argument("-d", "--config", metavar="DICT", action="append", default=[],
+                         help="override config.json for this run with a JSON or Python dict, e.g. "
+                              "'{\"ALG\": {\"LR_ACTOR\": 0.0001}}'; merged key by key and validated like "
+                              "the file; may be repeated; child processes inherit it")
+    options.add_argument("--wandb", action="store_true",
+                         help="with --trainer: log metrics to Weights & Biases (WANDB_* keys of config.json; "
+                              "needs pip install \"tmrl[wandb]\")")
+    options.add_argument("--use-keyboard", action="store_true",
+                         help="with --record-reward: drive with the keyboard instead of a gamepad")
+    options.add_argument("-v", "--verbose", action="store_true", help="show debug messages")
+    options.add_argument("-q", "--quiet", action="store_true", help="show only warnings and errors")
+    return parser
+
+
+def _configure_logging(verbose: bool, quiet: bool) -> None:
+    level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                        datefmt="%H:%M:%S", stream=sys.stderr)
+
+
+class _NotLanded(UserError):
+    """The module behind a command is not part of this version yet."""
+
+
+def _resolve_hook(command: str, flag: str) -> Callable[..., Any]:
+    module_name, func_name = HOOKS[command]
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as e:
+        missing = e.name or ""
+        if missing.startswith("tmrl") and (module_name == missing or module_name.startswith(missing + ".")):
+            raise _NotLanded(f"{flag} is not available yet in this version of tmrl ({module_name} is missing)") \
+                from None
+        raise
+    func = getattr(module, func_name, None)
+    if not callable(func):
+        raise _NotLanded(f"{flag} is not available yet in this version of tmrl ({module_name}.{func_name} is missing)")
+    return func
+
+
+def _flag(command: str) -> str:
+    return "--" + command.replace("_", "-")
+
+
+def _hidden(cfg: dict[str, Any]) -> dict[str, Any]:
+    out = dict(cfg)
+    for key in _SECRET_KEYS:
+        if key in out:
+            out[key] = "<hidden>"
+    return out
+
+
+def _install() -> int:
+    from tmrl.config import loader
+
+    report = loader.install()
+    error: UserError | None = None
+    try:
+        cfg: dict[str, Any] | None = loader.load_config()
+    except UserError as e:
+        # Still say where everything is: the fix is usually an edit of that config.json.
+        error, cfg = e, None
+    paths = loader.data_paths(cfg, report.paths.root)
+    credentials_note = "not generated: tmrl.transport.ensure_credentials is not available yet"
+    try:
+        transport = importlib.import_module("tmrl.transport")
+    except ModuleNotFoundError as e:
+        if not (e.name or "").startswith("tmrl"):
+            raise
+        transport = None
+    ensure = getattr(transport, "ensure_credentials", None) if transport is not None else None
+    if callable(ensure) and cfg is not None:
+        ensure(paths.credentials)
+        credentials_note = "ready (existing files are kept)"
+    state = "created, with a fresh random PASSWORD" if report.created_config else "kept as it was"
+    lines = [
+        f"tmrl data folder: {paths.root}",
+        f"  config        {paths.config_file}  ({state})",
+        f"  weights       {paths.weights}",
+        f"  checkpoints   {paths.checkpoints}",
+        f"  dataset       {paths.dataset}",
+        f"  reward        {paths.reward}",
+        f"  credentials   {paths.credentials}  (TLS: {credentials_note})",
+        f"  logs          {paths.logs}",
+        "Edit config.json to configure runs (reference: docs/config.md); copy the same PASSWORD to",
+        "every machine of a run. Set TMRL_DATA to use another folder.",
+    ]
+    print("\n".join(lines))
+    if error is not None:
+        raise error
+    return 0
+
+
+def _run(args: argparse.Namespace, extra: list[str]) -> int:
+    from tmrl.config import loader
+
+    command = args.command
+    if command == "version":
+        import tmrl
+
+        print(f"tmrl {tmrl.__version__}")
+        return 0
+    for text in args.config:
+        loader.set_override_env(text, source="--config")
+    if command == "install":
+        return _install()
+    if command == "print_config":
+        print(json.dumps(_hidden(loader.load_config()), indent=2))
+        return 0
+
+    flag = _flag(command)
+    hook = _resolve_hook(command, flag)
+    if command == "demo":
+        result = hook(list(extra))
+        return int(result or 0)
+    if command == "doctor":
+        # The doctor reports on the data folder and config.json; it must not create them.
+        try:
+            cfg = loader.load_config()
+        except UserError as e:
+            logger.warning("%s", e)
+            cfg = None
+        return int(hook(cfg) or 0)
+
+    if command == "benchmark":
+        # Through the override, so that modules reading config_constants see it too.
+        loader.set_override_env({"ENV": {"RTGYM_CONFIG": {"benchmark": True}}}, source="--benchmark")
+    loader.ensure_data_folder()
+    cfg = loader.load_config()
+    if command == "trainer":
+        result = hook(cfg, wandb=args.wandb)
+    elif command in ("worker", "expert", "test"):
+        result = hook(cfg, {"worker": "train", "expert": "expert", "test": "test"}[command])
+    elif command == "record_reward":
+        result = hook(cfg, use_keyboard=args.use_keyboard)
+    else:
+        result = hook(cfg)
+    return int(result or 0)
+
+
+def _check_combinations(parser: argparse.ArgumentParser, args: argparse.Namespace, extra: list[str]) -> None:
+    if args.command is None:
+        parser.error("choose a command, e.g. --demo, --install or --server (see --help)")
+    if extra and args.command != "demo":
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    if args.wandb and args.command != "trainer":
+        parser.error("--wandb goes with --trainer")
+    if args.use_keyboard and args.command != "record_reward":
+        parser.error("--use-keyboard goes with --record-reward")
+    if args.verbose and args.quiet:
+        parser.error("choose one of --verbose and --quiet")
+
+
+def _split_demo_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    """Arguments after ``--demo`` belong to the demo's own parser, except ``-d/--config`` (with
+    its value), which stays ours so that ``--demo -d '{...}'`` overrides the config as anywhere."""
+    if "--demo" not in argv:
+        return argv, []
+    i = argv.index("--demo")
+    ours, tail = argv[: i + 1], argv[i + 1:]
+    extra: list[str] = []
+    j = 0
+    while j < len(tail):
+        token = tail[j]
+        if token in ("-d", "--config") and j + 1 < len(tail):
+            ours += [token, tail[j + 1]]
+            j += 2
+            continue
+        if token.startswith("--config="):
+            ours.append(token)
+        else:
+            extra.append(token)
+        j += 1
+    return ours, extra
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``python -m tmrl`` with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    argv, extra = _split_demo_args(argv)
+    args = parser.parse_args(argv)
+    _check_combinations(parser, args, extra)
+    _configure_logging(args.verbose, args.quiet)
+    try:
+        return _run(args, extra)
+    except UserError as e:
+        message = " ".join(str(e).split()) or type(e).__name__
+        print(f"tmrl: error: {message}", file=sys.stderr)
+        return getattr(e, "exit_code", 2) or 2
+    except KeyboardInterrupt:
+        print("tmrl: interrupted", file=sys.stderr)
+        return 130
+    except SystemExit:
+        raise
+    except BaseException:
+        traceback.print_exc()
+        print(ISSUES_HINT, file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,408 @@
+"""Locate the data folder, create it on request, and load a validated ``config.json``.
+
+The data folder is ``$TMRL_DATA`` when that variable is set, else ``~/TmrlData``::
+
+    config/config.json   the configuration (created with a fresh random PASSWORD)
+    weights/             model weights (worker and trainer copies)
+    checkpoints/         training checkpoints
+    dataset/             recorded samples
+    reward/              recorded reward trajectories
+    credentials/         TLS key and certificate
+    logs/                log and metrics files
+
+Only :func:`ensure_data_folder` and :func:`install` write anything, and they never overwrite an
+existing ``config.json``. :func:`load_config` reads the file (or the defaults when the file does not
+exist yet), applies the overrides, and raises a one-line :class:`ConfigError` for any mistake.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import logging
+import os
+import secrets
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from tmrl.config import schema
+from tmrl.config.schema import ConfigError, SchemaViolation
+
+__all__ = [
+    "ConfigError",
+    "DATA_ENV",
+    "OVERRIDE_ENV",
+    "LAYOUT",
+    "DataPaths",
+    "InstallReport",
+    "data_folder",
+    "config_path",
+    "data_paths",
+    "default_config",
+    "ensure_data_folder",
+    "install",
+    "load_config",
+    "validate",
+    "parse_override",
+    "apply_override",
+    "deep_merge",
+    "set_override_env",
+    "dumps",
+]
+
+logger = logging.getLogger(__name__)
+
+DATA_ENV = "TMRL_DATA"
+"""Environment variable naming the data folder (default ``~/TmrlData``)."""
+
+OVERRIDE_ENV = "TMRL_CONFIG_OVERRIDE"
+"""Environment variable holding a JSON override that :func:`load_config` applies; the CLI sets it
+from ``-d/--config`` so that child processes see the same configuration."""
+
+LAYOUT = ("config", "weights", "checkpoints", "dataset", "reward", "credentials", "logs")
+"""Sub-folders of the data folder."""
+
+
+def data_folder() -> Path:
+    """The data folder: ``$TMRL_DATA`` if set (``~`` expanded, made absolute), else ``~/TmrlData``.
+    Creates nothing."""
+    env = os.environ.get(DATA_ENV, "").strip()
+    if env:
+        return Path(env).expanduser().absolute()
+    return Path.home() / "TmrlData"
+
+
+def config_path(folder: str | os.PathLike[str] | None = None) -> Path:
+    """Path of ``config.json`` in ``folder`` (default: :func:`data_folder`). Creates nothing."""
+    root = Path(folder) if folder is not None else data_folder()
+    return root / "config" / "config.json"
+
+
+@dataclass(frozen=True)
+class DataPaths:
+    """Where a run's files live. Every attribute is a :class:`~pathlib.Path`; nothing is created.
+
+    Attributes:
+        root: the data folder.
+        config_file: ``config/config.json``.
+        weights, checkpoints, dataset, reward, credentials, logs: the sub-folders (``credentials``
+            is ``TLS_CREDENTIALS_DIRECTORY`` when that key is not empty).
+        model_worker: ``weights/<RUN_NAME>.tmod``, the weights a worker loads.
+        model_trainer: ``weights/<RUN_NAME>_t.tmod``, the weights the trainer writes.
+        model_history_prefix: ``weights/<RUN_NAME>_``; a worker keeping a model history appends
+            a counter and ``.tmod``.
+        checkpoint: ``checkpoints/<RUN_NAME>_t.tcpt``.
+        reward_file: ``reward/reward.npy``, the recorded reward trajectory.
+    """
+
+    root: Path
+    config_file: Path
+    weights: Path
+    checkpoints: Path
+    dataset: Path
+    reward: Path
+    credentials: Path
+    logs: Path
+    model_worker: Path
+    model_trainer: Path
+    model_history_prefix: Path
+    checkpoint: Path
+    reward_file: Path
+
+
+def data_paths(cfg: Mapping[str, Any] | None = None, folder: str | os.PathLike[str] | None = None) -> DataPaths:
+    """The paths of a run, from ``cfg`` (``RUN_NAME`` and ``TLS_CREDENTIALS_DIRECTORY``; the
+    defaults when ``cfg`` is None) under ``folder`` (default :func:`data_folder`). Creates nothing."""
+    root = Path(folder) if folder is not None else data_folder()
+    run = cfg["RUN_NAME"] if cfg is not None else schema.SCHEMA.fields["RUN_NAME"].default
+    cred_dir = (cfg or {}).get("TLS_CREDENTIALS_DIRECTORY", "") or ""
+    weights = root / "weights"
+    checkpoints = root / "checkpoints"
+    reward = root / "reward"
+    return DataPaths(
+        root=root,
+        config_file=config_path(root),
+        weights=weights,
+        checkpoints=checkpoints,
+        dataset=root / "dataset",
+        reward=reward,
+        credentials=Path(cred_dir).expanduser() if cred_dir.strip() else root / "credentials",
+        logs=root / "logs",
+        model_worker=weights / f"{run}.tmod",
+        model_trainer=weights / f"{run}_t.tmod",
+        model_history_prefix=weights / f"{run}_",
+        checkpoint=checkpoints / f"{run}_t.tcpt",
+        reward_file=reward / "reward.npy",
+    )
+
+
+def default_config() -> dict[str, Any]:
+    """Every key at its default (the shipped ``config/config.json``, placeholder password)."""
+    return schema.defaults()
+
+
+def dumps(cfg: Mapping[str, Any]) -> str:
+    """``cfg`` as the indented JSON text used for ``config.json`` (ends with a newline)."""
+    return json.dumps(cfg, indent=2) + "\n"
+
+
+def _create_exclusive(path: Path, text: str) -> bool:
+    """Write ``text`` to ``path`` only if ``path`` does not exist, atomically: the content goes to
+    a temporary file that is then hard-linked into place, which fails instead of replacing a file
+    another process created meanwhile. Returns True if this call created the file."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            return False
+        except OSError:
+            # File systems without hard links: exclusive create is still never an overwrite.
+            try:
+                with open(path, "x", encoding="utf-8") as f:
+                    f.write(text)
+            except FileExistsError:
+                return False
+        return True
+    finally:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+
+
+def _fresh_config_text() -> str:
+    cfg = schema.defaults()
+    cfg["PASSWORD"] = secrets.token_urlsafe(24)
+    return dumps(cfg)
+
+
+@dataclass(frozen=True)
+class InstallReport:
+    """What :func:`install` found or made.
+
+    Attributes:
+        paths: the data folder's paths (default run name).
+        created_config: True when ``config.json`` was written by this call (fresh password).
+    """
+
+    paths: DataPaths
+    created_config: bool
+
+
+def install(folder: str | os.PathLike[str] | None = None) -> InstallReport:
+    """Create the data folder layout and, when ``config.json`` is missing, write the default one
+    with a fresh random ``PASSWORD``. An existing ``config.json`` is never modified.
+
+    Raises:
+        ConfigError: the folder cannot be created (a file is in the way, no permission).
+    """
+    root = Path(folder) if folder is not None else data_folder()
+    try:
+        for sub in LAYOUT:
+            (root / sub).mkdir(parents=True, exist_ok=True)
+        created = False
+        cfg_file = config_path(root)
+        if not cfg_file.exists():
+            created = _create_exclusive(cfg_file, _fresh_config_text())
+            if created:
+                logger.info("wrote %s with a fresh random PASSWORD", cfg_file)
+    except FileExistsError as e:
+        raise ConfigError(
+            f"cannot create the data folder {root}: {e.filename} exists and is not a folder; "
+            f"move it away or set {DATA_ENV} to another folder"
+        ) from None
+    except PermissionError as e:
+        raise ConfigError(
+            f"cannot create the data folder {root}: permission denied on {e.filename}; "
+            f"set {DATA_ENV} to a folder you can write"
+        ) from None
+    except NotADirectoryError as e:
+        raise ConfigError(
+            f"cannot create the data folder {root}: a file is in the way ({e.filename}); "
+            f"set {DATA_ENV} to another folder"
+        ) from None
+    return InstallReport(paths=data_paths(None, root), created_config=created)
+
+
+def ensure_data_folder(folder: str | os.PathLike[str] | None = None) -> Path:
+    """Make sure the data folder and its layout exist (see :func:`install`); returns its path.
+
+    Raises:
+        ConfigError: the folder cannot be created.
+    """
+    return install(folder).paths.root
+
+
+def _source_name(path: Path) -> str:
+    return str(path)
+
+
+def _violation(source: str, err: SchemaViolation) -> ConfigError:
+    return ConfigError(f"{source}: {err.message}")
+
+
+def validate(raw: Any, source: str = "config.json") -> dict[str, Any]:
+    """Validate a complete configuration: fill missing keys with defaults, refuse unknown keys,
+    wrong types and out-of-range values, then check the rules that involve several keys.
+
+    Args:
+        raw: the parsed JSON.
+        source: where ``raw`` came from, put in front of error messages.
+
+    Returns:
+        A new dict with every key of the schema, values normalised.
+
+    Raises:
+        ConfigError: ``"<source>: <KEY.PATH> must be <expected>, got <value>"``.
+    """
+    try:
+        cfg = schema.SCHEMA.check(raw, "")
+        schema.check_consistency(cfg)
+    except SchemaViolation as e:
+        raise _violation(source, e) from None
+    return cfg
+
+
+def parse_override(text: str, source: str = "--config") -> dict[str, Any]:
+    """Parse an override given on the command line: a JSON object, or a Python literal dict
+    (``True``, ``None``, single quotes). Never evaluates code.
+
+    Raises:
+        ConfigError: the text is neither, or not a dict.
+    """
+    text = text.strip()
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except ValueError:
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError, TypeError, MemoryError, RecursionError) as e:
+            reason = " ".join(str(e).split()) or type(e).__name__
+            raise ConfigError(
+                f"{source}: not a JSON or Python dict ({reason}); write it like "
+                "'{\"ALG\": {\"LR_ACTOR\": 0.0001}}'"
+            ) from None
+    if not isinstance(value, dict):
+        raise ConfigError(
+            f"{source}: must be a dict such as '{{\"ALG\": {{\"LR_ACTOR\": 0.0001}}}}', got {schema.show(value)}"
+        )
+    return value
+
+
+def deep_merge(base: Mapping[str, Any], override: Mapping[str, Any], _spec: Any = None) -> dict[str, Any]:
+    """A new dict: ``base`` with ``override`` merged in. Nested schema sections merge key by key;
+    free-form objects (``GYM_KWARGS``, ``interface_kwargs``) and other values are replaced."""
+    spec = _spec if _spec is not None else schema.SCHEMA
+    out = dict(base)
+    for key, value in override.items():
+        sub = spec.fields.get(key) if isinstance(spec, schema.Section) else None
+        if isinstance(sub, schema.Section) and isinstance(out.get(key), Mapping) and isinstance(value, Mapping):
+            out[key] = deep_merge(out[key], value, sub)
+        else:
+            out[key] = value
+    return out
+
+
+def apply_override(cfg: Mapping[str, Any], override: Mapping[str, Any] | str,
+                   source: str = "--config") -> dict[str, Any]:
+    """Validate ``override`` (a dict, or text for :func:`parse_override`) key by key against the
+    schema, merge it into the complete config ``cfg`` and re-check the multi-key rules.
+
+    Raises:
+        ConfigError: naming ``source`` and the full key path of the bad entry.
+    """
+    if isinstance(override, str):
+        override = parse_override(override, source)
+    try:
+        checked = schema.SCHEMA.check(override, "", fill=False)
+        merged = deep_merge(cfg, checked)
+        schema.check_consistency(merged)
+    except SchemaViolation as e:
+        raise _violation(source, e) from None
+    return merged
+
+
+def set_override_env(override: Mapping[str, Any] | str, source: str = "--config") -> dict[str, Any]:
+    """Validate ``override`` and store it (merged into any override already there) as JSON in
+    ``$TMRL_CONFIG_OVERRIDE``, so that :func:`load_config` in this process and in every child
+    process applies it. Returns the combined override.
+
+    Raises:
+        ConfigError: the override is malformed or names a bad key or value.
+    """
+    if isinstance(override, str):
+        override = parse_override(override, source)
+    try:
+        checked = schema.SCHEMA.check(override, "", fill=False)
+    except SchemaViolation as e:
+        raise _violation(source, e) from None
+    previous = _env_override()
+    combined = deep_merge(previous, checked) if previous else checked
+    os.environ[OVERRIDE_ENV] = json.dumps(combined)
+    return combined
+
+
+def _env_override() -> dict[str, Any]:
+    text = os.environ.get(OVERRIDE_ENV, "")
+    return parse_override(text, source=f"--config (via {OVERRIDE_ENV})") if text.strip() else {}
+
+
+def load_config(path: str | os.PathLike[str] | None = None,
+                overrides: Mapping[str, Any] | str | None = None) -> dict[str, Any]:
+    """Load and validate ``config.json``.
+
+    Args:
+        path: the file; default ``config/config.json`` of :func:`data_folder`. When no path is
+            given and that file does not exist yet, the defaults are used (nothing is created;
+            run ``python -m tmrl --install`` to create the folder).
+        overrides: a dict (or its text) merged in after ``$TMRL_CONFIG_OVERRIDE``, both validated
+            like the file.
+
+    Returns:
+        A complete config: every key of the schema, values normalised.
+
+    Raises:
+        ConfigError: missing explicit file, unreadable file, invalid JSON (with line and column),
+            unknown key, wrong type, value out of range; one line each.
+    """
+    explicit = path is not None
+    file = Path(path) if explicit else config_path()
+    source = _source_name(file)
+    if file.is_file():
+        try:
+            text = file.read_text(encoding="utf-8-sig")
+        except UnicodeDecodeError as e:
+            raise ConfigError(f"{source}: not UTF-8 text (byte {e.start}); save it as UTF-8 JSON") from None
+        except OSError as e:
+            raise ConfigError(f"{source}: cannot be read ({e.strerror}); check its permissions") from None
+        try:
+            raw = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ConfigError(
+                f"{source}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}; "
+                "fix the file (comments and trailing commas are not allowed)"
+            ) from None
+        cfg = validate(raw, source)
+    elif file.exists():
+        raise ConfigError(f"{source}: is not a file; remove it or run `python -m tmrl --install`")
+    elif explicit:
+        raise ConfigError(f"{source}: file not found; check the path")
+    else:
+        logger.debug("%s does not exist yet: using the defaults", file)
+        cfg = validate({}, "defaults")
+    env_override = _env_override()
+    if env_override:
+        cfg = apply_override(cfg, env_override, source=f"--config (via {OVERRIDE_ENV})")
+    if overrides is not None:
+        cfg = apply_override(cfg, overrides, source="--config")
+    return cfg

@@ -1,0 +1,707 @@
+"""The one schema of ``config.json``: every key with its type, default, allowed range and meaning.
+
+Everything else derives from it: the loader validates against it and fills missing keys with its
+defaults, ``config/config.json`` is its defaults written out, and ``docs/config.md`` is generated
+from it. Regenerate both after a change with::
+
+    python -m tmrl.config.schema --write
+
+(``--markdown`` and ``--json`` print the reference and the default config instead.)
+
+Nothing here reads a file or touches the disk at import.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import difflib
+import json
+import math
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from tmrl.errors import UserError
+
+__all__ = [
+    "ConfigError",
+    "SchemaViolation",
+    "Spec",
+    "Bool",
+    "Int",
+    "Number",
+    "Str",
+    "Choice",
+    "NumberList",
+    "AnyDict",
+    "AnyList",
+    "Section",
+    "SCHEMA",
+    "RTGYM_INTERFACES",
+    "ALGORITHMS",
+    "PASSWORD_PLACEHOLDER",
+    "defaults",
+    "check_consistency",
+    "markdown_reference",
+    "default_config_json",
+]
+
+
+class ConfigError(UserError):
+    """A configuration mistake. ``str(err)`` is one line: where the value came from (the file, or
+    ``--config``), the full key path, the value found and what is expected."""
+
+
+class SchemaViolation(Exception):
+    """Raised by :meth:`Spec.check`; the loader turns it into a :class:`ConfigError` by adding the
+    source (file name or ``--config``) in front of the message."""
+
+    def __init__(self, path: str, message: str):
+        super().__init__(message)
+        self.path = path
+        self.message = message
+
+
+def show(value: Any, limit: int = 80) -> str:
+    """Render a found value the way it would be written in JSON (``"fast"``, ``true``, ``null``),
+    shortened to ``limit`` characters so that an error stays on one line."""
+    try:
+        text = json.dumps(value, ensure_ascii=False)
+    except (TypeError, ValueError):
+        text = repr(value)
+    text = " ".join(text.split())
+    if len(text) > limit:
+        text = text[: limit - 3] + "..."
+    return text
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _fmt(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else repr(x)
+
+
+class Spec:
+    """One key of the schema.
+
+    Args:
+        default: the value a missing key takes (deep-copied on use).
+        doc: one-line meaning, shown in ``docs/config.md``.
+        nullable: ``null`` (Python ``None``) is accepted as well.
+    """
+
+    kind = "value"
+
+    def __init__(self, default: Any, doc: str, *, nullable: bool = False):
+        self.default = default
+        self.doc = doc
+        self.nullable = nullable
+
+    @property
+    def expected(self) -> str:
+        """What a valid value is, as a phrase that completes "must be ..."."""
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        """The expected phrase including ``or null`` for nullable keys."""
+        return self.expected + (" or null" if self.nullable else "")
+
+    def default_value(self) -> Any:
+        return copy.deepcopy(self.default)
+
+    def check(self, value: Any, path: str, *, fill: bool = True) -> Any:
+        """Validate ``value`` found at ``path`` and return it normalised (ints to floats for
+        numbers, canonical spelling for choices, tuples to lists).
+
+        Args:
+            fill: sections fill missing keys with defaults (False to validate a partial override).
+
+        Raises:
+            SchemaViolation: naming ``path``, the value and :meth:`describe`.
+        """
+        if value is None and self.nullable:
+            return None
+        return self._check(value, path, fill=fill)
+
+    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
+        raise NotImplementedError
+
+    def fail(self, path: str, value: Any) -> SchemaViolation:
+        return SchemaViolation(path, f"{path} must be {self.describe()}, got {show(value)}")
+
+
+class Bool(Spec):
+    kind = "bool"
+
+    @property
+    def expected(self) -> str:
+        return "true or false"
+
+    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
+        if not isinstance(value, bool):
+            raise self.fail(path, value)
+        return value
+
+
+class Int(Spec):
+    """An integer, optionally bounded (inclusive). An integral float such as ``1e6`` is accepted
+    and converted, since JSON writers often produce them."""
+
+    kind = "integer"
+
+    def __init__(
+        self,
+        default: Any,
+        doc: str,
+        *,
+        min: int | None = None,
+        max: int | None = None,
+        nullable: bool = False,
+    ):
+        super().__init__(default, doc, nullable=nullable)
+        self.min = min
+        self.max = max
+
+    @property
+    def expected(self) -> str:
+        lo, hi = self.min, self.max
+        if lo is not None and hi is not None:
+            return f"an integer from {lo} to {hi}"
+        if lo == 1:
+            return "a positive integer"
+        if lo == 0:
+            return "a non-negative integer"
+        if lo is not None:
+            return f"an integer >= {lo}"
+        if hi is not None:
+            return f"an integer <= {hi}"
+        return "an integer"
+
+    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
+        if isinstance(value, bool):
+            raise self.fail(path, value)
+        if isinstance(value, float) and math.isfinite(value) and value.is_integer():
+            value = int(value)
+        if not isinstance(value, int):
+            raise self.fail(path, value)
+        if (self.min is not None and value < self.min) or (self.max is not None and value > self.max):
+            raise self.fail(path, value)
+        return value
+
+
+class Number(Spec):
+    """A finite real number (an integer is accepted and converted to float), optionally bounded.
+
+    Args:
+        min, max: bounds; ``min_open``/``max_open`` make them strict.
+    """
+
+    kind = "number"
+
+    def __init__(
+        self,
+        default: Any,
+        doc: str,
+        *,
+        min: float | None = None,
+        max: float | None = None,
+        min_open: bool = False,
+        max_open: bool = False,
+        nullable: bool = False,
+    ):
+        super().__init__(default, doc, nullable=nullable)
+        self.min = min
+        self.max = max
+        self.min_open = min_open
+        self.max_open = max_open
+
+    @property
+    def expected(self) -> str:
+        lo, hi = self.min, self.max
+        if lo is not None and hi is not None:
+            left = "(" if self.min_open else "["
+            right = ")" if self.max_open else "]"
+            return f"a number in {left}{_fmt(lo)}, {_fmt(hi)}{right}"
+        if lo == 0 and hi is None:
+            return "a positive number" if self.min_open else "a non-negative number"
+        if lo is not None:
+            return f"a number {'>' if self.min_open else '>='} {_fmt(lo)}"
+        if hi is not None:
+            return f"a number {'<' if self.max_open else '<='} {_fmt(hi)}"
+        return "a number"
+
+    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(path, value)
+        value = float(value)
+        if not math.isfinite(value):
+            raise self.fail(path, value)
+        if self.min is not None and (value < self.min or (self.min_open and value == self.min)):
+            raise self.fail(path, value)
+        if self.max is not None and (value > self.max or (self.max_open and value == self.max)):
+            raise self.fail(path, value)
+        return value
+
+
+class Str(Spec):
+    """A string.
+
+    Args:
+        nonempty: the empty string is refused.
+        forbid: characters the string may not contain (for names used in file names).
+    """
+
+    kind = "string"
+
+    def __init__(self, default: Any, doc: str, *, nonempty: bool = False, forbid: str = "",
+                 nullable: bool = False):
+        super().__init__(default, doc, nullable=nullable)
+        self.nonempty = nonempty
+        self.forbid = forbid
+
+    @property
+    def expected(self) -> str:
+        text = "a non-empty string" if self.nonempty else "a string"
+        if self.forbid:
+            text += " without " + " or ".join(self.forbid)
+        return text
+
+    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
+        if not isinstance(value, str):
+            raise self.fail(path, value)
+        if self.nonempty and not value.strip():
+            raise self.fail(path, value)
+        if any(c in value for c in self.forbid) or (self.forbid and value.strip() in (".", "..")):
+            raise self.fail(path, value)
+        return value
+
+
+class Choice(Spec):
+    """One string out of a fixed set, matched case-insensitively and returned in its canonical
+    spelling (``"redqsac"`` becomes ``"REDQSAC"``)."""
+
+    kind = "choice"
+
+    def __init__(self, default: str, doc: str, options: Sequence[str], *, nullable: bool = False):
+        super().__init__(default, doc, nullable=nullable)
+        self.options = tuple(options)
+
+    @property
+    def expected(self) -> str:
+        return "one of " + ", ".join(json.dumps(o) for o in self.options)
+
+    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
+        if isinstance(value, str):
+            wanted = value.strip().casefold()
+            for option in self.options:
+                if option.casefold() == wanted:
+                    return option
+        raise self.fail(path, value)
+
+
+class NumberList(Spec):
+    """A list (or tuple) of exactly ``length`` numbers, each within the bounds of ``item``."""
+
+    kind = "list"
+
+    def __init__(self, default: Any, doc: str, *, length: int, item: Number, nullable: bool = False):
+        super().__init__(default, doc, nullable=nullable)
+        self.length = length
+        self.item = item
+
+    @property
+    def expected(self) -> str:
+        inner = self.item.expected
+        inner = inner[2:] if inner.startswith("a ") else inner
+        return f"a list of {self.length} {inner.replace('number', 'numbers', 1)}"
+
+    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
+        if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) or len(value) != self.length:
+            raise self.fail(path, value)
+        out = []
+        for x in value:
+            try:
+                out.append(self.item.check(x, path))
+            except SchemaViolation:
+                raise self.fail(path, value) from None
+        return out
+
+
+def _plain_data(value: Any, path: str) -> Any:
+    """Copy of a JSON-like value (tuples become lists); refuses anything JSON cannot hold so that
+    the value survives the trip through ``TMRL_CONFIG_OVERRIDE`` to child processes."""
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, float):
+        return value
+    if isinstance(value, Mapping):
+        out = {}
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise SchemaViolation(path, f"{path} must have string keys, got key {show(k)}")
+            out[k] = _plain_data(v, _join(path, k))
+        return out
+    if isinstance(value, (list, tuple)):
+        return [_plain_data(v, f"{path}[{i}]") for i, v in enumerate(value)]
+    raise SchemaViolation(path, f"{path} must hold only JSON values, got {show(value)}")
+
+
+class AnyDict(Spec):
+    """A free-form object (keyword arguments passed through to user code). An override replaces
+    it as a whole instead of merging into it."""
+
+    kind = "object"
+
+    @property
+    def expected(self) -> str:
+        return "an object (a dict with string keys)"
+
+    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
+        if not isinstance(value, Mapping):
+            raise self.fail(path, value)
+        return _plain_data(value, path)
+
+
+class AnyList(Spec):
+    """A free-form list (positional arguments passed through to user code)."""
+
+    kind = "list"
+
+    @property
+    def expected(self) -> str:
+        return "a list"
+
+    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
+        if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
+            raise self.fail(path, value)
+        return _plain_data(value, path)
+
+
+class Section(Spec):
+    """A nested object with a fixed set of keys. Unknown keys are refused (with a suggestion
+    when one is close); missing keys take their defaults."""
+
+    kind = "section"
+
+    def __init__(self, fields: dict[str, Spec], doc: str):
+        super().__init__(None, doc)
+        self.fields = fields
+
+    @property
+    def expected(self) -> str:
+        return "an object (a dict of keys)"
+
+    def default_value(self) -> dict[str, Any]:
+        return {name: spec.default_value() for name, spec in self.fields.items()}
+
+    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
+        if not isinstance(value, Mapping):
+            if not path:
+                raise SchemaViolation(path, f"the top level must be an object (a dict of keys), got {show(value)}")
+            raise self.fail(path, value)
+        for key in value:
+            if not isinstance(key, str) or key not in self.fields:
+                raise self.unknown(path, key)
+        out: dict[str, Any] = {}
+        for name, spec in self.fields.items():
+            if name in value:
+                out[name] = spec.check(value[name], _join(path, name), fill=fill)
+            elif fill:
+                out[name] = spec.default_value()
+        return out
+
+    def unknown(self, path: str, key: Any) -> SchemaViolation:
+        where = _join(path, str(key))
+        close = difflib.get_close_matches(str(key), list(self.fields), n=1, cutoff=0.6)
+        if not close:
+            close = [k for k in self.fields if k.casefold() == str(key).casefold()]
+        if close:
+            hint = f"did you mean {_join(path, close[0])}?"
+        else:
+            hint = "remove it (docs/config.md lists every key)"
+        return SchemaViolation(where, f"{where} is not a known key; {hint}")
+
+
+# --- the schema ----------------------------------------------------------------------------------
+
+RTGYM_INTERFACES = (
+    "TM20FULL",
+    "TM20LIDAR",
+    "TM20LIDARPROGRESS",
+    "SIMFULL",
+    "SIMLIDAR",
+    "SIMLIDARPROGRESS",
+    "GYM",
+    "DRONE",
+)
+"""Values of ``ENV.RTGYM_INTERFACE``: TrackMania 2020 (full images, lidar, lidar with track
+progress), the built-in simulated track (same three observations), any Gymnasium environment
+(``ENV.GYM_ID``), and the real-time simulated drone of :mod:`tmrl.realtime`."""
+
+ALGORITHMS = ("SAC", "REDQSAC")
+
+PASSWORD_PLACEHOLDER = "YourRandomPasswordHere"
+"""The password of the shipped file; ``python -m tmrl --install`` replaces it by a random one."""
+
+_OPTIMIZERS = ("adam", "adamw", "sgd")
+_MIB = 1024 * 1024
+
+_ALG = Section(
+    {
+        "ALGORITHM": Choice("SAC", "training algorithm", ALGORITHMS),
+        "LEARN_ENTROPY_COEF": Bool(False, "learn the entropy coefficient (SAC v2) instead of keeping ALPHA fixed"),
+        "LR_ACTOR": Number(1e-05, "learning rate of the actor", min=0, min_open=True),
+        "LR_CRITIC": Number(5e-05, "learning rate of the critic(s)", min=0, min_open=True),
+        "LR_ENTROPY": Number(0.0003, "learning rate of the entropy coefficient (when learned)", min=0,
+                             min_open=True),
+        "GAMMA": Number(0.995, "discount factor", min=0, max=1),
+        "POLYAK": Number(0.995, "weight of the old target critic in each soft update (1: never updated)",
+                         min=0, max=1),
+        "TARGET_ENTROPY": Number(-0.5, "target entropy when LEARN_ENTROPY_COEF is true (null: minus the action size)",
+                                 nullable=True),
+        "ALPHA": Number(0.01, "entropy coefficient (fixed, or initial value when learned)", min=0),
+        "REDQ_N": Int(10, "number of critics in the REDQ ensemble", min=1),
+        "REDQ_M": Int(2, "number of critics drawn at random for each REDQ target", min=1),
+        "REDQ_Q_UPDATES_PER_POLICY_UPDATE": Int(20, "REDQ critic updates for each actor update", min=1),
+        "OPTIMIZER_ACTOR": Choice("adam", "optimizer of the actor", _OPTIMIZERS),
+        "OPTIMIZER_CRITIC": Choice("adam", "optimizer of the critic(s)", _OPTIMIZERS),
+        "BETAS_ACTOR": NumberList([0.997, 0.997], "Adam/AdamW betas of the actor", length=2,
+                                  item=Number(0, "", min=0, max=1, max_open=True)),
+        "BETAS_CRITIC": NumberList([0.997, 0.997], "Adam/AdamW betas of the critic(s)", length=2,
+                                   item=Number(0, "", min=0, max=1, max_open=True)),
+        "L2_ACTOR": Number(0.0, "weight decay of the actor optimizer", min=0),
+        "L2_CRITIC": Number(0.0, "weight decay of the critic optimizer", min=0),
+    },
+    "the training algorithm and its hyperparameters",
+)
+
+_RTGYM = Section(
+    {
+        "time_step_duration": Number(0.05, "target duration of one real-time step, in seconds", min=0,
+                                     min_open=True),
+        "start_obs_capture": Number(0.04, "time after the start of a step when the observation is captured (s)",
+                                    min=0),
+        "time_step_timeout_factor": Number(1.0, "how late a step may end, in steps, before the clock resets",
+                                           min=0),
+        "act_buf_len": Int(2, "number of past actions appended to each observation", min=1),
+        "benchmark": Bool(False, "time the environment's steps (needed by --benchmark)"),
+        "wait_on_done": Bool(True, "pause the environment when an episode ends"),
+        "ep_max_length": Int(1000, "episodes are truncated after this many steps (null: never)", min=1,
+                             nullable=True),
+        "interface_kwargs": AnyDict({"save_replays": False}, "keyword arguments of the interface"),
+        "interface_args": AnyList([], "positional arguments of the interface"),
+        "act_in_obs": Bool(True, "append the action buffer to observations"),
+        "reset_act_buf": Bool(True, "fill the action buffer with the default action at reset"),
+        "benchmark_polyak": Number(0.1, "smoothing factor of the benchmark averages", min=0, max=1,
+                                   min_open=True),
+        "benchmark_type": Choice("polyak", "how benchmarks are kept (running averages or full traces)",
+                                 ("polyak", "trace")),
+        "last_act_on_reset": Bool(False, "at reset, send the last action instead of the default one"),
+    },
+    "the real-time clock (rtgym parameters)",
+)
+
+_REWARD = Section(
+    {
+        "END_OF_TRACK": Number(100.0, "reward for crossing the finish line"),
+        "CONSTANT_PENALTY": Number(0.0, "reward added at every step (zero or negative)"),
+        "CHECK_FORWARD": Int(500, "trajectory points searched ahead of the car (allows cuts)", min=1),
+        "CHECK_BACKWARD": Int(10, "trajectory points searched behind the car", min=0),
+        "FAILURE_COUNTDOWN": Int(10, "steps without progress before the episode ends", min=1),
+        "MIN_STEPS": Int(70, "steps at the start of an episode during which it cannot fail", min=0),
+        "MAX_STRAY": Number(100.0, "distance from the trajectory (m) that ends the episode", min=0,
+                            min_open=True),
+    },
+    "the trajectory reward (TrackMania and the simulated track)",
+)
+
+_ENV = Section(
+    {
+        "RTGYM_INTERFACE": Choice("TM20FULL", "environment: " + ", ".join(RTGYM_INTERFACES), RTGYM_INTERFACES),
+        "WINDOW_WIDTH": Int(256, "the game window is resized to this width (pixels)", min=1),
+        "WINDOW_HEIGHT": Int(128, "the game window is resized to this height (pixels)", min=1),
+        "IMG_WIDTH": Int(64, "width of the images fed to the model", min=1),
+        "IMG_HEIGHT": Int(64, "height of the images fed to the model", min=1),
+        "IMG_GRAYSCALE": Bool(True, "convert images to grayscale"),
+        "SLEEP_TIME_AT_RESET": Number(1.5, "seconds waited after a respawn (the green light)", min=0),
+        "IMG_HIST_LEN": Int(4, "number of past images or lidar scans in each observation", min=1),
+        "LINUX_X_OFFSET": Int(64, "horizontal offset of the game window's content on Linux (pixels)"),
+        "LINUX_Y_OFFSET": Int(70, "vertical offset of the game window's content on Linux (pixels)"),
+        "IMG_SCALE_CHECK_ENV": Number(1.0, "zoom of the images shown by --check-environment", min=0,
+                                      min_open=True),
+        "GYM_ID": Str("Pendulum-v1", "Gymnasium id used when RTGYM_INTERFACE is GYM"),
+        "GYM_KWARGS": AnyDict({}, "keyword arguments of gymnasium.make when RTGYM_INTERFACE is GYM"),
+        "RTGYM_CONFIG": _RTGYM,
+        "REWARD_CONFIG": _REWARD,
+    },
+    "the environment",
+)
+
+SCHEMA = Section(
+    {
+        "RUN_NAME": Str("SAC_4_imgs_pretrained", "name of the run; names the weights and checkpoint files",
+                        nonempty=True, forbid="/\\"),
+        "RESET_TRAINING": Bool(False, "start training from scratch instead of resuming the checkpoint"),
+        "BUFFERS_MAXLEN": Int(500000, "maximum number of samples held in a network buffer (not the replay memory)",
+                              min=1),
+        "RW_MAX_SAMPLES_PER_EPISODE": Int(1000, "a worker truncates episodes longer than this", min=1),
+        "CUDA_TRAINING": Bool(False, "train on the GPU when one is available"),
+        "CUDA_INFERENCE": Bool(False, "run the workers' policy on the GPU when one is available"),
+        "VIRTUAL_GAMEPAD": Bool(True, "drive TrackMania with a virtual gamepad (false: keyboard)"),
+        "LOCALHOST_WORKER": Bool(True, "the worker reaches the server on 127.0.0.1 (false: PUBLIC_IP_SERVER)"),
+        "LOCALHOST_TRAINER": Bool(True, "the trainer reaches the server on 127.0.0.1 (false: PUBLIC_IP_SERVER)"),
+        "PUBLIC_IP_SERVER": Str("0.0.0.0", "address of the server when it is on another machine", nonempty=True),
+        "PASSWORD": Str(PASSWORD_PLACEHOLDER, "shared secret of the server, trainer and workers (same everywhere)",
+                        nonempty=True),
+        "TLS": Bool(False, "encrypt and authenticate connections with TLS (needed on public networks)"),
+        "TLS_HOSTNAME": Str("default", "host name in the TLS certificate", nonempty=True),
+        "TLS_CREDENTIALS_DIRECTORY": Str("", "folder of the TLS key and certificate (empty: credentials/ in the "
+                                             "data folder)"),
+        "ALLOW_PLAIN_TCP": Bool(False, "allow unencrypted connections to a server on another machine "
+                                       "(trusted networks only)"),
+        "ALLOW_PICKLE": Bool(False, "accept pickled messages from the network (trusted networks only: "
+                                    "pickle can run code)"),
+        "MAX_FRAME_BYTES": Int(64 * _MIB, "largest message accepted from the network, in bytes", min=1024),
+        "NB_WORKERS": Int(-1, "maximum number of workers served at once (negative: no limit)"),
+        "WANDB_PROJECT": Str("tmrl", "wandb project of --trainer --wandb"),
+        "WANDB_ENTITY": Str("tmrl", "wandb entity (user or team) of --trainer --wandb"),
+        "WANDB_KEY": Str("YourWandbApiKey", "wandb API key of --trainer --wandb"),
+        "PORT": Int(55555, "public port of the server", min=1, max=65535),
+        "LOCAL_PORT_SERVER": Int(55556, "local port of the server's relay (must differ from the others)",
+                                 min=1, max=65535),
+        "LOCAL_PORT_TRAINER": Int(55557, "local port of the trainer's relay (must differ from the others)",
+                                  min=1, max=65535),
+        "LOCAL_PORT_WORKER": Int(55558, "local port of a worker's relay (change it for each extra worker on a "
+                                        "machine)", min=1, max=65535),
+        "BUFFER_SIZE": Int(536870912, "socket buffer size of the transport, in bytes (not the replay memory)",
+                           min=1),
+        "HEADER_SIZE": Int(12, "size of the transport's message header, in bytes", min=1),
+        "SEED": Int(None, "seed of the random generators (null: a fresh random seed each run)", nullable=True),
+        "DEBUG_MODE": Bool(False, "extra consistency checks and verbose logs"),
+        "MAX_EPOCHS": Int(10000, "number of training epochs (a checkpoint is saved after each)", min=1),
+        "ROUNDS_PER_EPOCH": Int(100, "rounds per epoch (metrics are reported after each)", min=1),
+        "TRAINING_STEPS_PER_ROUND": Int(200, "training steps per round", min=1),
+        "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": Number(4.0, "training pauses when updates per collected "
+                                                               "sample exceed this", min=0, min_open=True),
+        "ENVIRONMENT_STEPS_BEFORE_TRAINING": Int(1000, "samples collected before training starts", min=0),
+        "UPDATE_MODEL_INTERVAL": Int(200, "training steps between two broadcasts of the weights", min=1),
+        "UPDATE_BUFFER_INTERVAL": Int(200, "training steps between two retrievals of new samples", min=1),
+        "SAVE_MODEL_EVERY": Int(0, "workers keep a copy of every N-th received model (0: none)", min=0),
+        "MEMORY_SIZE": Int(1000000, "capacity of the replay memory, in samples", min=1),
+        "BATCH_SIZE": Int(256, "training batch size", min=1),
+        "ALG": _ALG,
+        "ENV": _ENV,
+        "__VERSION__": Str("0.6.0", "format version of this file (do not edit)", nonempty=True),
+    },
+    "config.json",
+)
+
+
+def defaults() -> dict[str, Any]:
+    """A fresh dict holding every key at its default (with the placeholder password)."""
+    return SCHEMA.default_value()
+
+
+def check_consistency(cfg: Mapping[str, Any]) -> None:
+    """Checks that involve several keys of a complete, validated config.
+
+    Raises:
+        SchemaViolation: naming the key to change.
+    """
+    alg = cfg["ALG"]
+    if alg["ALGORITHM"] == "REDQSAC" and alg["REDQ_M"] > alg["REDQ_N"]:
+        raise SchemaViolation(
+            "ALG.REDQ_M",
+            f"ALG.REDQ_M must be at most ALG.REDQ_N ({alg['REDQ_N']}), got {alg['REDQ_M']}",
+        )
+    env = cfg["ENV"]
+    if env["RTGYM_INTERFACE"] == "GYM" and not env["GYM_ID"].strip():
+        raise SchemaViolation(
+            "ENV.GYM_ID",
+            'ENV.GYM_ID must name a Gymnasium environment (e.g. "Pendulum-v1") when ENV.RTGYM_INTERFACE is '
+            f'"GYM", got {show(env["GYM_ID"])}',
+        )
+
+
+# --- generated artefacts -------------------------------------------------------------------------
+
+
+def default_config_json() -> str:
+    """The text of the shipped ``config/config.json``: the defaults, indented, ending in a newline."""
+    return json.dumps(defaults(), indent=2) + "\n"
+
+
+def _md_escape(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
+def _rows(section: Section, path: str, rows: list[str]) -> None:
+    for name, spec in section.fields.items():
+        key = _join(path, name)
+        if isinstance(spec, Section):
+            rows.append(f"| `{key}` | object | | {_md_escape(spec.doc)} (keys below) |")
+            _rows(spec, key, rows)
+        else:
+            default = "" if spec.default is None and not spec.nullable else f"`{show(spec.default, 60)}`"
+            rows.append(f"| `{key}` | {_md_escape(spec.describe())} | {_md_escape(default)} | {_md_escape(spec.doc)} |")
+
+
+def markdown_reference() -> str:
+    """The text of ``docs/config.md``: one table row per key, generated from :data:`SCHEMA`."""
+    rows: list[str] = []
+    _rows(SCHEMA, "", rows)
+    head = [
+        "# config.json reference",
+        "",
+        "<!-- Generated from tmrl/config/schema.py by `python -m tmrl.config.schema --write`; do not edit. -->",
+        "",
+        "`config.json` lives in `config/` of the data folder (`$TMRL_DATA`, or `~/TmrlData` when it is",
+        "not set); `python -m tmrl --install` creates it with a fresh random `PASSWORD`. A file written for",
+        "the original tmrl 0.7 loads unchanged.",
+        "",
+        "- A missing key takes the default below.",
+        "- An unknown key, a value of the wrong type or out of range stops the command with exit code 2",
+        "  and one line naming the key path, the value found and what is expected.",
+        "- `python -m tmrl ... -d '{\"ALG\": {\"LR_ACTOR\": 0.0001}}'` (JSON or a Python literal) overrides",
+        "  keys for one run. Sections merge key by key; free-form objects (`GYM_KWARGS`,",
+        "  `interface_kwargs`) are replaced as a whole. `python -m tmrl --print-config` shows the result.",
+        "- Choices (`ALGORITHM`, `RTGYM_INTERFACE`, optimizers) are matched without regard to case.",
+        "",
+        "| key | expected | default | meaning |",
+        "|---|---|---|---|",
+    ]
+    return "\n".join(head + rows) + "\n"
+
+
+def _repo_root() -> Path:
+    return Path(__file__).resolve().parents[2]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m tmrl.config.schema``: print or write the generated reference and default file."""
+    parser = argparse.ArgumentParser(prog="python -m tmrl.config.schema", description=main.__doc__)
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("--markdown", action="store_true", help="print docs/config.md")
+    group.add_argument("--json", action="store_true", help="print the default config.json")
+    group.add_argument("--write", action="store_true",
+                       help="write docs/config.md and config/config.json of the source checkout")
+    args = parser.parse_args(argv)
+    if args.markdown:
+        sys.stdout.write(markdown_reference())
+    elif args.json:
+        sys.stdout.write(default_config_json())
+    else:
+        root = _repo_root()
+        for rel, text in (("docs/config.md", markdown_reference()), ("config/config.json", default_config_json())):
+            (root / rel).parent.mkdir(parents=True, exist_ok=True)
+            (root / rel).write_text(text, encoding="utf-8")
+            print(f"wrote {root / rel}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
