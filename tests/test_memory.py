@@ -1,0 +1,349 @@
+"""Tests of tmrl.memory: hand-built episodes whose rebuilt transitions are checked exactly."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from tmrl.errors import UserError
+from tmrl.memory import (
+    CRCMismatchError,
+    GenericTorchMemory,
+    RealTimeTorchMemory,
+    TorchMemory,
+    check_transition,
+    collate_torch,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Buf:
+    """The part of tmrl.networking.Buffer that memories use."""
+
+    def __init__(self, samples=(), sources=None, ret=0.0):
+        self.memory = list(samples)
+        self.sources = sources
+        self.stat_train_return = ret
+        self.stat_test_return = ret + 1
+        self.stat_train_steps = 7
+        self.stat_test_steps = 8
+
+    def __len__(self):
+        return len(self.memory)
+
+
+def obs_of(src: int, ep: int, t: int) -> tuple:
+    """An observation that names where it comes from."""
+    return (np.array([src, ep, t], dtype=np.float32), {"img": np.full((2, 3), t, dtype=np.uint8)})
+
+
+def act_of(src: int, ep: int, t: int) -> np.ndarray:
+    return np.array([100 * src + 10 * ep + t, -t], dtype=np.float32)
+
+
+def episode(src: int, ep: int, n: int, first_act=None, truncated_end=False) -> list[tuple]:
+    """n samples: a reset sample (action first_act) then n-1 steps; the last one ends the episode."""
+    out = []
+    for t in range(n):
+        act = first_act if t == 0 else act_of(src, ep, t)
+        last = t == n - 1
+        out.append((act, obs_of(src, ep, t), float(t) / 2, last and not truncated_end, last and truncated_end, {}))
+    return out
+
+
+def assert_tree_equal(a, b):
+    if isinstance(a, dict):
+        assert set(a) == set(b)
+        for k in a:
+            assert_tree_equal(a[k], b[k])
+    elif isinstance(a, (tuple, list)):
+        assert len(a) == len(b)
+        for x, y in zip(a, b):
+            assert_tree_equal(x, y)
+    else:
+        x = a.cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
+        y = b.cpu().numpy() if isinstance(b, torch.Tensor) else np.asarray(b)
+        assert x.shape == y.shape and np.array_equal(x, y), (x, y)
+
+
+# ---- GenericTorchMemory -------------------------------------------------------------------------
+
+
+def test_generic_transitions_boundary_mask_and_none_actions():
+    mem = GenericTorchMemory(memory_size=100, batch_size=3)
+    # episode 0: 3 samples (terminated), episode 1: 2 samples (truncated); None reset actions
+    mem.append(Buf(episode(0, 0, 3) + episode(0, 1, 2, truncated_end=True), ret=5.0))
+    assert mem.stat_train_return == 5.0 and mem.stat_test_steps == 8
+    # slots 0 and 3 are episode starts: no transition ends there, and none spans the reset
+    assert list(mem.valid_slots()) == [1, 2, 4]
+    assert len(mem) == 3
+    prev_obs, act, rew, new_obs, terminated, truncated, info = mem.get_transition(2)
+    assert_tree_equal(prev_obs, obs_of(0, 0, 1))
+    assert_tree_equal(new_obs, obs_of(0, 0, 2))
+    assert_tree_equal(act, act_of(0, 0, 2))
+    assert rew == np.float32(1.0) and terminated is True and truncated is False and info == {}
+    prev_obs, act, _, new_obs, terminated, truncated, _ = mem.get_transition(4)
+    assert_tree_equal(prev_obs, obs_of(0, 1, 0))
+    assert_tree_equal(act, act_of(0, 1, 1))
+    assert (terminated, truncated) == (False, True)
+    with pytest.raises(IndexError, match="holds no transition"):
+        mem.get_transition(3)
+    with pytest.raises(IndexError, match="out of range"):
+        mem.get_transition(5)
+
+
+def test_generic_batch_matches_transitions_and_dtypes():
+    mem = GenericTorchMemory(memory_size=100, batch_size=4)
+    mem.append(Buf(episode(0, 0, 6)))
+    batch = mem.sample(indices=[5, 1, 3])
+    prev_obs, act, rew, new_obs, terminated, truncated = batch
+    assert isinstance(prev_obs, tuple) and prev_obs[0].shape == (3, 3) and prev_obs[1]["img"].dtype == torch.uint8
+    assert act.dtype == torch.float32 and act.shape == (3, 2)
+    for t in (rew, terminated, truncated):
+        assert t.dtype == torch.float32 and t.shape == (3,)
+    assert terminated.tolist() == [1.0, 0.0, 0.0]
+    for row, slot in enumerate([5, 1, 3]):
+        tr = mem.get_transition(slot)
+        assert_tree_equal(prev_obs[0][row], tr[0][0])
+        assert_tree_equal(new_obs[1]["img"][row], tr[3][1]["img"])
+        assert_tree_equal(act[row], tr[1])
+        assert float(rew[row]) == float(tr[2])
+    drawn = mem.sample()[1]
+    assert drawn.shape == (4, 2)
+    assert set(drawn[:, 0].tolist()) <= {1.0, 2.0, 3.0, 4.0, 5.0}
+
+
+def test_interleaved_sources_are_separate_streams():
+    a = episode(1, 0, 4)
+    b = episode(2, 0, 4)
+    # Two workers interleaved in one buffer, then their streams continue in a second buffer.
+    first = [a[0], b[0], b[1], a[1], a[2]]
+    mem = GenericTorchMemory(memory_size=100, batch_size=2)
+    mem.append(Buf(first, sources=[1, 2, 2, 1, 1]))
+    mem.append(Buf([b[2], a[3], b[3]], sources=[2, 1, 2]))
+    expected = {}  # slot -> (src, t) of the arriving sample
+    order = [(1, 0), (2, 0), (2, 1), (1, 1), (1, 2), (2, 2), (1, 3), (2, 3)]
+    for slot, (src, t) in enumerate(order):
+        expected[slot] = (src, t)
+    valid = list(mem.valid_slots())
+    assert valid == [slot for slot, (_, t) in expected.items() if t > 0]
+    for slot in valid:
+        src, t = expected[slot]
+        prev_obs, act, _, new_obs, *_ = mem.get_transition(slot)
+        assert_tree_equal(prev_obs, obs_of(src, 0, t - 1))
+        assert_tree_equal(new_obs, obs_of(src, 0, t))
+        assert_tree_equal(act, act_of(src, 0, t))
+
+
+def test_ring_buffer_wraps_around_and_drops_broken_transitions():
+    mem = GenericTorchMemory(memory_size=5, batch_size=8)
+    samples = episode(0, 0, 8)
+    mem.append(Buf(samples[:3]))
+    mem.append(Buf(samples[3:6]))
+    mem.append(Buf(samples[6:]))
+    # counters 3..7 are held in slots 3,4,0,1,2; the transition into counter 3 lost its prev
+    assert mem.total == 8 and mem.size == 5
+    assert sorted(mem.valid_slots()) == [0, 1, 2, 4]
+    for counter in range(4, 8):
+        prev_obs, act, _, new_obs, *_ = mem.get_transition(counter % 5)
+        assert_tree_equal(prev_obs, obs_of(0, 0, counter - 1))
+        assert_tree_equal(new_obs, obs_of(0, 0, counter))
+        assert_tree_equal(act, act_of(0, 0, counter))
+    with pytest.raises(IndexError):
+        mem.get_transition(3)
+    # a buffer larger than the memory keeps its newest samples and its stream continuity
+    big = GenericTorchMemory(memory_size=3, batch_size=2)
+    big.append(Buf(samples))
+    assert big.total == 8 and sorted(big.valid_slots()) == [0, 1]  # counters 6, 7
+    assert_tree_equal(big.get_transition(7 % 3)[0], obs_of(0, 0, 6))
+
+
+def test_structure_and_shape_changes_are_user_errors():
+    mem = GenericTorchMemory(memory_size=10)
+    mem.append(Buf(episode(0, 0, 2)))
+    bad_shape = [(act_of(0, 0, 1), (np.zeros(4, np.float32), {"img": np.zeros((2, 3), np.uint8)}), 0.0, False, False, {})]
+    with pytest.raises(UserError, match=r"obs\[0\] has shape"):
+        mem.append(Buf(bad_shape))
+    bad_struct = [(act_of(0, 0, 1), (np.zeros(3, np.float32),), 0.0, False, False, {})]
+    with pytest.raises(UserError, match="changed structure"):
+        mem.append(Buf(bad_struct))
+    with pytest.raises(UserError, match="six values"):
+        mem.append(Buf([(None, 1.0, 0.0)]))
+
+
+def test_sampling_is_reproducible_from_numpy_seed():
+    def draw():
+        np.random.seed(3)
+        mem = GenericTorchMemory(memory_size=100, batch_size=16)
+        mem.append(Buf(episode(0, 0, 50)))
+        return mem.sample_indices()
+
+    assert np.array_equal(draw(), draw())
+
+
+# ---- RealTimeTorchMemory ------------------------------------------------------------------------
+
+
+def rtgym_run(src: int, episodes: list[int], L: int, default: np.ndarray) -> list[tuple]:
+    """Samples of a real-time environment with an action buffer of length L reset at each episode
+    (rtgym's reset_act_buf=True), as the worker records them with crc_debug: the compressor drops
+    the action buffer and info["crc_sample"] keeps the full transition."""
+    out = []
+    for ep, n in enumerate(episodes):
+        buf = deque([default] * L, maxlen=L)
+        prev_full = None
+        for t in range(n):
+            act = default if t == 0 else act_of(src, ep, t)
+            if t > 0:
+                buf.append(act)
+            base = obs_of(src, ep, t)
+            full = (*base, *buf)
+            last = t == n - 1
+            rew = float(t)
+            info = {"crc_sample": (prev_full, act, full, rew, last, False)}
+            out.append((act, full[:-L], rew, last, False, info))
+            prev_full = full
+    return out
+
+
+@pytest.mark.parametrize("L", [1, 3])
+def test_realtime_rebuilds_action_buffer_across_resets(L):
+    default = np.array([0.5, 0.5], dtype=np.float32)
+    samples = rtgym_run(0, [2, 5, 3], L, default)
+    mem = RealTimeTorchMemory(act_buf_len=L, memory_size=100, batch_size=4, crc_debug=True)
+    mem.append(Buf(samples))
+    valid = list(mem.valid_slots())
+    assert valid == [1, 3, 4, 5, 6, 8, 9]
+    for slot in valid:
+        prev_obs, act, rew, new_obs, terminated, truncated, info = mem.get_transition(slot)
+        want_prev, want_act, want_new, want_rew, want_term, _ = info["crc_sample"]
+        assert len(new_obs) == 2 + L
+        assert_tree_equal(prev_obs, want_prev)
+        assert_tree_equal(new_obs, want_new)
+        assert_tree_equal(act, want_act)
+        assert float(rew) == want_rew and terminated == want_term
+    # first step after a reset: the previous episode's last action is not in the buffer
+    prev_obs, _, _, new_obs, *_ = mem.get_transition(3)
+    for a in prev_obs[2:]:
+        assert_tree_equal(a, default)
+    assert_tree_equal(new_obs[-1], act_of(0, 1, 1))
+    # the batched fast path gives the same values as the per-item path (crc_debug off)
+    mem.crc_debug = False
+    fast = mem.sample(indices=valid)
+    mem.crc_debug = True
+    slow = mem.sample(indices=valid)  # per item, with the CRC check of each transition
+    assert_tree_equal(fast, slow)
+
+
+def test_realtime_skips_transitions_whose_history_was_overwritten():
+    default = np.zeros(2, dtype=np.float32)
+    mem = RealTimeTorchMemory(act_buf_len=3, memory_size=4, batch_size=64)
+    mem.append(Buf(rtgym_run(0, [10], 3, default)))
+    # live counters 6..9; 7 and 8 need actions of counter 5 (gone); only 9 is complete
+    assert sorted(mem.valid_slots()) == sorted([7 % 4, 8 % 4, 9 % 4])
+    assert set(mem.sample_indices().tolist()) == {9 % 4}
+    mem2 = RealTimeTorchMemory(act_buf_len=3, memory_size=2, batch_size=4)
+    mem2.append(Buf(rtgym_run(0, [10], 3, default)))
+    with pytest.raises(UserError, match="too small"):
+        mem2.sample_indices()
+
+
+def test_history_slots_clamp_at_episode_start():
+    mem = GenericTorchMemory(memory_size=100)
+    mem.append(Buf(episode(0, 0, 3) + episode(0, 1, 4)))
+    hist = mem.history_slots(np.array([0, 2, 4, 6]), 4)
+    assert hist.tolist() == [[0, 0, 0, 0], [0, 0, 1, 2], [3, 3, 3, 4], [3, 4, 5, 6]]
+
+
+# ---- CRC debugging ------------------------------------------------------------------------------
+
+
+def test_crc_mismatch_names_field_and_element():
+    default = np.zeros(2, dtype=np.float32)
+    samples = rtgym_run(0, [4], 2, default)
+    # corrupt the action buffer the worker saw at step 2 (element 3 of the new observation)
+    prev_full, act, full, rew, term, trunc = samples[2][5]["crc_sample"]
+    full = (*full[:3], full[3] + 1)
+    samples[2][5]["crc_sample"] = (prev_full, act, full, rew, term, trunc)
+    mem = RealTimeTorchMemory(act_buf_len=2, memory_size=10, batch_size=2, crc_debug=True)
+    mem.append(Buf(samples))
+    mem[1]  # untouched transition passes
+    with pytest.raises(CRCMismatchError, match=r"transition 2 .*new_obs\[3\]"):
+        mem[2]
+    assert check_transition(0, (None,) * 6, {}) is False
+
+
+# ---- the slow path: a user memory written like the tutorial's -------------------------------------
+
+
+class TutorialMemory(TorchMemory):
+    """Implements only append_buffer, __len__ and get_transition, on self.data lists."""
+
+    def __init__(self, device=None, nb_steps=None, sample_preprocessor=None, memory_size=1000, batch_size=4,
+                 dataset_path=""):
+        super().__init__(device=device, nb_steps=nb_steps, sample_preprocessor=sample_preprocessor,
+                         memory_size=memory_size, batch_size=batch_size, dataset_path=dataset_path)
+
+    def append_buffer(self, buffer):
+        cols = [[b[i] for b in buffer.memory] for i in range(6)]
+        if self.data:
+            for col, new in zip(self.data, cols):
+                col += new
+        else:
+            self.data.extend(cols)
+
+    def __len__(self):
+        return max(0, len(self.data[0]) - 1) if self.data else 0
+
+    def get_transition(self, item):
+        return (self.data[1][item], self.data[0][item + 1], self.data[2][item + 1], self.data[1][item + 1],
+                self.data[3][item + 1], self.data[4][item + 1], self.data[5][item + 1])
+
+
+def test_user_memory_works_through_the_slow_path():
+    calls = []
+
+    def preprocessor(prev_obs, act, rew, new_obs, terminated, truncated):
+        calls.append(1)
+        return prev_obs, act * 2, rew, new_obs, terminated, truncated
+
+    mem = TutorialMemory(nb_steps=3, sample_preprocessor=preprocessor)
+    assert mem.data == [] and len(mem) == 0
+    mem.append(Buf([(np.zeros(2, np.float32), obs_of(0, 0, 0), 0.0, False, False, {})] + episode(0, 0, 5)[1:]))
+    batches = list(mem)
+    assert len(batches) == 3 and len(calls) == 12
+    prev_obs, act, rew, new_obs, terminated, truncated = mem.sample(indices=[0, 3])
+    assert isinstance(prev_obs, tuple) and prev_obs[0].shape == (2, 3)
+    assert act.tolist() == [[2.0, -2.0], [8.0, -8.0]]
+    assert rew.dtype == torch.float32 and terminated.tolist() == [0.0, 1.0]
+
+
+def test_collate_torch_shapes():
+    batch = [((np.ones(3), np.zeros((2, 2), np.uint8)), np.ones(2), np.float32(1), (np.ones(3), np.zeros((2, 2), np.uint8)),
+              np.float32(0), np.float32(1)) for _ in range(5)]
+    prev_obs, act, rew, new_obs, terminated, truncated = collate_torch(batch, "cpu")
+    assert prev_obs[0].shape == (5, 3) and prev_obs[0].dtype == torch.float32  # float64 -> float32
+    assert prev_obs[1].dtype == torch.uint8 and act.shape == (5, 2)
+    assert rew.shape == (5,) and truncated.dtype == torch.float32
+    with pytest.raises(UserError, match="None"):
+        collate_torch([None, None])
+
+
+def test_dataset_path_refuses_pickle(tmp_path):
+    (tmp_path / "data.pkl").write_bytes(b"\x80\x04N.")
+    with pytest.raises(UserError, match="pickle"):
+        GenericTorchMemory(dataset_path=str(tmp_path))
+
+
+def test_custom_memory_example_runs():
+    proc = subprocess.run([sys.executable, str(ROOT / "examples" / "custom_memory.py")], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "batch ok" in proc.stdout
