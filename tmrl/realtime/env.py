@@ -1,0 +1,499 @@
+"""The real-time Gymnasium environment: elastic time steps around a :class:`RealTimeGymInterface`.
+
+Timeline of one time step (``T = time_step_duration``, ``c = start_obs_capture``)::
+
+    t_start            t_start + c              t_start + T = next t_start
+      | send_control(a)   | get_obs_rew_terminated_info()   | send_control(a')
+      |<-- step() returns here; the policy computes a' while the time step runs -->|
+
+``step(a')`` waits for the running time step to end, starts the next one with ``a'`` and returns
+the observation captured during the step that just ended. The policy's inference therefore
+overlaps the time step, and the action buffer in the observation (``act_buf_len`` last actions,
+oldest first) keeps the delayed problem Markov.
+
+The clock is elastic: when ``step()`` comes late but within ``time_step_duration *
+time_step_timeout_factor`` after the end of the time step, the next time step still starts at the
+nominal time (in the past), so the cadence is kept; later than that, the clock restarts from now
+with one :class:`TimeStepTimeoutWarning` (none right after ``wait()``).
+
+Two variants with the semantics of rtgym 0.16:
+
+* :class:`RealTimeEnv` (``real-time-gym-v1``): the interface is built on the caller's thread, and
+  ``reset``, ``wait``, ``render`` and ``close`` run there; ``send_control`` and the observation
+  capture run on one persistent time-step thread.
+* :class:`RealTimeEnvTS` (``real-time-gym-ts-v1``): one persistent thread builds the interface and
+  makes every call to it except ``render`` (for interfaces with thread affinity).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import warnings
+from collections import deque
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+from tmrl.errors import UserError
+from tmrl.realtime.benchmark import PolyakBenchmark, make_benchmark
+from tmrl.realtime.clock import Clock, PerfCounterClock
+from tmrl.realtime.interface import CONFIG_KEYS, DEFAULT_CONFIG_DICT
+
+__all__ = ["RealTimeEnv", "RealTimeEnvTS", "TimeStepTimeoutWarning", "StepAfterDoneError", "BenchmarkDisabledError"]
+
+logger = logging.getLogger(__name__)
+
+# How long close() waits for the time-step thread to stop before giving up (seconds of real time).
+_CLOSE_JOIN_TIMEOUT = 10.0
+
+
+class TimeStepTimeoutWarning(UserWarning):
+    """``step()`` came too late: the elastic clock restarted from now."""
+
+
+class StepAfterDoneError(UserError, RuntimeError):
+    """``step()`` was called after the episode ended (a ``RuntimeError``, as in rtgym)."""
+
+
+class BenchmarkDisabledError(UserError, AssertionError):
+    """``benchmarks()`` was called without ``"benchmark": True`` (an ``AssertionError``, as in rtgym)."""
+
+
+def _read_config(config: Mapping[str, Any]) -> dict[str, Any]:
+    """Complete ``config`` with the defaults and check the values a user can get wrong.
+
+    Raises:
+        UserError: a missing interface or an out-of-range value.
+    """
+    if not isinstance(config, Mapping):
+        raise UserError(
+            f"the real-time config is a {type(config).__name__}: pass a dict, e.g. "
+            "dict(tmrl.realtime.DEFAULT_CONFIG_DICT, interface=MyInterface)"
+        )
+    unknown = sorted(set(config) - CONFIG_KEYS)
+    if unknown:
+        logger.warning("real-time config: ignoring unknown keys %s", unknown)
+    cfg = {**DEFAULT_CONFIG_DICT, **config}
+    if not callable(cfg["interface"]):
+        raise UserError('the real-time config has no interface: set config["interface"] to your interface class')
+
+    def number(key: str, low: float, allow_low: bool = True) -> float:
+        try:
+            value = float(cfg[key])
+        except (TypeError, ValueError):
+            raise UserError(f"real-time config: {key} is {cfg[key]!r}; set it to a number") from None
+        if math.isnan(value) or value < low or (value == low and not allow_low):
+            bound = f">= {low}" if allow_low else f"> {low}"
+            raise UserError(f"real-time config: {key} is {cfg[key]!r}; set it to a number {bound}")
+        return value
+
+    number("time_step_duration", 0.0)
+    number("start_obs_capture", 0.0)
+    number("time_step_timeout_factor", 0.0)
+    number("ep_max_length", 0.0, allow_low=False)
+    number("benchmark_polyak", 0.0, allow_low=False)
+    if not isinstance(cfg["act_buf_len"], int) or cfg["act_buf_len"] < 1:
+        raise UserError(
+            f"real-time config: act_buf_len is {cfg['act_buf_len']!r}; set it to an integer >= 1 "
+            "(set act_in_obs to False to leave actions out of observations)"
+        )
+    if not isinstance(cfg["interface_kwargs"], Mapping):
+        raise UserError("real-time config: interface_kwargs must be a dict of keyword arguments")
+    return cfg
+
+
+class RealTimeEnv(gymnasium.Env):
+    """A Gymnasium environment stepping a :class:`~tmrl.realtime.RealTimeGymInterface` in real time.
+
+    Usually built by ``gymnasium.make("real-time-gym-v1", config=config)``.
+
+    Args:
+        config: a copy of :data:`~tmrl.realtime.DEFAULT_CONFIG_DICT` with your ``interface``;
+            missing keys take their default. Never mutated.
+        clock: where time comes from (tmrl addition); defaults to
+            :class:`~tmrl.realtime.clock.PerfCounterClock`. Tests pass a
+            :class:`~tmrl.realtime.clock.FakeClock`.
+
+    Attributes:
+        default_action: the action applied at reset and used to fill the action buffer.
+        act_buf: the last ``act_buf_len`` actions, oldest first.
+        current_step: steps since the last reset.
+
+    Raises:
+        UserError: the config is invalid.
+        Exception: whatever the interface's constructor or space getters raise.
+    """
+
+    metadata = {"render_modes": ["human"]}
+    #: Whether every interface call (except render) runs on the time-step thread.
+    _INTERFACE_ON_WORKER = False
+
+    def __init__(self, config: Mapping[str, Any] | None = None, clock: Clock | None = None) -> None:
+        cfg = _read_config(DEFAULT_CONFIG_DICT if config is None else config)
+        self._clock: Clock = PerfCounterClock() if clock is None else clock
+        self.config = cfg
+        self.interface_cls = cfg["interface"]
+        self.interface_args = tuple(cfg["interface_args"])
+        self.interface_kwargs = dict(cfg["interface_kwargs"])
+        self.wait_on_done = bool(cfg["wait_on_done"])
+        self.last_act_on_reset = bool(cfg["last_act_on_reset"])
+        self.act_prepro_func: Callable[[Any], Any] | None = cfg.get("act_prepro_func")
+        self.obs_prepro_func: Callable[[Any], Any] | None = cfg.get("obs_prepro_func")
+        self.ep_max_length = cfg["ep_max_length"]
+        self.time_step_duration = float(cfg["time_step_duration"])
+        self.time_step_timeout_factor = float(cfg["time_step_timeout_factor"])
+        self.start_obs_capture = float(cfg["start_obs_capture"])
+        self.time_step_timeout = self.time_step_duration * self.time_step_timeout_factor
+        self.act_in_obs = bool(cfg["act_in_obs"])
+        self.act_buf_len = int(cfg["act_buf_len"])
+        self.reset_act_buf = bool(cfg["reset_act_buf"])
+        self.act_buf: deque[Any] = deque(maxlen=self.act_buf_len)
+        self.benchmark = bool(cfg["benchmark"])
+        self.benchmark_polyak = float(cfg["benchmark_polyak"])
+        self.bench: PolyakBenchmark = make_benchmark(cfg["benchmark_type"], self.benchmark_polyak)
+
+        self.is_waiting = False
+        self.current_step = 0
+        self.time_initialized = False
+        self.running = False
+        self.seed: int | None = None
+        self.options: dict[str, Any] | None = None
+        self.render_mode = "human"
+        # Timestamps of the current time step (owned by the caller's thread).
+        self._t_start = 0.0
+        self._t_co = 0.0
+        self._t_end = 0.0
+        # A time step is running on the worker and its result has not been collected.
+        self._in_flight = False
+        self._result: tuple[str, Any] | None = None
+        self._closed = False
+        self._interface: Any = None
+
+        self._jobs = self._clock.channel()
+        self._results = self._clock.channel()
+        self._thread = threading.Thread(
+            target=self._worker_loop, args=(self._clock.now(),), name=f"tmrl-{type(self).__name__}", daemon=True
+        )
+        if self._INTERFACE_ON_WORKER:
+            self._thread.start()
+            try:
+                self._call_interface(self._build_interface)
+            except BaseException:
+                self._stop_worker()
+                raise
+        else:
+            self._build_interface(None)
+            self._thread.start()
+        self.init_action_buffer()
+
+    # interface and worker thread ---------------------------------------------------------------
+    def _build_interface(self, _: Any) -> None:
+        """Build the interface and read its spaces (on the thread that will own it)."""
+        interface = self.interface_cls(*self.interface_args, **self.interface_kwargs)
+        self._interface = interface
+        self.default_action = interface.get_default_action()
+        self.interface_action_space = interface.get_action_space()
+        self.interface_observation_space = interface.get_observation_space()
+        self.action_space = self.interface_action_space
+        self.observation_space = self._get_observation_space()
+
+    def _get_observation_space(self) -> spaces.Space:
+        t = self.interface_observation_space
+        if not self.act_in_obs:
+            return t
+        if not isinstance(t, spaces.Tuple):
+            raise UserError(
+                f"{self.interface_cls.__name__}.get_observation_space() returned a {type(t).__name__}: "
+                "return a gymnasium.spaces.Tuple (the action buffer is appended to it)"
+            )
+        return spaces.Tuple((*t.spaces, *((self.interface_action_space,) * self.act_buf_len)))
+
+    @property
+    def interface(self) -> Any:
+        """The interface object (with ``real-time-gym-ts-v1``, call it from the time-step thread only)."""
+        return self._interface
+
+    def _call_interface(self, fn: Callable[[Any], Any]) -> Any:
+        """Run ``fn(interface)`` on the thread that owns the interface; no time step may be running."""
+        if not self._INTERFACE_ON_WORKER:
+            return fn(self._interface)
+        self._jobs.put(("call", fn))
+        status, value = self._results.get()
+        if status == "error":
+            raise value
+        return value
+
+    def _worker_loop(self, t0: float) -> None:
+        """The time-step thread: runs jobs in order until told to stop."""
+        clock = self._clock
+        clock.sleep_until(t0)
+        while True:
+            kind, payload = self._jobs.get()
+            if kind == "stop":
+                self._results.put(("ok", None))
+                return
+            try:
+                if kind == "step":
+                    value = self._time_step(*payload)
+                else:
+                    value = payload(self._interface)
+            except BaseException as err:  # handed to the caller, who re-raises it
+                self._results.put(("error", err))
+            else:
+                self._results.put(("ok", value))
+
+    def _time_step(self, action: Any, t_co: float) -> tuple[tuple[Any, ...], Any, Any, Any]:
+        """Send the control now, capture the observation at ``t_co`` (time-step thread)."""
+        clock, bench = self._clock, self.benchmark
+        if bench:
+            self.bench.start_send_control(clock.now())
+        self._interface.send_control(self.act_prepro_func(action) if self.act_prepro_func else action)
+        if bench:
+            self.bench.end_send_control(clock.now())
+        clock.sleep_until(t_co)
+        if bench:
+            self.bench.start_get_obs(clock.now())
+        obs, rew, terminated, info = self._interface.get_obs_rew_terminated_info()
+        if self.obs_prepro_func:
+            obs = self.obs_prepro_func(obs)
+        obs = tuple(obs)
+        if bench:
+            self.bench.end_get_obs(clock.now())
+        return obs, rew, terminated, info
+
+    def _stop_worker(self) -> None:
+        if self._thread.is_alive():
+            self._jobs.put(("stop", None))
+            self._thread.join(_CLOSE_JOIN_TIMEOUT)
+            if self._thread.is_alive():
+                logger.warning("the real-time thread did not stop within %.0f s", _CLOSE_JOIN_TIMEOUT)
+
+    # elastic clock -------------------------------------------------------------------------
+    def _initialize_time(self) -> None:
+        """At the first reset: pretend a time step just ended now."""
+        now = self._clock.now()
+        self._t_start = now - self.time_step_duration
+        self._t_co = self._t_start + self.start_obs_capture
+        self._t_end = now
+        self.time_initialized = True
+
+    def _update_timestamps(self) -> None:
+        """Start a time step: at the end of the previous one when within the allowed lateness,
+        else now (with a warning unless the environment was waiting)."""
+        now = self._clock.now()
+        if now < self._t_end + self.time_step_timeout:
+            self._t_start = self._t_end
+        else:
+            if not self.is_waiting:
+                warnings.warn(
+                    f"time step timed out: step() or reset() came {1000 * (now - self._t_end):.1f} ms after the "
+                    f"end of the time step (allowed: {1000 * self.time_step_timeout:.1f} ms); the clock restarts "
+                    "from now (make inference faster or raise time_step_timeout_factor)",
+                    TimeStepTimeoutWarning,
+                    stacklevel=4,
+                )
+            else:
+                self.is_waiting = False
+            self._t_start = now
+        self._t_co = self._t_start + self.start_obs_capture
+        self._t_end = self._t_start + self.time_step_duration
+
+    def _run_time_step(self, action: Any) -> None:
+        self._update_timestamps()
+        self._in_flight = True
+        self._jobs.put(("step", (action, self._t_co)))
+
+    def _join_thread(self) -> None:
+        """Wait until the running time step (if any) has captured its observation and ended."""
+        if self._in_flight:
+            self._result = self._results.get()
+            self._in_flight = False
+            self._clock.sleep_until(self._t_end)
+
+    def _retrieve_obs_rew_terminated_info(self) -> tuple[tuple[Any, ...], Any, Any, Any]:
+        result, self._result = self._result, None
+        if result is None:
+            self.running = False
+            raise StepAfterDoneError("no time step is running: call reset() before step()")
+        status, value = result
+        if status == "error":
+            self.running = False  # the episode cannot go on; reset() starts a new one
+            raise value
+        return value
+
+    # gymnasium API -------------------------------------------------------------------------
+    def _buffer_copy(self) -> list[Any]:
+        # Copies, so that consecutive observations share no array (the same action appears in
+        # several buffers, and users keep observations).
+        return [a.copy() if isinstance(a, np.ndarray) else a for a in self.act_buf]
+
+    def init_action_buffer(self) -> None:
+        """Fill the action buffer with the default action."""
+        for _ in range(self.act_buf_len):
+            self.act_buf.append(self.default_action)
+
+    def reset(  # type: ignore[override]  # positional seed allowed, as in rtgym
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[tuple[Any, ...], dict[str, Any]]:
+        """Start an episode: reset the interface, then start the first time step with the default
+        action (or, with ``reset_act_buf`` False and ``last_act_on_reset`` True, with the last action
+        given to ``step()``). Waits for a running time step to end first.
+
+        Returns:
+            ``(obs, info)``: the interface's observation followed by the action buffer.
+        """
+        clock, bench = self._clock, self.benchmark
+        if self._closed:
+            raise UserError("this real-time environment is closed: make a new one")
+        if bench:
+            self.bench.start_reset(clock.now())
+        self._join_thread()
+        self._result = None
+        if bench:
+            self.bench.end_reset_join(clock.now())
+        super().reset(seed=seed)
+        self.running = True
+        self.seed = seed
+        self.options = options
+        self.current_step = 0
+        if self.reset_act_buf:
+            self.init_action_buffer()
+        elif not self.last_act_on_reset:
+            # The last action of the previous episode was never applied: the default action is.
+            self.act_buf[-1] = self.default_action
+        obs, info = self._call_interface(lambda itf: itf.reset(seed=seed, options=options))
+        if self.act_in_obs:
+            obs = [*obs, *self._buffer_copy()]
+        if self.obs_prepro_func:
+            # rtgym applies obs_prepro_func after appending the buffer here, before it in step().
+            obs = self.obs_prepro_func(obs)
+        obs = tuple(obs)
+        if not self.time_initialized:
+            self._initialize_time()
+        self._run_time_step(self.act_buf[-1])
+        if bench:
+            self.bench.end_reset(clock.now())
+        return obs, info
+
+    def step(self, action: Any) -> tuple[tuple[Any, ...], Any, Any, bool, dict[str, Any]]:
+        """Wait for the running time step to end, start the next one with ``action``, and return
+        what was observed during the step that ended.
+
+        Call it again before the new time step ends to keep the cadence.
+
+        Returns:
+            ``(obs, rew, terminated, truncated, info)``; ``truncated`` is True at
+            ``ep_max_length`` steps unless ``terminated`` is. On either, no new time step starts
+            (``wait()`` is called when ``wait_on_done``).
+
+        Raises:
+            StepAfterDoneError: the episode has ended (a ``RuntimeError``); call ``reset()``.
+            Exception: whatever the interface raised during the time step.
+        """
+        clock, bench = self._clock, self.benchmark
+        if bench:
+            self.bench.start_step(clock.now())
+        self._join_thread()
+        if bench:
+            self.bench.end_step_join(clock.now())
+        self.current_step += 1
+        self.act_buf.append(action)  # as in rtgym, even when the episode has ended
+        if not self.running:
+            self._result = None
+            raise StepAfterDoneError("the episode is terminated or truncated: call reset() before step()")
+        obs, rew, terminated, info = self._retrieve_obs_rew_terminated_info()
+        truncated = bool(self.current_step >= self.ep_max_length) if not terminated else False
+        if not (terminated or truncated):
+            self._run_time_step(action)
+        else:
+            self.running = False
+            if self.wait_on_done:
+                self.wait()
+        if self.act_in_obs:
+            obs = (*obs, *self._buffer_copy())
+        if bench:
+            self.bench.end_step(clock.now())
+        return obs, rew, terminated, truncated, info
+
+    def wait(self) -> None:
+        """Pause: wait for the running time step to end, then call the interface's ``wait()``.
+        The next time step restarts the clock without a warning."""
+        self._join_thread()
+        self.is_waiting = True
+        self._call_interface(lambda itf: itf.wait())
+
+    def stop(self) -> None:
+        """Wait for the running time step to end."""
+        self._join_thread()
+
+    def benchmarks(self) -> dict[str, Any]:
+        """Measured durations (see :mod:`tmrl.realtime.benchmark`).
+
+        Returns:
+            with ``benchmark_type`` ``"polyak"``: ``{name: (average, average_deviation)}`` for
+            ``time_step_duration``, ``step_duration``, ``join_duration``,
+            ``inference_duration``, ``send_control_duration``, ``get_obs_duration`` (seconds).
+
+        Raises:
+            BenchmarkDisabledError: the config did not set ``"benchmark": True``.
+        """
+        if not self.benchmark:
+            raise BenchmarkDisabledError('benchmarks are off: set "benchmark": True in the real-time config')
+        return self.bench.result()
+
+    def render(self, mode: str = "human", join_thread: bool = False) -> Any:
+        """Return the interface's ``render()``, called on the caller's thread (as rtgym does for both
+        variants). ``join_thread=True`` first waits for the running time step to end."""
+        if join_thread:
+            self._join_thread()
+        return self._interface.render()
+
+    def set_default_action(self, default_action: Any) -> None:
+        """Change the action applied at the next reset (and used to fill the buffer)."""
+        self.default_action = default_action
+
+    def set_time_step_duration(self, time_step_duration: float, time_step_timeout_factor: float | None = None) -> None:
+        """Change the time-step duration (and optionally the timeout factor) from the next time step on."""
+        self._join_thread()
+        if time_step_timeout_factor is not None:
+            self.time_step_timeout_factor = float(time_step_timeout_factor)
+        self.time_step_duration = float(time_step_duration)
+        self.time_step_timeout = self.time_step_duration * self.time_step_timeout_factor
+
+    def set_start_obs_capture(self, start_obs_capture: float) -> None:
+        """Change when the observation is captured, from the next time step on."""
+        self._join_thread()
+        self.start_obs_capture = float(start_obs_capture)
+
+    def set_ep_max_length(self, ep_max_length: float) -> None:
+        """Change the episode length limit, from the next step on."""
+        self._join_thread()
+        self.ep_max_length = ep_max_length
+
+    def close(self) -> None:
+        """Wait for the running time step, close the interface (when it has ``close()``) and stop
+        the time-step thread. Idempotent; the environment cannot be used afterwards."""
+        if self._closed:
+            return
+        self._closed = True
+        self.running = False
+        try:
+            self._join_thread()
+            self._result = None
+            if callable(getattr(self._interface, "close", None)):
+                self._call_interface(lambda itf: itf.close())
+        finally:
+            self._stop_worker()
+
+
+class RealTimeEnvTS(RealTimeEnv):
+    """:class:`RealTimeEnv` whose interface is built and called on one persistent thread
+    (``real-time-gym-ts-v1``), for interfaces with thread affinity. ``render()`` still runs on the
+    caller's thread, as in rtgym."""
+
+    _INTERFACE_ON_WORKER = True
