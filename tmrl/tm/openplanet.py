@@ -73,7 +73,7 @@ def _hint(host: str, port: int) -> str:
     return (
         f"check that TrackMania 2020 is running with a map loaded (car on track, not a menu), that the "
         f"OpenPlanet plugin TMRL_GrabData is installed and enabled (F3 > Developer > Reload plugin), that "
-        f"it listens on {host}:{port} (config ENV.OPENPLANET_PORT if you changed it), and that no other "
+        f"it listens on {host}:{port} (the plugin's port; 9000 unless you changed it), and that no other "
         f"program holds port {port}"
     )
 

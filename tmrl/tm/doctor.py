@@ -1,0 +1,360 @@
+"""``--doctor``: check a TrackMania setup piece by piece, before a training run fails.
+
+Each check is a plain function returning a :class:`CheckResult` (pass, fail or skip, what was
+found, and for a failure the one-line fix). :func:`run_checks` runs them in order and
+:func:`run_doctor` prints the list and returns the exit code (0: every check passed, 1: at least
+one failed). No check raises: an unexpected error becomes a failed check whose fix asks to report
+it.
+
+The checks, in order: config sanity, OpenPlanet connection and frame rate, the game window and its
+size, the gamepad driver, screen-capture time per frame, the reward file, the GPU, server
+reachability, TLS credentials.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping, TextIO
+
+from tmrl.errors import UserError
+
+__all__ = [
+    "CheckResult",
+    "check_capture_speed",
+    "check_config",
+    "check_gamepad",
+    "check_gpu",
+    "check_openplanet",
+    "check_reward_file",
+    "check_server",
+    "check_tls",
+    "check_window",
+    "format_report",
+    "run_checks",
+    "run_doctor",
+]
+
+logger = logging.getLogger(__name__)
+
+TM_INTERFACES = ("TM20FULL", "TM20LIDAR", "TM20LIDARPROGRESS")
+
+
+@dataclass(frozen=True)
+class CheckResult:
+    """Outcome of one check.
+
+    Attributes:
+        name: short name of what was checked.
+        status: ``"pass"``, ``"fail"`` or ``"skip"``.
+        detail: what was found (one line).
+        fix: for a failure, the one-line fix.
+    """
+
+    name: str
+    status: str
+    detail: str
+    fix: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status != "fail"
+
+
+def _pass(name: str, detail: str) -> CheckResult:
+    return CheckResult(name, "pass", detail)
+
+
+def _fail(name: str, detail: str, fix: str) -> CheckResult:
+    return CheckResult(name, "fail", detail, fix)
+
+
+def _skip(name: str, detail: str) -> CheckResult:
+    return CheckResult(name, "skip", detail)
+
+
+def _split(message: str) -> tuple[str, str]:
+    """Split a one-line UserError message ``cause: fix`` into its two halves."""
+    depth = 0
+    for i, ch in enumerate(message):
+        if ch in "([":
+            depth += 1
+        elif ch in ")]":
+            depth = max(depth - 1, 0)
+        elif depth == 0 and message.startswith(": ", i):
+            return message[:i], message[i + 2 :]
+    return message, "see docs/trackmania.md"
+
+
+# ---------------------------------------------------------------------------------------- checks
+def check_openplanet(host: str = "127.0.0.1", port: int = 9000, wait: float = 3.0, measure: float = 1.0,
+                     min_rate: float = 20.0) -> CheckResult:
+    """Connect to the TMRL_GrabData plugin, wait up to ``wait`` s for a frame, count frames for
+    ``measure`` s; fail below ``min_rate`` frames per second (one frame per 50 ms time step)."""
+    from tmrl.tm.openplanet import OpenPlanetClient, TelemetryTimeout
+
+    name = "OpenPlanet telemetry"
+    with OpenPlanetClient(host=host, port=port, first_timeout=wait, timeout=wait, retry_interval=0.2) as client:
+        try:
+            first = client.retrieve_data(timeout=wait)
+        except TelemetryTimeout as err:
+            return _fail(name, *_split(str(err)))
+        rate = client.measure_rate(measure)
+    if rate < min_rate:
+        return _fail(name, f"only {rate:.1f} frames/s from {host}:{port} (need {min_rate:g})",
+                     "raise the game's frame rate (windowed, lower graphics settings, no frame limiter below 30 fps)")
+    return _pass(name, f"{host}:{port}, {rate:.0f} frames/s, speed {first.speed:.1f}, "
+                       f"position ({first.x:.1f}, {first.y:.1f}, {first.z:.1f})")
+
+
+def check_window(title: str = "Trackmania", width: int = 256, height: int = 128, resize: bool = True,
+                 display: str | None = None) -> CheckResult:
+    """Find the game window, move and resize it as training would, and check its client size."""
+    from tmrl.tm.capture import WindowCapture
+
+    name = "game window"
+    try:
+        with WindowCapture(title, width, height, display=display) as cap:
+            geo = cap.move_and_resize(0, 0) if resize else cap.check_size()
+    except UserError as err:
+        return _fail(name, *_split(str(err)))
+    return _pass(name, f"{title!r} at ({geo.left}, {geo.top}), picture {geo.width}x{geo.height}")
+
+
+def check_capture_speed(title: str = "Trackmania", width: int = 256, height: int = 128, img_width: int = 64,
+                        img_height: int = 64, grayscale: bool = True, time_step: float = 0.05,
+                        frames: int = 30, display: str | None = None) -> CheckResult:
+    """Time capture plus preprocessing; fail above a quarter of the time step."""
+    from tmrl.tm.capture import WindowCapture, preprocess
+
+    name = "capture time"
+    try:
+        with WindowCapture(title, width, height, display=display) as cap:
+            preprocess(cap.screenshot(), img_width, img_height, grayscale)  # warm-up (mss, cv2)
+            t0 = time.perf_counter()
+            for _ in range(frames):
+                preprocess(cap.screenshot(), img_width, img_height, grayscale)
+            ms = (time.perf_counter() - t0) / frames * 1e3
+    except UserError as err:
+        return _skip(name, f"needs the game window ({_split(str(err))[0]})")
+    budget = time_step * 1e3 / 4
+    if ms > budget:
+        return _fail(name, f"{ms:.1f} ms per frame, more than a quarter of the {time_step * 1e3:.0f} ms step",
+                     "close other programs, use a smaller window, or install OpenCV (pip install opencv-python-headless)")
+    return _pass(name, f"{ms:.2f} ms per frame (capture + resize to {img_width}x{img_height})")
+
+
+def check_gamepad(use_gamepad: bool = True) -> CheckResult:
+    """Check the virtual gamepad driver (skipped when the keyboard is configured)."""
+    from tmrl.tm.control import check_gamepad_driver
+
+    name = "gamepad driver"
+    if not use_gamepad:
+        return _skip(name, "VIRTUAL_GAMEPAD is false: the keyboard drives (binary actions)")
+    ok, msg = check_gamepad_driver()
+    return _pass(name, msg) if ok else _fail(name, *_split(msg))
+
+
+def check_reward_file(path: str | Path | None = None) -> CheckResult:
+    """Load the reward trajectory and report its length."""
+    from tmrl.tm.record import load_reward
+
+    name = "reward file"
+    try:
+        traj = load_reward(path)
+    except UserError as err:
+        return _fail(name, *_split(str(err)))
+    return _pass(name, f"{len(traj)} points ({(len(traj) - 1) * 0.1:.0f} m of track)")
+
+
+def check_gpu(cuda_training: bool = False, cuda_inference: bool = False) -> CheckResult:
+    """Whether CUDA is there when the config asks for it."""
+    name = "GPU"
+    try:
+        import torch
+
+        available = bool(torch.cuda.is_available())
+        device = torch.cuda.get_device_name(0) if available else "none"
+    except Exception as err:  # a broken CUDA install raises from deep inside torch
+        available, device = False, f"CUDA error ({type(err).__name__}: {err})"
+    wanted = [k for k, v in (("CUDA_TRAINING", cuda_training), ("CUDA_INFERENCE", cuda_inference)) if v]
+    if wanted and not available:
+        return _fail(name, f"{' and '.join(wanted)} set but no CUDA device ({device})",
+                     f"install a CUDA build of PyTorch (https://pytorch.org) or set {' and '.join(wanted)} to false")
+    return _pass(name, f"CUDA device: {device}" + ("" if wanted else " (not used: CUDA_TRAINING/CUDA_INFERENCE false)"))
+
+
+def check_server(host: str, port: int, timeout: float = 2.0) -> CheckResult:
+    """Whether something accepts TCP connections at the server's address."""
+    name = "server reachable"
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            pass
+    except OSError as err:
+        return _fail(name, f"nothing accepts connections at {host}:{port} ({err.strerror or err})",
+                     "start the server (python -m tmrl --server), or fix PORT, LOCALHOST_WORKER and PUBLIC_IP_SERVER "
+                     "in config.json, and open the port in the server's firewall")
+    return _pass(name, f"{host}:{port} accepts connections")
+
+
+def check_tls(cfg: Mapping[str, Any], credentials_dir: Path | None = None) -> CheckResult:
+    """TLS settings: credentials present when TLS is on; TLS on when the server is remote."""
+    name = "TLS credentials"
+    remote = not (cfg.get("LOCALHOST_WORKER", True) and cfg.get("LOCALHOST_TRAINER", True))
+    if cfg.get("TLS", False):
+        folder = credentials_dir or _credentials_dir(cfg)
+        cert = folder / "certificate.pem"
+        if not cert.is_file():
+            return _fail(name, f"TLS is on but {cert} is missing",
+                         f"run the server once to create the credentials, then copy its certificate.pem to {folder}")
+        return _pass(name, f"certificate at {cert}")
+    if remote and not cfg.get("ALLOW_PLAIN_TCP", False):
+        return _fail(name, "the server is on another machine but TLS is off",
+                     "set TLS to true in config.json (or ALLOW_PLAIN_TCP to true on a trusted private network)")
+    return _pass(name, "TLS off, connections stay on this machine" if not remote else "TLS off, plain TCP allowed")
+
+
+def _credentials_dir(cfg: Mapping[str, Any]) -> Path:
+    try:
+        from tmrl.config.loader import data_paths
+
+        return data_paths(cfg).credentials
+    except ImportError:  # pragma: no cover (config package always present in a full install)
+        return Path.home() / "TmrlData" / "credentials"
+
+
+def check_config(cfg: Mapping[str, Any]) -> CheckResult:
+    """Consistency of the TrackMania-related keys of a validated config."""
+    name = "config"
+    env = cfg.get("ENV", {})
+    problems: list[tuple[str, str]] = []
+    interface = str(env.get("RTGYM_INTERFACE", ""))
+    if interface.upper() not in TM_INTERFACES:
+        problems.append((f"ENV.RTGYM_INTERFACE is {interface!r}, not a TrackMania interface",
+                         f"set ENV.RTGYM_INTERFACE to one of {', '.join(TM_INTERFACES)} to train on TrackMania"))
+    rt = env.get("RTGYM_CONFIG", {})
+    step, capture = rt.get("time_step_duration", 0.05), rt.get("start_obs_capture", 0.04)
+    if capture > step:
+        problems.append((f"start_obs_capture ({capture}) is after the end of the step ({step})",
+                         "set ENV.RTGYM_CONFIG.start_obs_capture below time_step_duration"))
+    if interface.upper() == "TM20FULL" and (env.get("IMG_WIDTH", 64) > env.get("WINDOW_WIDTH", 256)
+                                            or env.get("IMG_HEIGHT", 64) > env.get("WINDOW_HEIGHT", 128)):
+        problems.append(("IMG_WIDTH/IMG_HEIGHT exceed the window size",
+                         "make ENV.IMG_WIDTH/IMG_HEIGHT at most ENV.WINDOW_WIDTH/WINDOW_HEIGHT"))
+    if env.get("REWARD_CONFIG", {}).get("CONSTANT_PENALTY", 0.0) > 0:
+        problems.append(("REWARD_CONFIG.CONSTANT_PENALTY is positive (a reward for standing still)",
+                         "set ENV.REWARD_CONFIG.CONSTANT_PENALTY to 0 or a negative value"))
+    try:
+        from tmrl.config.schema import PASSWORD_PLACEHOLDER
+    except ImportError:  # pragma: no cover
+        PASSWORD_PLACEHOLDER = "YourRandomPasswordHere"
+    remote = not (cfg.get("LOCALHOST_WORKER", True) and cfg.get("LOCALHOST_TRAINER", True))
+    if remote and cfg.get("PASSWORD") == PASSWORD_PLACEHOLDER:
+        problems.append(("PASSWORD is still the shipped placeholder and the server is remote",
+                         "run python -m tmrl --install for a random PASSWORD and copy it to every machine"))
+    if problems:
+        detail = "; ".join(p[0] for p in problems)
+        return _fail(name, detail, "; ".join(p[1] for p in problems))
+    return _pass(name, f"{interface}, window {env.get('WINDOW_WIDTH')}x{env.get('WINDOW_HEIGHT')}, "
+                       f"step {step * 1e3:.0f} ms")
+
+
+# ---------------------------------------------------------------------------------------- runner
+def _guard(name: str, fn: Callable[[], CheckResult]) -> CheckResult:
+    try:
+        return fn()
+    except Exception as err:  # a check must never end the report with a traceback
+        logger.debug("check %s crashed", name, exc_info=True)
+        return _fail(name, f"unexpected {type(err).__name__}: {err}",
+                     "please report this at the tmrl issue tracker with the output of --doctor")
+
+
+def run_checks(
+    cfg: Mapping[str, Any] | None = None,
+    *,
+    openplanet_host: str = "127.0.0.1",
+    openplanet_port: int = 9000,
+    openplanet_wait: float = 3.0,
+    min_frame_rate: float = 20.0,
+    window_title: str = "Trackmania",
+    reward_path: str | Path | None = None,
+    server_timeout: float = 2.0,
+    only: tuple[str, ...] | None = None,
+) -> list[CheckResult]:
+    """Run every check in order (or those named in ``only``: ``config``, ``openplanet``,
+    ``window``, ``gamepad``, ``capture``, ``reward``, ``gpu``, ``server``, ``tls``).
+
+    Args:
+        cfg: a validated config (``tmrl.config.loader.load_config()``); loaded when None.
+
+    Returns:
+        One :class:`CheckResult` per check run.
+    """
+    if cfg is None:
+        from tmrl.config.loader import load_config
+
+        cfg = load_config()
+    env = cfg.get("ENV", {})
+    width, height = int(env.get("WINDOW_WIDTH", 256)), int(env.get("WINDOW_HEIGHT", 128))
+    step = float(env.get("RTGYM_CONFIG", {}).get("time_step_duration", 0.05))
+    server_host = "127.0.0.1" if cfg.get("LOCALHOST_WORKER", True) else str(cfg.get("PUBLIC_IP_SERVER", "127.0.0.1"))
+    if reward_path is None:
+        try:
+            from tmrl.config.loader import data_paths
+
+            reward_path = data_paths(cfg).reward_file
+        except ImportError:  # pragma: no cover
+            reward_path = None
+    state: dict[str, CheckResult] = {}
+
+    def capture() -> CheckResult:
+        if "window" in state and not state["window"].ok:
+            return _skip("capture time", "needs the game window (see above)")
+        return check_capture_speed(window_title, width, height, int(env.get("IMG_WIDTH", 64)),
+                                   int(env.get("IMG_HEIGHT", 64)), bool(env.get("IMG_GRAYSCALE", True)), step)
+
+    checks: list[tuple[str, str, Callable[[], CheckResult]]] = [
+        ("config", "config", lambda: check_config(cfg)),
+        ("openplanet", "OpenPlanet telemetry",
+         lambda: check_openplanet(openplanet_host, openplanet_port, openplanet_wait, min_rate=min_frame_rate)),
+        ("window", "game window", lambda: check_window(window_title, width, height)),
+        ("gamepad", "gamepad driver", lambda: check_gamepad(bool(cfg.get("VIRTUAL_GAMEPAD", True)))),
+        ("capture", "capture time", capture),
+        ("reward", "reward file", lambda: check_reward_file(reward_path)),
+        ("gpu", "GPU", lambda: check_gpu(bool(cfg.get("CUDA_TRAINING")), bool(cfg.get("CUDA_INFERENCE")))),
+        ("server", "server reachable", lambda: check_server(server_host, int(cfg.get("PORT", 55555)), server_timeout)),
+        ("tls", "TLS credentials", lambda: check_tls(cfg)),
+    ]
+    results = []
+    for key, name, fn in checks:
+        if only is not None and key not in only:
+            continue
+        state[key] = _guard(name, fn)
+        results.append(state[key])
+    return results
+
+
+def format_report(results: list[CheckResult]) -> str:
+    """The pass/fail list: one line per check, an indented ``fix:`` line under each failure."""
+    width = max((len(r.name) for r in results), default=0)
+    lines = []
+    for r in results:
+        lines.append(f"[{r.status.upper():4}] {r.name:<{width}}  {r.detail}")
+        if r.status == "fail":
+            lines.append(f"       {'':<{width}}  fix: {r.fix}")
+    failed = sum(r.status == "fail" for r in results)
+    lines.append(f"{len(results) - failed} of {len(results)} checks passed or skipped, {failed} failed")
+    return "\n".join(lines)
+
+
+def run_doctor(cfg: Mapping[str, Any] | None = None, out: TextIO | None = None, **kwargs: Any) -> int:
+    """Run the checks, print the report to ``out`` (default stdout), return the exit code:
+    0 when nothing failed, 1 otherwise. Keyword arguments go to :func:`run_checks`."""
+    out = sys.stdout if out is None else out
+    results = run_checks(cfg, **kwargs)
+    print(format_report(results), file=out, flush=True)
+    return 0 if all(r.ok for r in results) else 1
