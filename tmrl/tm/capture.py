@@ -25,6 +25,7 @@ import platform
 import re
 import shutil
 import subprocess
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -113,6 +114,7 @@ class _XlibBackend:
             raise CaptureUnavailable(f"cannot open the X display {display_name or os.environ.get('DISPLAY')!r} ({err}): "
                                      "run from the desktop session that shows the game") from None
         self.root = self.d.screen().root
+        self._lock = threading.Lock()  # one X connection shared by the threads of one capture
         self._net_wm_name = self.d.intern_atom("_NET_WM_NAME")
         self._utf8 = self.d.intern_atom("UTF8_STRING")
 
@@ -149,15 +151,21 @@ class _XlibBackend:
                 todo.append(child)
         return None
 
+    def close(self) -> None:
+        with self._lock:
+            self.d.close()
+
     def geometry(self, handle: Any) -> Geometry:
-        g = handle.get_geometry()
-        origin = handle.translate_coords(self.root, 0, 0)
+        with self._lock:
+            g = handle.get_geometry()
+            origin = handle.translate_coords(self.root, 0, 0)
         # translate_coords gives the root's origin in window coordinates: negate it.
         return Geometry(-origin.x, -origin.y, g.width, g.height)
 
     def move_resize(self, handle: Any, x: int, y: int, width: int, height: int) -> None:
-        handle.configure(x=x, y=y, width=width, height=height)
-        self.d.sync()
+        with self._lock:
+            handle.configure(x=x, y=y, width=width, height=height)
+            self.d.sync()
 
 
 class _XdotoolBackend:
@@ -270,7 +278,10 @@ class WindowCapture:
                 f"no visible window titled {title!r}: start TrackMania 2020 in windowed mode "
                 f"(not fullscreen, not minimised) on this display"
             )
-        self._sct: Any = None
+        # mss handles are bound to the thread that made them; the real-time environment captures
+        # from its time-step thread and from the caller's thread (reset), so one per thread.
+        self._local = threading.local()
+        self._all_sct: list[Any] = []
 
     def geometry(self) -> Geometry:
         """The client area's current position and size on the screen."""
@@ -305,15 +316,17 @@ class WindowCapture:
         return geo
 
     def _mss(self) -> Any:
-        if self._sct is None:
+        sct = getattr(self._local, "sct", None)
+        if sct is None:
             try:
                 import mss
             except ImportError:
                 raise CaptureUnavailable(f"mss is not installed: {TRACKMANIA_EXTRA_HINT}") from None
             kwargs = {"display": self.display} if self.display and platform.system() == "Linux" else {}
             factory = getattr(mss, "MSS", None) or mss.mss  # mss >= 10 renamed the factory
-            self._sct = factory(**kwargs)
-        return self._sct
+            sct = self._local.sct = factory(**kwargs)
+            self._all_sct.append(sct)
+        return sct
 
     def screenshot(self) -> np.ndarray:
         """Capture the client area: BGRA uint8 ``(height, width, 4)`` at its current geometry.
@@ -326,9 +339,17 @@ class WindowCapture:
         return np.frombuffer(shot.raw, dtype=np.uint8).reshape(shot.height, shot.width, 4)
 
     def close(self) -> None:
-        if self._sct is not None:
-            self._sct.close()
-            self._sct = None
+        """Release the mss handles (and the X connection of the window backend)."""
+        for sct in self._all_sct:
+            try:
+                sct.close()
+            except Exception:  # a handle of another thread may refuse; the process exit frees it
+                pass
+        self._all_sct.clear()
+        self._local = threading.local()
+        closer = getattr(self.backend, "close", None)
+        if closer is not None:
+            closer()
 
     def __enter__(self) -> "WindowCapture":
         return self
