@@ -92,7 +92,11 @@ def partial_to_dict(p: functools.partial, version: str = "3") -> dict[str, Any]:
         if isinstance(value, functools.partial):
             out[key] = partial_to_dict(value, version="")
         elif inspect.isclass(value) or inspect.isfunction(value):
-            out[key] = partial_to_dict(functools.partial(value), version="")
+            try:
+                out[key] = partial_to_dict(functools.partial(value), version="")
+            except (ValueError, TypeError):
+                # Builtins such as ``dict`` have no readable signature: name them instead.
+                out[key] = _qualname(value)
         else:
             out[key] = value
     if version:
