@@ -1,0 +1,28 @@
+"""Training algorithms: SAC (:mod:`tmrl.algorithms.sac`) and REDQ-SAC (:mod:`tmrl.algorithms.redq`).
+
+``ALG.ALGORITHM`` in ``config.json`` names one of them; :func:`agent_class` maps that name to
+the class.
+"""
+
+from __future__ import annotations
+
+from tmrl.algorithms.redq import REDQSACAgent
+from tmrl.algorithms.sac import SACAgent, SpinupSacAgent
+from tmrl.errors import UserError
+
+__all__ = ["SACAgent", "SpinupSacAgent", "REDQSACAgent", "ALGORITHMS", "agent_class"]
+
+#: Values of ``ALG.ALGORITHM`` and the agents they select.
+ALGORITHMS: dict[str, type] = {"SAC": SACAgent, "REDQSAC": REDQSACAgent}
+
+
+def agent_class(name: str) -> type:
+    """The training agent class for a config's ``ALG.ALGORITHM`` (case-insensitive).
+
+    Raises:
+        UserError: unknown algorithm name.
+    """
+    key = str(name).upper().replace("-", "").replace("_", "")
+    if key not in ALGORITHMS:
+        raise UserError(f"ALG.ALGORITHM={name!r} is not supported: use one of {', '.join(ALGORITHMS)}")
+    return ALGORITHMS[key]

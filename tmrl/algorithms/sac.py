@@ -1,0 +1,396 @@
+"""Soft Actor-Critic (SAC v1 with a fixed entropy coefficient, v2 with a learned one).
+
+One update reads top to bottom in :meth:`SACAgent.train`. Two choices make it fast without
+changing what is learned:
+
+- the twin critics are one :class:`~tmrl.models.EnsembleQFunction`, evaluated by one batched
+  matrix product per layer;
+- the critic, actor and entropy losses share one backward pass. The actor's loss evaluates the
+  critics with detached weights, so critic weights get gradients from the critic loss only, and
+  all three optimizers step on gradients computed from the same (pre-update) parameters, as in
+  the SAC authors' implementation.
+"""
+
+from __future__ import annotations
+
+import copy
+import inspect
+import logging
+import math
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+import torch
+
+from tmrl.actor import TorchActorModule
+from tmrl.custom.utils.nn import copy_shared, no_grad
+from tmrl.errors import UserError
+from tmrl.models import EnsembleQFunction, MLPActorCritic
+from tmrl.training import TrainingAgent
+from tmrl.util import cached_property
+
+__all__ = ["SACAgent", "SpinupSacAgent", "make_optimizer", "CriticSet"]
+
+logger = logging.getLogger(__name__)
+
+_OPTIMIZERS: dict[str, Callable[..., torch.optim.Optimizer]] = {
+    "adam": torch.optim.Adam,
+    "adamw": torch.optim.AdamW,
+    "sgd": torch.optim.SGD,
+}
+
+
+def make_optimizer(
+    name: str,
+    params: Iterable[torch.nn.Parameter],
+    lr: float,
+    betas: Sequence[float] | None = None,
+    weight_decay: float | None = None,
+    what: str = "optimizer",
+) -> torch.optim.Optimizer:
+    """Build an optimizer by name, fused (or foreach) when PyTorch supports it for the params.
+
+    Args:
+        name: ``"adam"``, ``"adamw"`` or ``"sgd"`` (case-insensitive).
+        params: the parameters to optimise.
+        lr: learning rate.
+        betas: Adam/AdamW betas (None: PyTorch's default); ignored by SGD.
+        weight_decay: weight decay (None: the optimizer's default).
+        what: the config key this choice comes from, for error messages.
+
+    Raises:
+        UserError: unknown optimizer name or malformed betas.
+    """
+    key = str(name).lower()
+    if key not in _OPTIMIZERS:
+        raise UserError(f"{what}={name!r} is not a known optimizer: use one of 'adam', 'adamw', 'sgd'")
+    params = list(params)
+    kwargs: dict[str, Any] = {"lr": float(lr)}
+    if betas is not None and key in ("adam", "adamw"):
+        try:
+            b1, b2 = (float(b) for b in betas)
+        except (TypeError, ValueError):
+            raise UserError(f"betas for {what} must be two numbers like [0.9, 0.999], got {betas!r}") from None
+        kwargs["betas"] = (b1, b2)
+    elif betas is not None:
+        logger.warning("betas %s are ignored by %s=%r (SGD has no betas)", betas, what, name)
+    if weight_decay is not None:
+        kwargs["weight_decay"] = float(weight_decay)
+    cls = _OPTIMIZERS[key]
+    # Fused kernels update every tensor in one call; fall back to foreach where the device or
+    # dtype does not support them (the arithmetic is the same).
+    for extra in ({"fused": True}, {"foreach": True}, {}):
+        try:
+            return cls(params, **kwargs, **extra)
+        except (RuntimeError, TypeError, ValueError):
+            continue
+    raise AssertionError("unreachable: plain optimizer construction failed")
+
+
+class CriticSet:
+    """Uniform access to the critics of an actor-critic model.
+
+    The fast path is a model whose ``qs`` is an :class:`EnsembleQFunction`. A model written like
+    the tutorial's (separate ``q1`` and ``q2`` modules, or a ``ModuleList`` ``qs``) also works,
+    evaluated one critic at a time.
+
+    Args:
+        model: the actor-critic module.
+
+    Raises:
+        UserError: the model has neither ``qs`` nor ``q1``/``q2``.
+    """
+
+    def __init__(self, model: torch.nn.Module) -> None:
+        qs = getattr(model, "qs", None)
+        self.ensemble: EnsembleQFunction | None = qs if isinstance(qs, EnsembleQFunction) else None
+        if self.ensemble is not None:
+            self.modules: list[torch.nn.Module] = []
+        elif qs is not None:
+            self.modules = list(qs)
+        elif hasattr(model, "q1") and hasattr(model, "q2"):
+            self.modules = [model.q1, model.q2]
+        else:
+            raise UserError(
+                f"{type(model).__name__} has no critics: an actor-critic model needs `qs` "
+                "(tmrl.models.EnsembleQFunction or a ModuleList) or `q1` and `q2`"
+            )
+        self._params = [p for m in self.modules for p in m.parameters()]
+
+    def __len__(self) -> int:
+        return self.ensemble.n if self.ensemble is not None else len(self.modules)
+
+    def parameters(self) -> list[torch.nn.Parameter]:
+        """The critics' parameters."""
+        return list(self.ensemble.parameters()) if self.ensemble is not None else list(self._params)
+
+    def __call__(
+        self,
+        obs: Any,
+        act: torch.Tensor,
+        members: torch.Tensor | None = None,
+        detach_params: bool = False,
+    ) -> torch.Tensor:
+        """Q values ``(k, B)`` of the selected critics (all when ``members`` is None); with
+        ``detach_params`` no gradient reaches the critics' parameters."""
+        if self.ensemble is not None:
+            return self.ensemble(obs, act, members=members, detach_params=detach_params)
+        chosen = self.modules if members is None else [self.modules[int(i)] for i in members]
+        if not detach_params:
+            return torch.stack([q(obs, act) for q in chosen])
+        flags = [p.requires_grad for p in self._params]
+        for p in self._params:
+            p.requires_grad_(False)
+        try:
+            return torch.stack([q(obs, act) for q in chosen])
+        finally:
+            for p, f in zip(self._params, flags):
+                p.requires_grad_(f)
+
+
+def _build_model(model_cls: Callable[..., torch.nn.Module], observation_space: Any, action_space: Any, **extra: Any) -> torch.nn.Module:
+    """Call ``model_cls(observation_space, action_space, **extra)``, passing each extra keyword
+    only when the callable accepts it (a user model may not take ``n``)."""
+    try:
+        params = inspect.signature(model_cls).parameters
+        takes_kwargs = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+        accepted = {k: v for k, v in extra.items() if takes_kwargs or k in params}
+    except (TypeError, ValueError):
+        accepted = {}
+    return model_cls(observation_space, action_space, **accepted)
+
+
+def _resolve_device(device: Any) -> torch.device:
+    if device is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        return torch.device(device)
+    except (RuntimeError, TypeError):
+        raise UserError(f"device {device!r} is not a torch device: use 'cpu', 'cuda' or 'cuda:N'") from None
+
+
+class SACAgent(TrainingAgent):
+    """Soft Actor-Critic with twin critics and Polyak-averaged targets.
+
+    Args:
+        observation_space: the (preprocessed) observation space.
+        action_space: the action space (a bounded Box).
+        device: training device; None picks ``"cuda"`` when available, else ``"cpu"``.
+        model_cls: actor-critic class (or partial) called as ``model_cls(observation_space,
+            action_space)``; it needs ``.actor`` (a :class:`~tmrl.actor.TorchActorModule`
+            whose forward returns ``(action, logp)``) and critics (``.qs`` or ``.q1``/``.q2``).
+        gamma: discount factor.
+        polyak: target update factor, ``target <- polyak * target + (1 - polyak) * online``.
+        alpha: entropy coefficient: fixed (``learn_entropy_coef=False``, SAC v1) or initial
+            value (SAC v2).
+        lr_actor: actor learning rate.
+        lr_critic: critic learning rate.
+        lr_entropy: learning rate of ``log_alpha`` (SAC v2), optimised with Adam.
+        learn_entropy_coef: learn alpha toward ``target_entropy`` (SAC v2).
+        target_entropy: target policy entropy; None means ``-act_dim``.
+        optimizer_actor: ``"adam"``, ``"adamw"`` or ``"sgd"``.
+        optimizer_critic: ``"adam"``, ``"adamw"`` or ``"sgd"``.
+        betas_actor: Adam/AdamW betas of the actor optimizer (None: PyTorch's default).
+        betas_critic: Adam/AdamW betas of the critic optimizer (None: PyTorch's default).
+        l2_actor: weight decay of the actor optimizer (None: the optimizer's default).
+        l2_critic: weight decay of the critic optimizer (None: the optimizer's default).
+
+    Raises:
+        UserError: an unknown optimizer, malformed betas, an unknown device, or a model without
+            critics.
+    """
+
+    model_nograd = cached_property(lambda self: no_grad(copy_shared(self.model)))
+
+    def __init__(
+        self,
+        observation_space: Any = None,
+        action_space: Any = None,
+        device: Any = None,
+        model_cls: Callable[..., torch.nn.Module] = MLPActorCritic,
+        gamma: float = 0.99,
+        polyak: float = 0.995,
+        alpha: float = 0.2,
+        lr_actor: float = 1e-3,
+        lr_critic: float = 1e-3,
+        lr_entropy: float = 1e-3,
+        learn_entropy_coef: bool = True,
+        target_entropy: float | None = None,
+        optimizer_actor: str = "adam",
+        optimizer_critic: str = "adam",
+        betas_actor: Sequence[float] | None = None,
+        betas_critic: Sequence[float] | None = None,
+        l2_actor: float | None = None,
+        l2_critic: float | None = None,
+    ) -> None:
+        device = _resolve_device(device)
+        super().__init__(observation_space, action_space, device)
+        self.model_cls = model_cls
+        self.gamma = float(gamma)
+        self.polyak = float(polyak)
+        self.alpha = float(alpha)
+        self.lr_actor = lr_actor
+        self.lr_critic = lr_critic
+        self.lr_entropy = lr_entropy
+        self.learn_entropy_coef = bool(learn_entropy_coef)
+        self.optimizer_actor = optimizer_actor
+        self.optimizer_critic = optimizer_critic
+        self.betas_actor = betas_actor
+        self.betas_critic = betas_critic
+        self.l2_actor = l2_actor
+        self.l2_critic = l2_critic
+        if not 0.0 <= self.polyak <= 1.0:
+            raise UserError(f"polyak={polyak} must lie in [0, 1] (ALG.POLYAK), typically 0.995")
+        if self.alpha <= 0.0 and self.learn_entropy_coef:
+            raise UserError(f"alpha={alpha} must be > 0 when the entropy coefficient is learned (ALG.ALPHA)")
+
+        self.model = self._make_model().to(device)
+        self.model_target = no_grad(copy.deepcopy(self.model))
+        self.critics = CriticSet(self.model)
+        self.critics_target = CriticSet(self.model_target)
+
+        self.pi_optimizer = make_optimizer(
+            optimizer_actor, self.model.actor.parameters(), lr_actor, betas_actor, l2_actor, "optimizer_actor"
+        )
+        self.q_optimizer = make_optimizer(
+            optimizer_critic, self.critics.parameters(), lr_critic, betas_critic, l2_critic, "optimizer_critic"
+        )
+
+        if target_entropy is None:
+            self.target_entropy = -float(np.prod(action_space.shape))
+        else:
+            self.target_entropy = float(target_entropy)
+        self.log_alpha: torch.Tensor | None = None
+        self.alpha_optimizer: torch.optim.Optimizer | None = None
+        if self.learn_entropy_coef:
+            # Optimise log(alpha) rather than alpha (softlearning issue 37): it stays positive.
+            self.log_alpha = torch.tensor(math.log(self.alpha), device=device, requires_grad=True)
+            self.alpha_optimizer = make_optimizer("adam", [self.log_alpha], lr_entropy, what="lr_entropy")
+        self.alpha_t = torch.tensor(self.alpha, device=device)
+
+        # Same order in both lists: Polyak averaging pairs them up.
+        self._params = list(self.model.parameters())
+        self._target_params = list(self.model_target.parameters())
+
+    def _make_model(self) -> torch.nn.Module:
+        return _build_model(self.model_cls, self.observation_space, self.action_space)
+
+    def get_actor(self) -> TorchActorModule:
+        """The actor, sharing parameter memory with the trained one (no copy, no gradients)."""
+        return self.model_nograd.actor
+
+    def _entropy_coef(self) -> torch.Tensor:
+        if self.log_alpha is not None:
+            return self.log_alpha.detach().exp()
+        return self.alpha_t
+
+    @torch.no_grad()
+    def _update_targets(self) -> None:
+        # target <- polyak * target + (1 - polyak) * online, every tensor in one call.
+        torch._foreach_lerp_(self._target_params, self._params, 1.0 - self.polyak)
+
+    def train(self, batch: tuple) -> dict[str, Any]:
+        """One SAC update on ``batch = (obs, act, rew, next_obs, terminated, truncated)``.
+
+        Returns:
+            ``loss_actor``, ``loss_critic``, ``entropy_coef`` (the coefficient used in this
+            update), ``loss_entropy_coef`` (SAC v2) and a few ``debug_*`` means, all 0-dim
+            tensors (``float()`` them to log).
+        """
+        o, a, r, o2, d, _ = batch  # the truncated flag is deliberately unused
+        r = r.reshape(-1)
+        d = d.reshape(-1)
+        alpha = self._entropy_coef()
+
+        pi, logp_pi = self.model.actor(o)
+        with torch.no_grad():
+            # Target actions come from the current policy, values from the target critics.
+            a2, logp_a2 = self.model.actor(o2)
+            q_targ = self.critics_target(o2, a2).min(0).values
+            # Bootstrap unless the episode *terminated*: a truncated episode would have gone on,
+            # so its last transition keeps its future value.
+            backup = r + self.gamma * (1.0 - d) * (q_targ - alpha * logp_a2)
+
+        q = self.critics(o, a)  # (2, B)
+        loss_critic = (q - backup).square().mean()  # mean of the two critics' MSE
+
+        # Critic weights detached: this loss moves the actor only.
+        q_pi = self.critics(o, pi, detach_params=True).min(0).values
+        loss_actor = (alpha * logp_pi - q_pi).mean()
+
+        loss = loss_critic + loss_actor
+        loss_alpha = None
+        if self.log_alpha is not None:
+            loss_alpha = -(self.log_alpha * (logp_pi.detach() + self.target_entropy)).mean()
+            loss = loss + loss_alpha
+
+        self.q_optimizer.zero_grad(set_to_none=True)
+        self.pi_optimizer.zero_grad(set_to_none=True)
+        if self.alpha_optimizer is not None:
+            self.alpha_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.q_optimizer.step()
+        self.pi_optimizer.step()
+        if self.alpha_optimizer is not None:
+            self.alpha_optimizer.step()
+        self._update_targets()
+
+        metrics: dict[str, Any] = {
+            "loss_actor": loss_actor.detach(),
+            "loss_critic": loss_critic.detach(),
+            "entropy_coef": alpha,
+            "debug_log_pi": logp_pi.detach().mean(),
+            "debug_q": q.detach().mean(),
+            "debug_backup": backup.mean(),
+        }
+        if loss_alpha is not None:
+            metrics["loss_entropy_coef"] = loss_alpha.detach()
+        return metrics
+
+    # --- checkpointing ------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Model, target model, optimizers and ``log_alpha``: everything needed to resume.
+
+        The returned tensors are the live ones (no copy): serialise before the next update.
+        """
+        return {
+            "model": self.model.state_dict(),
+            "model_target": self.model_target.state_dict(),
+            "optimizer_actor": self.pi_optimizer.state_dict(),
+            "optimizer_critic": self.q_optimizer.state_dict(),
+            "log_alpha": None if self.log_alpha is None else self.log_alpha.detach(),
+            "optimizer_entropy": None if self.alpha_optimizer is None else self.alpha_optimizer.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`'s output in place (the actor from :meth:`get_actor` stays
+        shared).
+
+        Raises:
+            UserError: the state comes from a differently configured agent.
+        """
+        try:
+            self.model.load_state_dict(state["model"])
+            self.model_target.load_state_dict(state["model_target"])
+            self.pi_optimizer.load_state_dict(state["optimizer_actor"])
+            self.q_optimizer.load_state_dict(state["optimizer_critic"])
+            if (state.get("log_alpha") is None) != (self.log_alpha is None):
+                raise ValueError("learn_entropy_coef differs")
+            if self.log_alpha is not None:
+                with torch.no_grad():
+                    self.log_alpha.copy_(torch.as_tensor(state["log_alpha"]).reshape(()))
+                self.alpha_optimizer.load_state_dict(state["optimizer_entropy"])  # type: ignore[union-attr]
+            self._load_extra_state(state)
+        except (KeyError, ValueError, RuntimeError) as e:
+            detail = " ".join(str(e).split())[:200]
+            raise UserError(
+                f"the saved training state does not fit this {type(self).__name__} ({detail}): "
+                "resume with the same algorithm and model settings, or start a new run"
+            ) from None
+
+    def _load_extra_state(self, state: dict[str, Any]) -> None:
+        """Hook for subclasses with more state."""
+
+
+SpinupSacAgent = SACAgent
