@@ -1,0 +1,375 @@
+"""Tests of tmrl.transport over a real relay on 127.0.0.1 (real processes, real sockets)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+import socket
+import stat
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pytest
+
+from tmrl import wire
+from tmrl.errors import UserError
+from tmrl.transport import RelayServer, TrainerLink, WorkerLink, ensure_credentials
+
+pytestmark = pytest.mark.timeout(120)
+
+PASSWORD = "correct horse battery staple"
+HEADER = 10
+
+
+def _children() -> list[int]:
+    """Pids of this process's live network processes."""
+    me = str(os.getpid())
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                cmd = f.read()
+        except OSError:
+            continue
+        if fields[1] == me and fields[0] != "Z" and b"tmrl.transport._netproc" in cmd:
+            found.append(int(entry))
+    return found
+
+
+def _wait_for(cond: Callable[[], Any], timeout: float = 20.0, what: str = "condition") -> Any:
+    """Poll ``cond`` until it is truthy (for effects that happen in another process)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.02)
+
+
+@pytest.fixture(scope="module")
+def credentials(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("credentials")
+    ensure_credentials(folder)
+    return folder
+
+
+@pytest.fixture
+def net(port_factory, caplog):
+    """Start relays and links that are all stopped (and checked gone) at the end of the test."""
+    caplog.set_level(logging.DEBUG, logger="tmrl.transport")
+    made: list[Any] = []
+
+    class Net:
+        port = port_factory()
+
+        def relay(self, **kw: Any) -> RelayServer:
+            kw.setdefault("security", None)
+            r = RelayServer(kw.pop("port", self.port), kw.pop("password", PASSWORD), **kw)
+            made.append(r)
+            return r
+
+        def _link(self, cls: type, kw: dict[str, Any]) -> Any:
+            kw.setdefault("security", None)
+            link = cls("127.0.0.1", kw.pop("port", self.port), kw.pop("password", PASSWORD), **kw)
+            made.append(link)
+            return link
+
+        def worker(self, **kw: Any) -> WorkerLink:
+            return self._link(WorkerLink, kw)
+
+        def trainer(self, **kw: Any) -> TrainerLink:
+            return self._link(TrainerLink, kw)
+
+    yield Net()
+    for obj in reversed(made):
+        obj.close() if hasattr(obj, "close") else obj.stop()
+    assert _children() == [], "a network process outlived its test"
+
+
+def _receive(trainer: TrainerLink, n: int, timeout: float = 30.0) -> list[Any]:
+    got: list[Any] = []
+    _wait_for(lambda: got.extend(trainer.receive_samples()) or len(got) >= n, timeout, f"{n} objects")
+    return got
+
+
+def _raw_connect(port: int) -> socket.socket:
+    """A plain socket to the relay, after reading its HELLO frame."""
+    s = socket.create_connection(("127.0.0.1", port), timeout=20)
+    length = int(_recv_exact(s, HEADER))
+    env = wire.decode(_recv_exact(s, length))
+    assert env[1] == "HELLO"
+    return s
+
+
+def _recv_exact(s: socket.socket, n: int) -> bytes:
+    data = b""
+    while len(data) < n:
+        chunk = s.recv(n - len(data))
+        if not chunk:
+            raise ConnectionError("closed")
+        data += chunk
+    return data
+
+
+def _closed_by_peer(s: socket.socket) -> bool:
+    """True when the relay closes the socket (reads until EOF or reset)."""
+    try:
+        while s.recv(65536):
+            pass
+        return True
+    except (ConnectionResetError, BrokenPipeError):
+        return True
+    finally:
+        s.close()
+
+
+def _tlspyo_frame(body: bytes, password: str = PASSWORD) -> bytes:
+    return f"{len(body):<{HEADER}}".encode() + password.encode() + body
+
+
+def _log_text(caplog) -> str:
+    return "\n".join(r.getMessage() for r in caplog.records)
+
+
+# ------------------------------------------------------------------------------------------------
+
+
+def test_samples_flow_from_two_workers_to_the_trainer(net):
+    net.relay()
+    trainer = net.trainer()
+    w1, w2 = net.worker(), net.worker()
+    assert trainer.wait_connected(30) and w1.wait_connected(30) and w2.wait_connected(30)
+    for i in range(20):
+        w1.send_samples({"worker": 1, "i": i, "obs": np.full((3,), i, dtype=np.float32)})
+        w2.send_samples(("two", i, None))
+    got = _receive(trainer, 40)
+    assert len(got) == 40
+    from_w1 = [g["i"] for g in got if isinstance(g, dict)]
+    from_w2 = [g[1] for g in got if isinstance(g, tuple)]
+    assert from_w1 == list(range(20)) and from_w2 == list(range(20))  # order kept per worker
+    obs = next(g for g in got if isinstance(g, dict) and g["i"] == 7)["obs"]
+    assert obs.dtype == np.float32 and obs.flags.writeable and np.all(obs == 7)
+
+
+def test_weights_reach_connected_and_late_workers_latest_only(net):
+    net.relay()
+    trainer = net.trainer()
+    early = net.worker()
+    assert trainer.wait_connected(30) and early.wait_connected(30)
+    trainer.broadcast_weights(b"v1")
+    assert early.latest_weights(block=True, timeout=30) == b"v1"
+    assert early.latest_weights() is None  # each broadcast is returned once
+    trainer.broadcast_weights(b"v2")
+    trainer.broadcast_weights(b"v3")
+    late = net.worker()
+    assert late.latest_weights(block=True, timeout=30) == b"v3"
+    _wait_for(lambda: early._weights == b"v3", what="v3 at the early worker")
+    assert early.latest_weights() == b"v3"  # v2 was dropped: only the newest is kept
+
+
+def test_a_worker_that_connects_during_a_multi_frame_broadcast_gets_it(net):
+    net.relay(max_frame_bytes=1 << 18)
+    trainer = net.trainer(max_frame_bytes=1 << 18)
+    assert trainer.wait_connected(30)
+    big = np.random.default_rng(0).bytes(3_000_000)  # ~15 frames of 192 KiB
+    trainer.broadcast_weights(big)
+    late = net.worker(max_frame_bytes=1 << 18)
+    assert late.latest_weights(block=True, timeout=60) == big
+
+
+def test_second_trainer_is_refused_with_a_clear_log_line(net, caplog):
+    net.relay()
+    first = net.trainer()
+    assert first.wait_connected(30)
+    second = net.trainer()
+    _wait_for(lambda: second.refused, what="the refusal")
+    assert "second trainer" in second.refused and not second.connected
+    _wait_for(lambda: "refused a second trainer" in _log_text(caplog), what="the relay's log line")
+    assert first.connected
+
+
+def test_wrong_password_is_refused_and_never_logged(net, caplog):
+    net.relay()
+    wrong = "hunter2-wrong-password"
+    bad = net.worker(password=wrong)
+    _wait_for(lambda: bad.refused, what="the refusal")
+    assert bad.refused == "wrong password" and not bad.connected
+    s = _raw_connect(net.port)
+    s.sendall(_tlspyo_frame(wire.encode((1, "HELLO", None, ("workers",))), password="x" * len(PASSWORD)))
+    assert _closed_by_peer(s)
+    _wait_for(lambda: "wrong password" in _log_text(caplog), what="the relay's log line")
+    text = _log_text(caplog)
+    assert wrong not in text and "x" * len(PASSWORD) not in text and PASSWORD not in text
+
+
+def test_garbage_and_oversized_frames_leave_the_relay_up(net, caplog):
+    relay = net.relay(max_frame_bytes=1 << 20)
+    s = _raw_connect(net.port)
+    s.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n" + os.urandom(200))
+    assert _closed_by_peer(s)
+    s = _raw_connect(net.port)
+    s.sendall(f"{10**9:<{HEADER}}".encode() + PASSWORD.encode() + b"\x00" * 100)
+    assert _closed_by_peer(s)
+    s = _raw_connect(net.port)  # right password, garbage envelope
+    s.sendall(_tlspyo_frame(os.urandom(64)))
+    assert _closed_by_peer(s)
+    _wait_for(lambda: "exceeds max_frame_bytes" in _log_text(caplog), what="the oversized-frame log line")
+    assert "invalid frame header" in _log_text(caplog)
+    assert relay.running
+    trainer, worker = net.trainer(), net.worker()
+    worker.send_samples("still works")
+    assert _receive(trainer, 1) == ["still works"]
+
+
+class _TouchOnUnpickle:
+    def __init__(self, path: Path):
+        self.path = path
+
+    def __reduce__(self):
+        return (open, (str(self.path), "w"))
+
+
+def test_pickle_payloads_create_nothing(net, tmp_path, caplog):
+    net.relay()
+    trainer = net.trainer()
+    assert trainer.wait_connected(30)
+    marker_env = tmp_path / "pwned_by_envelope"
+    marker_obj = tmp_path / "pwned_by_payload"
+    # 1. A pickled tlspyo envelope, with the right password, to the relay.
+    s = _raw_connect(net.port)
+    s.sendall(_tlspyo_frame(pickle.dumps((1, "HELLO", None, _TouchOnUnpickle(marker_env)))))
+    assert _closed_by_peer(s)
+    # 2. A well-formed handshake, then a pickle as the object payload, forwarded to the trainer.
+    s = _raw_connect(net.port)
+    s.sendall(_tlspyo_frame(wire.encode((1, "HELLO", None, ("workers",)))))
+    assert wire.decode(_recv_exact(s, int(_recv_exact(s, HEADER))))[1] == "WELCOME"
+    payload = pickle.dumps(_TouchOnUnpickle(marker_obj))
+    frame = ((7, 1), 0, 1, len(payload), payload)
+    s.sendall(_tlspyo_frame(wire.encode((2, "OBJ", {"trainers": 1}, frame))))
+    s.sendall(_tlspyo_frame(wire.encode((3, "OBJ", {"trainers": 1}, ((7, 2), 0, 1, 3, b"end")))))
+    _wait_for(lambda: "not tmrl wire data" in _log_text(caplog), what="the refused payload")
+    assert trainer.receive_samples() == []  # the pickle was dropped, the raw bytes never decoded
+    s.close()
+    assert not marker_env.exists() and not marker_obj.exists()
+    assert "not tmrl wire data" in _log_text(caplog)
+
+
+def test_tls_with_fresh_credentials(net, tmp_path):
+    folder = tmp_path / "creds"
+    key, cert = ensure_credentials(folder)
+    assert key.name == "key.pem" and cert.name == "certificate.pem"
+    assert stat.S_IMODE(key.stat().st_mode) == 0o600
+    before = (key.read_bytes(), cert.read_bytes())
+    assert ensure_credentials(folder) == (key, cert) and (key.read_bytes(), cert.read_bytes()) == before
+    worker_folder = tmp_path / "worker_creds"  # a worker machine holds the certificate only
+    worker_folder.mkdir()
+    (worker_folder / "certificate.pem").write_bytes(cert.read_bytes())
+    net.relay(security="TLS", keys_dir=folder)
+    trainer = net.trainer(security="TLS", keys_dir=worker_folder)
+    worker = net.worker(security="TLS", keys_dir=worker_folder)
+    worker.send_samples([np.arange(4)])
+    got = _receive(trainer, 1)
+    assert np.array_equal(got[0][0], np.arange(4))
+    trainer.broadcast_weights(b"tls weights")
+    assert worker.latest_weights(block=True, timeout=30) == b"tls weights"
+
+
+def test_tls_with_a_foreign_certificate_does_not_connect(net, tmp_path, credentials, caplog):
+    other = tmp_path / "other"
+    ensure_credentials(other)
+    net.relay(security="TLS", keys_dir=credentials)
+    worker = net.worker(security="TLS", keys_dir=other)
+    _wait_for(lambda: "cannot reach the relay" in _log_text(caplog), what="a TLS failure")
+    assert not worker.connected
+
+
+def test_configuration_mistakes_are_one_line_user_errors(tmp_path, port_factory):
+    with pytest.raises(UserError, match="python -m tmrl --install"):
+        RelayServer(port_factory(), PASSWORD, keys_dir=tmp_path / "missing")
+    with pytest.raises(UserError, match="python -m tmrl --install"):
+        WorkerLink("127.0.0.1", port_factory(), PASSWORD)  # TLS, no keys_dir
+    with pytest.raises(UserError, match="allow_plain_tcp"):
+        WorkerLink("192.0.2.1", port_factory(), PASSWORD, security=None)
+    with pytest.raises(UserError, match="security"):
+        TrainerLink("127.0.0.1", port_factory(), PASSWORD, security="SSLv2")
+    assert _children() == []
+
+
+def test_a_busy_port_is_reported_once_without_traceback(port_factory, caplog):
+    with socket.socket() as blocker:
+        blocker.bind(("127.0.0.1", 0))
+        blocker.listen()
+        port = blocker.getsockname()[1]
+        with pytest.raises(UserError) as info:
+            RelayServer(port, PASSWORD, security=None)
+    msg = str(info.value)
+    assert msg.startswith(f"port {port} is already in use: ") and "\n" not in msg
+    assert "Traceback" not in _log_text(caplog)
+    assert _children() == []
+
+
+def test_links_need_no_local_ports_and_survive_a_relay_restart(net):
+    relay = net.relay()
+    trainer = net.trainer()
+    workers = [net.worker(local_port=None) for _ in range(3)]
+    assert all(w.wait_connected(30) for w in workers) and trainer.wait_connected(30)
+    trainer.broadcast_weights(b"w1")
+    relay.stop()
+    _wait_for(lambda: not trainer.connected and not any(w.connected for w in workers), what="disconnection")
+    workers[0].send_samples("sent while the relay was down")
+    net.relay()  # same port
+    assert all(w.wait_connected(30) for w in workers) and trainer.wait_connected(30)
+    assert _receive(trainer, 1) == ["sent while the relay was down"]
+    trainer.broadcast_weights(b"w2")
+    for w in workers:
+        seen: list[Any] = []
+        _wait_for(lambda w=w, seen=seen: seen.append(w.latest_weights()) or b"w2" in seen, what="w2")
+
+
+def test_relay_bounds_pending_batches_and_counts_drops(net, caplog):
+    net.relay(max_consumables=3)
+    worker = net.worker()
+    for i in range(10):
+        worker.send_samples(i)
+    worker.close()  # flushes: every batch reached the relay before the close completes
+    _wait_for(lambda: "(7 dropped so far" in _log_text(caplog), what="the drop count")
+    trainer = net.trainer()
+    assert _receive(trainer, 3) == [7, 8, 9]  # oldest dropped, newest kept
+
+
+def test_trainer_link_memory_is_bounded_by_its_credit(net):
+    net.relay(max_consumables=1000)
+    trainer = net.trainer()
+    worker = net.worker()
+    assert trainer.wait_connected(30) and worker.wait_connected(30)
+    for i in range(200):
+        worker.send_samples(i)
+    _wait_for(lambda: len(trainer._inbox) >= 64, what="the first 64 objects")
+    time.sleep(0.3)  # give the relay a chance to (wrongly) push more; nothing must arrive
+    assert len(trainer._inbox) == 64
+    assert _receive(trainer, 200) == list(range(200))
+
+
+@pytest.mark.parametrize("n_floats", [1_000_000, 20_000_000])
+def test_big_weight_broadcast_completes(net, n_floats, capsys):
+    net.relay()
+    trainer = net.trainer()
+    worker = net.worker()
+    assert trainer.wait_connected(30) and worker.wait_connected(30)
+    weights = wire.encode({"w": np.random.default_rng(0).standard_normal(n_floats).astype(np.float32)})
+    t0 = time.perf_counter()
+    trainer.broadcast_weights(weights)
+    got = worker.latest_weights(block=True, timeout=100)
+    elapsed = time.perf_counter() - t0
+    assert got == weights
+    with capsys.disabled():
+        print(f"\n[transport] broadcast of {n_floats} float32 ({len(weights) / 1e6:.0f} MB): {elapsed:.2f} s")

@@ -1,0 +1,884 @@
+"""The network process behind a :class:`~tmrl.transport.RelayServer` or a link.
+
+Started as ``python -m tmrl.transport._netproc`` by :mod:`tmrl.transport._process`; it reads its
+configuration from stdin (never from the command line, which other users can see), talks to its
+parent through its stdin/stdout pipes (see :mod:`tmrl.transport._pipe`) and runs a Twisted
+reactor. It exits when its parent asks, or when the parent's end of the pipe closes (the parent
+died), so it never outlives the process that started it and never holds a port on its own.
+
+The protocol classes extend tlspyo's (``tlspyo.server.ServerProtocol``,
+``tlspyo.client.ClientProtocol``, ``tlspyo.client.TLSClientFactory``) and keep its framing: a
+decimal length left-justified in ``header_size`` characters, the password (client to relay only),
+then the frame. What changes:
+
+- envelopes and frames are :mod:`tmrl.wire` data: nothing from the network is unpickled;
+- receive buffers are a ``bytearray`` with a read offset (linear cost, no re-slicing);
+- the password is compared with :func:`hmac.compare_digest` and never logged;
+- a frame above ``max_frame_bytes`` or a malformed header closes that connection with one log line;
+- objects travel as groups of frames of at most ``chunk_bytes``, reassembled by the receiving link;
+  the relay forwards frames without decoding payloads and keeps the complete frame group of the
+  last broadcast for links that connect later;
+- queues are bounded (see docs/transport.md for the policy).
+
+Envelopes (all ``tmrl.wire``):
+
+- link to relay: ``(stamp, cmd, dest, obj)`` with ``cmd`` one of ``HELLO`` (``obj``: the groups),
+  ``OBJ`` (``dest``: ``{group: n}``, ``n < 0`` broadcast, ``n > 0`` consumable copies; ``obj``:
+  ``(msg_id, idx, count, total, chunk)``), ``NTF`` (``dest``: ``{group: credit}``), ``ACK`` (ignored);
+- relay to link: ``(stamp, cmd, obj)`` with ``cmd`` one of ``HELLO``, ``WELCOME`` (the handshake
+  was accepted), ``REFUSED`` (``obj``: reason),
+  ``OBJ`` (``obj``: ``(key, idx, count, total, chunk, is_broadcast)``).
+"""
+
+from __future__ import annotations
+
+import collections
+import hmac
+import logging
+import math
+import os
+import random
+import signal
+import threading
+import time
+from typing import Any, Callable
+
+from tmrl import wire
+from tmrl.transport import _pipe
+
+log_relay = logging.getLogger("tmrl.transport.relay")
+log_link = logging.getLogger("tmrl.transport.link")
+
+_KILLED, _CLOSED, _ALIVE, _HANDSHAKE = "KILLED", "CLOSED", "ALIVE", "HANDSHAKE"
+_COMPACT_BYTES = 1 << 20
+
+
+def _parse_length(raw: bytes) -> int | None:
+    """The frame length in a tlspyo header (decimal, left-justified, space padded), or None."""
+    digits = raw.rstrip(b" ")
+    if not digits or not digits.isdigit() or len(digits) > 18:
+        return None
+    return int(digits)
+
+
+def _frame(header_size: int, env: bytes, password: bytes = b"") -> bytes:
+    head = str(len(env)).encode("ascii")
+    return head.ljust(header_size, b" ") + password + env
+
+
+class _FrameReader:
+    """A linear-cost receive buffer that yields complete frames."""
+
+    def __init__(self, header_size: int, password: bytes, max_frame_bytes: int):
+        self.buf = bytearray()
+        self.off = 0
+        self.h = header_size
+        self.pw = password
+        self.max = max_frame_bytes
+
+    def feed(self, data: bytes) -> None:
+        self.buf += data
+
+    def next_frame(self) -> bytes | None:
+        """The next complete frame's body, or None when more bytes are needed.
+
+        Raises:
+            ValueError: malformed header, wrong password or frame too large (message says which;
+                never the password).
+        """
+        buf, off, h, p = self.buf, self.off, self.h, len(self.pw)
+        if len(buf) - off < h + p:
+            self._compact()
+            return None
+        length = _parse_length(bytes(buf[off : off + h]))
+        if length is None:
+            raise ValueError("invalid frame header (not tmrl framing, or a different header_size)")
+        if p and not hmac.compare_digest(bytes(buf[off + h : off + h + p]), self.pw):
+            raise ValueError("wrong password")
+        if length > self.max:
+            raise ValueError(f"frame of {length} bytes exceeds max_frame_bytes={self.max}")
+        start = off + h + p
+        end = start + length
+        if len(buf) < end:
+            self._compact()
+            return None
+        body = bytes(buf[start:end])
+        self.off = end
+        return body
+
+    def _compact(self) -> None:
+        # bytearray deletes from the front in O(1) amortised; doing it only past a threshold keeps
+        # the total cost linear in the bytes received.
+        if self.off and (self.off == len(self.buf) or self.off >= _COMPACT_BYTES):
+            del self.buf[: self.off]
+            self.off = 0
+
+
+def _valid_chunk(obj: Any, max_object_bytes: int) -> bool:
+    """Whether ``obj`` is a well-formed ``(msg_id, idx, count, total, chunk)`` frame of a client."""
+    if type(obj) is not tuple or len(obj) != 5:
+        return False
+    msg_id, idx, count, total, chunk = obj
+    return (
+        _valid_parts(idx, count, total, chunk, max_object_bytes)
+        and type(msg_id) is tuple
+        and len(msg_id) == 2
+        and all(type(x) is int for x in msg_id)
+    )
+
+
+def _valid_parts(idx: Any, count: Any, total: Any, chunk: Any, max_object_bytes: int) -> bool:
+    # count <= total: every frame but an empty object's carries data, which bounds the frame count.
+    return (
+        type(idx) is int
+        and type(count) is int
+        and type(total) is int
+        and type(chunk) is bytes
+        and 0 <= idx < count
+        and 0 <= total <= max_object_bytes
+        and len(chunk) <= total
+        and count <= max(1, total)
+    )
+
+
+# ================================================================================================
+# relay
+
+
+def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
+    import OpenSSL
+    from tlspyo.server import Server as TlspyoServer
+    from tlspyo.server import ServerProtocol as TlspyoServerProtocol
+    from twisted.internet import reactor, ssl
+    from twisted.internet.error import CannotListenError, ReactorNotRunning
+    from twisted.internet.protocol import Factory
+
+    max_consumables = cfg["max_consumables"]
+
+    class RelayState(TlspyoServer):
+        """tlspyo's relay bookkeeping (clients, groups) with bounded queues and frame stores."""
+
+        def __init__(self) -> None:
+            groups = {
+                "workers": {"max_count": cfg["max_workers"], "max_consumables": max_consumables},
+                "trainers": {"max_count": 1, "max_consumables": max_consumables},
+            }
+            super().__init__(
+                port=cfg["port"], password=cfg["password"], serializer=None, deserializer=None,
+                accepted_groups=groups, header_size=cfg["header_size"], local_com_port=-1,
+                security="TLS" if cfg["security"] == "TLS" else "TCP", keys_dir=cfg["keys_dir"],
+            )
+            for g in groups:
+                self.add_group(g)  # unbounded deque; bounded by hand below so drops are counted
+            self.password_bytes = cfg["password"].encode("utf-8")
+            # group -> complete frame group of the last broadcast, and the one in progress
+            self.complete: dict[str, list[bytes]] = {}
+            self.partial: dict[str, list[Any]] = {}
+            self.dropped = 0
+            self._last_drop_log = -math.inf
+            self.connections: set[Any] = set()
+            self._refusal_log: dict[tuple[str, str], float] = {}
+            self.closing = False
+
+        def log_refusal(self, peer: str, line: str, reason: str) -> None:
+            # A refused link retries every few seconds: one warning per host and reason a minute.
+            key = (peer.rsplit(":", 1)[0], reason)
+            now = time.monotonic()
+            if now - self._refusal_log.get(key, -math.inf) > 60.0:
+                self._refusal_log[key] = now
+                if len(self._refusal_log) > 1000:
+                    self._refusal_log.clear()
+                log_relay.warning("%s", line)
+            else:
+                log_relay.debug("%s", line)
+
+        def refusal(self, groups: tuple[str, ...]) -> str | None:
+            for g in groups:
+                if g not in self._accepted_groups:
+                    return f"unknown group {g!r} (expected 'workers' or 'trainers')"
+            for g in groups:
+                n = len(self.group_info[g]["ids"])
+                if g == "trainers" and n >= 1:
+                    return "refused a second trainer: a trainer is already connected (one trainer per server)"
+                max_count = self._accepted_groups[g]["max_count"]
+                if g == "workers" and max_count is not None and n >= max_count:
+                    return f"refused a worker: max_workers={max_count} workers are already connected"
+            return None
+
+        def out_frame(self, key: tuple, idx: int, count: int, total: int, chunk: bytes, bcast: bool) -> bytes:
+            env = wire.encode((0, "OBJ", (key, idx, count, total, chunk, bcast)))
+            return _frame(self.header_size, env)
+
+        def broadcast_frame(self, group: str, key: tuple, idx: int, count: int, total: int, chunk: bytes) -> None:
+            out = self.out_frame(key, idx, count, total, chunk, True)
+            part = self.partial.get(group)
+            if idx == 0:
+                part = self.partial[group] = [key, count, total, [out], len(chunk)]
+            elif part is not None and part[0] == key and len(part[3]) == idx and part[1] == count:
+                part[3].append(out)
+                part[4] += len(chunk)
+            else:
+                log_relay.debug("dropped an out-of-order broadcast frame for %s", group)
+                return
+            if part[4] > total:
+                del self.partial[group]
+                return
+            for cid in self.group_info[group]["ids"]:
+                self.to_clients[cid].transport.write(out)
+            if len(part[3]) == count:
+                del self.partial[group]
+                if part[4] == total:
+                    self.complete[group] = part[3]
+
+        def add_consumable(self, group: str, frames: list[bytes], copies: int) -> None:
+            queue = self.group_info[group]["to_consume"]
+            for _ in range(copies):
+                if max_consumables is not None and len(queue) >= max_consumables:
+                    queue.popleft()
+                    self.dropped += 1
+                    now = time.monotonic()
+                    level = logging.WARNING if now - self._last_drop_log > 5.0 else logging.DEBUG
+                    if level == logging.WARNING:
+                        self._last_drop_log = now
+                    log_relay.log(
+                        level,
+                        "the trainer is falling behind: dropped the oldest pending sample batch "
+                        "(%d dropped so far, max_consumables=%d)", self.dropped, max_consumables,
+                    )
+                queue.append(frames)
+            self.dispatch(group)
+
+        def dispatch(self, group: str) -> None:
+            info = self.group_info[group]
+            queue, pending = info["to_consume"], info["pending_consumers"]
+            for cid in list(pending):
+                while pending[cid] > 0 and queue:
+                    pending[cid] -= 1
+                    transport = self.to_clients[cid].transport
+                    for out in queue.popleft():
+                        transport.write(out)
+
+        def shutdown(self) -> None:
+            if self.closing:
+                return
+            self.closing = True
+            for conn in list(self.connections):
+                conn.transport.loseConnection()  # flushes what is queued
+            self.maybe_stop()
+            reactor.callLater(3.0, _stop_reactor)
+
+        def maybe_stop(self) -> None:
+            if self.closing and not self.connections:
+                _stop_reactor()
+
+    def _stop_reactor() -> None:
+        try:
+            reactor.stop()
+        except ReactorNotRunning:
+            pass  # already stopping
+
+    class RelayProtocol(TlspyoServerProtocol):
+        """One connection at the relay (a worker, the trainer, or anybody who found the port)."""
+
+        def __init__(self, server: RelayState, peer: str):
+            super().__init__(server)
+            self._peer = peer
+            self._reader = _FrameReader(server.header_size, server.password_bytes, cfg["max_frame_bytes"])
+            self._groups: tuple[str, ...] = ()
+            self._partial: list[Any] | None = None  # consumable being received: [msg_id, dest, count, total, chunks, size]
+
+        def connectionMade(self) -> None:
+            self._server.connections.add(self)
+            self.transport.write(_frame(self._header_size, wire.encode((0, "HELLO", None))))
+
+        def connectionLost(self, reason: Any = None) -> None:
+            if self._server.has_client(self._identifier):
+                self._server.delete_client(self._identifier)
+                log_relay.info("%s (%s) disconnected", self._peer, "/".join(self._groups))
+            self._identifier = None
+            self._state = "DEAD"
+            self._partial = None
+            self._server.connections.discard(self)
+            self._server.maybe_stop()
+
+        def _kill(self, reason: str) -> None:
+            self._server.log_refusal(self._peer, f"closed the connection from {self._peer}: {reason}", reason)
+            if reason == "wrong password":
+                # Telling the peer costs nothing (it knows what it sent) and saves users a search.
+                self.transport.write(_frame(self._header_size, wire.encode((0, "REFUSED", reason))))
+                self._state = _KILLED
+                self.transport.loseConnection()
+                return
+            self._state = _KILLED
+            self.transport.abortConnection()
+
+        def dataReceived(self, data: bytes) -> None:
+            if self._state in (_KILLED, _CLOSED):
+                return
+            self._reader.feed(data)
+            try:
+                while self._state not in (_KILLED, _CLOSED):
+                    body = self._reader.next_frame()
+                    if body is None:
+                        break
+                    try:
+                        env = wire.decode(body, copy=True)
+                    except wire.DecodeError:
+                        self._kill("a frame that is not tmrl wire data (pickle and other formats are refused)")
+                        return
+                    self._handle(env)
+            except ValueError as e:
+                self._kill(str(e))
+            except Exception as e:  # a bug must not take the relay down with it
+                log_relay.exception("closing the connection from %s after an internal error", self._peer)
+                self._kill(f"internal error {type(e).__name__}")
+
+        def _handle(self, env: Any) -> None:
+            if type(env) is not tuple or len(env) != 4 or type(env[1]) is not str:
+                self._kill("malformed envelope")
+                return
+            _, cmd, dest, obj = env
+            if cmd == "ACK":
+                return
+            if cmd == "HELLO":
+                self._hello(obj)
+            elif self._state != _ALIVE:
+                self._kill(f"command {cmd[:20]!r} before the handshake")
+            elif cmd == "OBJ":
+                self._obj(dest, obj)
+            elif cmd == "NTF":
+                self._ntf(dest)
+            else:
+                self._kill(f"unknown command {cmd[:20]!r}")
+
+        def _hello(self, groups: Any) -> None:
+            if self._state != _HANDSHAKE:
+                self._kill("second handshake")
+                return
+            if type(groups) is str:
+                groups = (groups,)
+            if type(groups) not in (tuple, list) or not groups or not all(type(g) is str for g in groups):
+                self._kill("malformed handshake")
+                return
+            groups = tuple(groups)
+            reason = self._server.refusal(groups)
+            if reason is not None:
+                self._server.log_refusal(self._peer, f"{reason} from {self._peer}", reason)
+                self.transport.write(_frame(self._header_size, wire.encode((0, "REFUSED", reason))))
+                self._state = _CLOSED
+                self.transport.loseConnection()
+                return
+            self._groups = groups
+            self._identifier = self._server.add_client(groups=groups, client=self)
+            self._state = _ALIVE
+            self.transport.write(_frame(self._header_size, wire.encode((0, "WELCOME", None))))
+            log_relay.info("%s connected (%s)", self._peer, "/".join(groups))
+            for g in groups:  # the latest broadcast, then the one in progress (if any)
+                for out in self._server.complete.get(g, ()):
+                    self.transport.write(out)
+                part = self._server.partial.get(g)
+                if part is not None:
+                    for out in part[3]:
+                        self.transport.write(out)
+
+        def _obj(self, dest: Any, obj: Any) -> None:
+            srv = self._server
+            if (
+                type(dest) is not dict
+                or not dest
+                or not all(type(g) is str and g in srv.group_info and type(n) is int and n != 0 for g, n in dest.items())
+            ):
+                self._kill("malformed destination")
+                return
+            if not _valid_chunk(obj, cfg["max_object_bytes"]):
+                self._kill("malformed object frame")
+                return
+            msg_id, idx, count, total, chunk = obj
+            key = (self._identifier, msg_id)
+            for g, n in dest.items():
+                if n < 0:
+                    srv.broadcast_frame(g, key, idx, count, total, chunk)
+            consumers = {g: n for g, n in dest.items() if n > 0}
+            if not consumers:
+                return
+            part = self._partial
+            if idx == 0:
+                part = self._partial = [msg_id, consumers, count, total, [], 0]
+            elif part is None or part[0] != msg_id or len(part[4]) != idx or part[2] != count:
+                self._partial = None
+                return
+            part[4].append(chunk)
+            part[5] += len(chunk)
+            if part[5] > total:
+                self._kill("object frames larger than announced")
+                return
+            if len(part[4]) == count:
+                self._partial = None
+                if part[5] != total:
+                    self._kill("object frames smaller than announced")
+                    return
+                frames = [srv.out_frame(key, i, count, total, c, False) for i, c in enumerate(part[4])]
+                for g, n in consumers.items():
+                    srv.add_consumable(g, frames, min(n, 16))
+
+        def _ntf(self, dest: Any) -> None:
+            if type(dest) is not dict or not all(type(g) is str and type(n) is int for g, n in dest.items()):
+                self._kill("malformed notification")
+                return
+            for g, n in dest.items():
+                info = self._server.group_info.get(g)
+                if info is None or self._identifier not in info["pending_consumers"]:
+                    continue
+                if n > 0:
+                    pending = info["pending_consumers"]
+                    pending[self._identifier] = min(pending[self._identifier] + n, 1 << 30)
+                    self._server.dispatch(g)
+                elif n < 0:
+                    queue = info["to_consume"]
+                    while queue:
+                        for out in queue.popleft():
+                            self.transport.write(out)
+
+    class RelayFactory(Factory):
+        def __init__(self, server: RelayState):
+            self.server = server
+
+        def buildProtocol(self, addr: Any) -> RelayProtocol:
+            peer = f"{getattr(addr, 'host', '?')}:{getattr(addr, 'port', '?')}"
+            return RelayProtocol(self.server, peer)
+
+    state = RelayState()
+    factory = RelayFactory(state)
+    port = cfg["port"]
+    interface = cfg["interface"]
+    try:
+        if cfg["security"] == "TLS":
+            try:
+                ctx = ssl.DefaultOpenSSLContextFactory(cfg["key_file"], cfg["cert_file"])
+            except (OpenSSL.SSL.Error, OSError) as e:
+                writer.send(_pipe.READY, wire.encode({
+                    "error": f"cannot load the TLS credentials in {cfg['keys_dir']} ({e}): "
+                    "run `python -m tmrl --install` to create them"
+                }))
+                return
+            listening = reactor.listenSSL(port, factory, ctx, interface=interface)
+        else:
+            listening = reactor.listenTCP(port, factory, interface=interface)
+    except CannotListenError as e:
+        err = e.socketError
+        import errno
+
+        if getattr(err, "errno", None) == errno.EADDRINUSE:
+            msg = f"port {port} is already in use: {err}; stop the other server or choose another port"
+        else:
+            msg = f"cannot listen on port {port}: {err}"
+        writer.send(_pipe.READY, wire.encode({"error": msg}))
+        return
+    bound = listening.getHost().port
+    log_relay.info("relay listening on %s port %d (%s)", interface or "all interfaces", bound, cfg["security"] or "plain TCP")
+    writer.send(_pipe.READY, wire.encode({"ok": True, "port": bound}))
+
+    def control_loop() -> None:
+        while True:
+            try:
+                kind, _ = _pipe.read_message(0, 1 << 20)
+            except _pipe.PipeClosed:
+                break
+            if kind == _pipe.STOP:
+                break
+        reactor.callFromThread(state.shutdown)
+
+    threading.Thread(target=control_loop, daemon=True).start()
+    reactor.run(installSignalHandlers=False)
+
+
+# ================================================================================================
+# links (workers and trainers)
+
+
+def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
+    from tlspyo.client import ClientProtocol as TlspyoClientProtocol
+    from tlspyo.client import TLSClientFactory as TlspyoClientFactory
+    from twisted.internet import reactor, ssl
+    from twisted.internet.error import ReactorNotRunning
+    from zope.interface import implementer
+    from twisted.internet.interfaces import IPushProducer
+
+    groups: tuple[str, ...] = tuple(cfg["groups"])
+    header_size: int = cfg["header_size"]
+    chunk_bytes: int = cfg["chunk_bytes"]
+    max_object_bytes: int = cfg["max_object_bytes"]
+    window: int = cfg["credit_window"]
+    where = f"{cfg['server_ip']}:{cfg['server_port']}"
+
+    class LinkState:
+        """What survives reconnections: the store of unsent objects, credit, and flags."""
+
+        def __init__(self) -> None:
+            # attributes tlspyo's TLSClientFactory reads
+            self.password = cfg["password"]
+            self.groups = groups
+            self.header_size = header_size
+            self.recon_max_delay = cfg["recon_max_delay"]
+            self.recon_initial_delay = cfg["recon_initial_delay"]
+            self.recon_factor = 1.5
+            self.recon_jitter = 0.1
+            self.password_bytes = cfg["password"].encode("utf-8")
+            self.proto: LinkProtocol | None = None
+            self.store: collections.deque[tuple[dict[str, int], memoryview, bytearray, tuple[int, int]]] = collections.deque()
+            self.last_broadcast_sent: tuple[dict[str, int], memoryview, bytearray, tuple[int, int]] | None = None
+            self.store_bytes = 0
+            self.dropped = 0
+            self.session = random.getrandbits(62)
+            self.counter = 0
+            self.backlog = 0  # objects handed to the parent and not yet consumed
+            self.outstanding = 0  # credit granted to the relay on this connection
+            self.last_broadcast: Any = None
+            self.writable = threading.Event()
+            self.writable.set()
+            self.closing = False
+            self.last_failure: str | None = None
+            self.last_refusal: str | None = None
+            self.factory: LinkFactory | None = None
+
+        def status(self, **kw: Any) -> None:
+            writer.send(_pipe.STATUS, wire.encode(kw))
+
+        def handle_send(self, payload: bytearray, done: Callable[[], None]) -> None:
+            try:
+                mlen = int.from_bytes(payload[:4], "little")
+                meta = wire.decode(bytes(payload[4 : 4 + mlen]))
+                data = memoryview(payload)[4 + mlen :]
+                self.send(meta, data, payload)
+            finally:
+                done()
+
+        def send(self, dest: dict[str, int], data: memoryview, keep: bytearray) -> None:
+            self.counter += 1
+            msg_id = (self.session, self.counter)
+            if any(n < 0 for n in dest.values()):
+                # Kept so that a restarted relay gets the latest broadcast again on reconnection
+                # (same msg_id: workers that already have it skip it).
+                self.last_broadcast_sent = (dest, data, keep, msg_id)
+            if self.proto is not None and self.proto.alive:
+                self.proto.send_object(dest, data, msg_id)
+                return
+            if any(n < 0 for n in dest.values()):  # only the newest broadcast matters
+                for item in [it for it in self.store if it[0] == dest]:
+                    self.store.remove(item)
+                    self.store_bytes -= len(item[1])
+            self.store.append((dest, data, keep, msg_id))
+            self.store_bytes += len(data)
+            while len(self.store) > 1 and (len(self.store) > cfg["max_store"] or self.store_bytes > cfg["max_store_bytes"]):
+                _, old, _, _ = self.store.popleft()
+                self.store_bytes -= len(old)
+                self.dropped += 1
+                log_link.warning(
+                    "not connected to the relay at %s: dropped the oldest unsent object (%d dropped so far)",
+                    where, self.dropped,
+                )
+
+        def connected(self, proto: LinkProtocol) -> None:
+            self.proto = proto
+            self.last_failure = None
+            log_link.info("connected to the relay at %s (%s)", where, "/".join(groups))
+            self.status(connected=True, refused=None)
+            last = self.last_broadcast_sent
+            if last is not None and not any(item[3] == last[3] for item in self.store):
+                proto.send_object(last[0], last[1], last[3])
+            while self.store and self.proto is proto and proto.alive:
+                dest, data, _, msg_id = self.store.popleft()
+                self.store_bytes -= len(data)
+                proto.send_object(dest, data, msg_id)
+            self.outstanding = 0
+            self.grant()
+
+        def disconnected(self) -> None:
+            was = self.proto is not None
+            self.proto = None
+            self.outstanding = 0
+            self.writable.set()  # objects now go to the bounded store instead of blocking
+            if was and not self.closing:
+                log_link.warning("lost the connection to the relay at %s; reconnecting", where)
+                self.status(connected=False, refused=None)
+            if self.closing:
+                _stop_reactor()
+
+        def grant(self) -> None:
+            if not window or self.proto is None or not self.proto.alive:
+                return
+            want = window - self.backlog - self.outstanding
+            if want > 0:
+                self.outstanding += want
+                self.proto.send_env("NTF", {g: want for g in groups}, None)
+
+        def on_credit(self, k: int) -> None:
+            self.backlog = max(0, self.backlog - k)
+            self.grant()
+
+        def deliver(self, key: Any, payload: bytearray, bcast: bool) -> None:
+            if bcast:
+                msg_id = key[1] if type(key) is tuple and len(key) == 2 else key
+                if msg_id == self.last_broadcast:
+                    return  # the relay re-sent what we already have (reconnection)
+                self.last_broadcast = msg_id
+            else:
+                self.outstanding = max(0, self.outstanding - 1)
+                self.backlog += 1
+            writer.send(_pipe.OBJ, payload)
+
+        def shutdown(self) -> None:
+            if self.closing:
+                return
+            self.closing = True
+            if self.store:
+                log_link.warning("closing with %d objects never sent (no connection to %s)", len(self.store), where)
+            if self.factory is not None:
+                self.factory.stopTrying()
+            if self.proto is not None:
+                self.proto.transport.loseConnection()  # flushes what is queued first
+                reactor.callLater(cfg["close_timeout"], _stop_reactor)
+            else:
+                _stop_reactor()
+
+    def _stop_reactor() -> None:
+        try:
+            reactor.stop()
+        except ReactorNotRunning:
+            pass  # already stopping
+
+    @implementer(IPushProducer)
+    class LinkProtocol(TlspyoClientProtocol):
+        """The link's connection to the relay."""
+
+        def __init__(self, state: LinkState):
+            super().__init__(client=state, password=cfg["password"], header_size=header_size, groups=groups)
+            self._reader = _FrameReader(header_size, b"", cfg["max_frame_bytes"])
+            self._partials: collections.OrderedDict[Any, list[Any]] = collections.OrderedDict()
+            self.alive = False
+
+        # IPushProducer: Twisted pauses us when its write buffer is full; the control thread then
+        # stops reading from the parent, whose writes block: back-pressure up to the worker loop.
+        def pauseProducing(self) -> None:
+            self._client.writable.clear()
+
+        def resumeProducing(self) -> None:
+            self._client.writable.set()
+
+        def stopProducing(self) -> None:
+            self._client.writable.set()
+
+        def connectionMade(self) -> None:
+            self.transport.registerProducer(self, True)
+
+        def connectionLost(self, reason: Any = None) -> None:
+            self._state = "DEAD"
+            self.alive = False
+            if self._client.proto is self or self._client.proto is None:
+                self._client.disconnected()
+
+        def send_env(self, cmd: str, dest: Any, obj: Any) -> None:
+            env = wire.encode((0, cmd, dest, obj))
+            head = str(len(env)).encode("ascii").ljust(header_size, b" ") + self._client.password_bytes
+            self.transport.writeSequence([head, env])
+
+        def send_object(self, dest: dict[str, int], data: memoryview, msg_id: tuple[int, int]) -> None:
+            total = len(data)
+            count = max(1, -(-total // chunk_bytes))
+            for idx in range(count):
+                self.send_env("OBJ", dest, (msg_id, idx, count, total, data[idx * chunk_bytes : (idx + 1) * chunk_bytes]))
+
+        def _abort(self, reason: str) -> None:
+            log_link.error("closed the connection to the relay at %s: %s", where, reason)
+            self._state = _KILLED
+            self.alive = False
+            self.transport.abortConnection()
+
+        def dataReceived(self, data: bytes) -> None:
+            if self._state == _KILLED:
+                return
+            self._reader.feed(data)
+            try:
+                while self._state != _KILLED:
+                    body = self._reader.next_frame()
+                    if body is None:
+                        return
+                    env = wire.decode(body, copy=True)
+                    if type(env) is not tuple or len(env) != 3 or type(env[1]) is not str:
+                        raise ValueError("malformed envelope")
+                    self._handle(env[1], env[2])
+            except (ValueError, wire.DecodeError) as e:
+                self._abort(str(e))
+            except _pipe.PipeClosed:
+                self._client.shutdown()
+
+        def _handle(self, cmd: str, obj: Any) -> None:
+            if cmd == "HELLO":
+                self.send_env("HELLO", None, groups)
+            elif cmd == "WELCOME":  # accepted: only now may stored objects be sent
+                self._state = _ALIVE
+                self.alive = True
+                self._client.connected(self)
+            elif cmd == "REFUSED":
+                reason = (obj if type(obj) is str else "no reason given")[:300]
+                if reason != self._client.last_refusal:
+                    self._client.last_refusal = reason
+                    hint = " (check the password on both machines)" if reason == "wrong password" else ""
+                    log_link.error("the relay at %s refused this %s: %s%s", where, "/".join(groups), reason, hint)
+                self._client.status(connected=False, refused=reason)
+            elif cmd == "OBJ":
+                self._frame(obj)
+            elif cmd != "ACK":
+                raise ValueError(f"unknown command {cmd[:20]!r}")
+
+        def _frame(self, obj: Any) -> None:
+            if type(obj) is not tuple or len(obj) != 6 or type(obj[5]) is not bool:
+                raise ValueError("malformed object frame")
+            key, idx, count, total, chunk, bcast = obj
+            if type(key) is not tuple or not _valid_parts(idx, count, total, chunk, max_object_bytes):
+                raise ValueError("malformed object frame")
+            if idx == 0:
+                self._partials.pop(key, None)
+                if len(self._partials) >= 4:
+                    self._partials.popitem(last=False)
+                part = self._partials[key] = [bytearray(total), 0, 0]
+            else:
+                part = self._partials.get(key)
+                if part is None or part[2] != idx:
+                    self._partials.pop(key, None)
+                    return  # joined mid-object, or lost frames: wait for the next one
+            buf, filled, _ = part
+            if filled + len(chunk) > total:
+                self._partials.pop(key, None)
+                return
+            buf[filled : filled + len(chunk)] = chunk
+            part[1] = filled + len(chunk)
+            part[2] = idx + 1
+            if idx + 1 == count:
+                del self._partials[key]
+                if part[1] == total:
+                    self._client.deliver(key, buf, bcast)
+
+    class LinkFactory(TlspyoClientFactory):
+        def __init__(self, state: LinkState):
+            super().__init__(client=state)
+            self._state = state
+
+        def startedConnecting(self, connector: Any) -> None:
+            pass
+
+        def buildProtocol(self, addr: Any) -> LinkProtocol:
+            self.resetDelay()
+            return LinkProtocol(self._state)
+
+        def clientConnectionLost(self, connector: Any, reason: Any) -> None:
+            self._retry(connector, reason)
+
+        def clientConnectionFailed(self, connector: Any, reason: Any) -> None:
+            self._retry(connector, reason)
+
+        def _retry(self, connector: Any, reason: Any) -> None:
+            if self._state.closing:
+                _stop_reactor()
+                return
+            msg = reason.getErrorMessage()
+            if msg != self._state.last_failure:
+                self._state.last_failure = msg
+                log_link.info("cannot reach the relay at %s (%s); retrying", where, msg)
+            self.retry(connector)
+
+    state = LinkState()
+    factory = state.factory = LinkFactory(state)
+    if cfg["security"] == "TLS":
+        try:
+            with open(cfg["cert_file"], "rb") as f:
+                authority = ssl.Certificate.loadPEM(f.read())
+        except Exception as e:
+            writer.send(_pipe.READY, wire.encode({
+                "error": f"cannot load the TLS certificate {cfg['cert_file']} ({e}): copy certificate.pem "
+                "from the server's credentials folder (made by `python -m tmrl --install`)"
+            }))
+            return
+        options = ssl.optionsForClientTLS(hostname=cfg["hostname"], trustRoot=authority)
+        reactor.connectSSL(cfg["server_ip"], cfg["server_port"], factory, options)
+    else:
+        reactor.connectTCP(cfg["server_ip"], cfg["server_port"], factory)
+    writer.send(_pipe.READY, wire.encode({"ok": True}))
+
+    def control_loop() -> None:
+        sem = threading.Semaphore(2)  # at most two objects handed to the reactor at a time
+        limit = max_object_bytes + (1 << 20)
+        try:
+            while True:
+                state.writable.wait()
+                kind, payload = _pipe.read_message(0, limit)
+                if kind == _pipe.SEND:
+                    sem.acquire()
+                    reactor.callFromThread(state.handle_send, payload, sem.release)
+                elif kind == _pipe.CREDIT:
+                    reactor.callFromThread(state.on_credit, int.from_bytes(payload, "little"))
+                elif kind == _pipe.STOP:
+                    break
+        except _pipe.PipeClosed:
+            pass
+        reactor.callFromThread(state.shutdown)
+
+    threading.Thread(target=control_loop, daemon=True).start()
+    reactor.run(installSignalHandlers=False)
+
+
+# ================================================================================================
+
+
+class _PipeLogHandler(logging.Handler):
+    """Sends log records to the parent, which logs them under the same logger name."""
+
+    def __init__(self, writer: _pipe.PipeWriter):
+        super().__init__()
+        self.writer = writer
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            msg = record.getMessage()
+            if record.exc_info:
+                msg += "\n" + logging.Formatter().formatException(record.exc_info)
+            self.writer.send(_pipe.LOG, wire.encode((record.levelno, record.name, msg)))
+        except Exception:
+            pass  # the parent is gone; nothing useful left to do with a log line
+
+
+def main() -> None:
+    """Entry point of the network process (see the module docstring)."""
+    # Ctrl-C reaches the whole process group: the parent decides when we stop (or dies, closing
+    # our stdin), so that pending objects are flushed and no port stays held.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    out_fd = os.dup(1)
+    os.dup2(2, 1)  # a stray print must not corrupt the pipe protocol
+    writer = _pipe.PipeWriter(out_fd)
+    try:
+        kind, payload = _pipe.read_message(0, 1 << 20)
+    except _pipe.PipeClosed:
+        return
+    cfg = wire.decode(payload)
+    root = logging.getLogger()
+    root.handlers[:] = [_PipeLogHandler(writer)]
+    root.setLevel(cfg["log_level"])
+    from twisted.logger import STDLibLogObserver, globalLogBeginner
+
+    logging.getLogger("tmrl.transport.twisted").setLevel(logging.WARNING)
+    logging.getLogger("tlspyo").setLevel(logging.WARNING)
+    globalLogBeginner.beginLoggingTo([STDLibLogObserver(name="tmrl.transport.twisted")], redirectStandardIO=False)
+    try:
+        if cfg["role"] == "relay":
+            run_relay(cfg, writer)
+        else:
+            run_link(cfg, writer)
+    finally:
+        try:
+            writer.send(_pipe.CLOSED)
+        except _pipe.PipeClosed:
+            pass
+
+
+if __name__ == "__main__":
+    main()
