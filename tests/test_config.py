@@ -191,6 +191,15 @@ def test_shipped_default_config_is_the_schema_defaults():
     assert loader.validate(json.loads(shipped)) == loader.default_config()
 
 
+def test_generated_files_are_up_to_date_and_valid():
+    for rel, text in schema.generated_files().items():
+        assert (REPO / rel).read_text(encoding="utf-8") == text, f"{rel}: run python -m tmrl.config.schema --write"
+        if rel.endswith(".json"):
+            loader.load_config(REPO / rel)
+    lidar = loader.load_config(REPO / "config" / "config_tm20lidar.json")
+    assert lidar["ENV"]["RTGYM_INTERFACE"] == "TM20LIDAR" and lidar["ENV"]["WINDOW_WIDTH"] == 958
+
+
 def test_config_reference_doc_is_generated_from_schema():
     doc = (REPO / "docs" / "config.md").read_text(encoding="utf-8")
     assert doc == schema.markdown_reference(), "run: python -m tmrl.config.schema --write"
@@ -559,3 +568,31 @@ def test_config_objects_drone_uses_realtime_memory_and_compressor():
     v = json.loads(out.stdout)
     assert v == {"mem": "RealTimeTorchMemory", "abl": 3, "tsd": 0.02, "iface": "DroneInterface",
                  "id": "real-time-gym-ts-v1", "obs": ["o1"]}
+
+
+def test_wheel_ships_the_default_config(tmp_path):
+    pytest.importorskip("setuptools", reason="building a wheel needs setuptools")
+    import shutil
+    import zipfile
+
+    src = tmp_path / "src"
+    for name in ("pyproject.toml", "setup.py", "README.md"):
+        shutil.copy(REPO / name, src / name if src.exists() else (src.mkdir() or src / name))
+    shutil.copytree(REPO / "config", src / "config")
+    shutil.copytree(REPO / "tmrl", src / "tmrl", ignore=shutil.ignore_patterns("__pycache__"))
+    out = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path / "whl"),
+         str(src)],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    (wheel,) = (tmp_path / "whl").glob("tmrl-*.whl")
+    with zipfile.ZipFile(wheel) as z:
+        names = set(z.namelist())
+        assert "tmrl/config_files/config.json" in names
+        assert "tmrl/cli.py" in names and "tmrl/config/schema.py" in names
+        assert json.loads(z.read("tmrl/config_files/config.json")) == loader.default_config()
+        metadata = z.read(next(n for n in names if n.endswith("METADATA"))).decode()
+    core = [line for line in metadata.splitlines() if line.startswith("Requires-Dist:") and "extra ==" not in line]
+    for banned in ("mss", "vgamepad", "opencv", "pywin32", "xlib", "wandb"):
+        assert not any(banned in line.lower() for line in core), core

@@ -1,8 +1,8 @@
 """The one schema of ``config.json``: every key with its type, default, allowed range and meaning.
 
 Everything else derives from it: the loader validates against it and fills missing keys with its
-defaults, ``config/config.json`` is its defaults written out, and ``docs/config.md`` is generated
-from it. Regenerate both after a change with::
+defaults, ``config/config.json`` is its defaults written out (the other ``config/*.json`` are the
+defaults with the changes of :data:`EXAMPLES`), and ``docs/config.md`` is generated from it. Regenerate both after a change with::
 
     python -m tmrl.config.schema --write
 
@@ -46,6 +46,9 @@ __all__ = [
     "check_consistency",
     "markdown_reference",
     "default_config_json",
+    "EXAMPLES",
+    "example_json",
+    "generated_files",
 ]
 
 
@@ -635,6 +638,81 @@ def default_config_json() -> str:
     return json.dumps(defaults(), indent=2) + "\n"
 
 
+_GENERIC_TRAINING: dict[str, Any] = {
+    "RW_MAX_SAMPLES_PER_EPISODE": 200,
+    "MAX_EPOCHS": 20,
+    "ROUNDS_PER_EPOCH": 10,
+    "TRAINING_STEPS_PER_ROUND": 100,
+    "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 1.0,
+    "ENVIRONMENT_STEPS_BEFORE_TRAINING": 1000,
+    "UPDATE_MODEL_INTERVAL": 100,
+    "UPDATE_BUFFER_INTERVAL": 100,
+    "MEMORY_SIZE": 100000,
+    "BATCH_SIZE": 256,
+}
+_GENERIC_ALG: dict[str, Any] = {
+    "LEARN_ENTROPY_COEF": True,
+    "LR_ACTOR": 0.001,
+    "LR_CRITIC": 0.001,
+    "LR_ENTROPY": 0.001,
+    "GAMMA": 0.99,
+    "ALPHA": 0.2,
+    "TARGET_ENTROPY": None,
+    "BETAS_ACTOR": [0.9, 0.999],
+    "BETAS_CRITIC": [0.9, 0.999],
+}
+
+EXAMPLES: dict[str, dict[str, Any]] = {
+    "config_tm20lidar.json": {
+        "RUN_NAME": "SAC_4_LIDAR_pretrained",
+        "ENV": {"RTGYM_INTERFACE": "TM20LIDAR", "WINDOW_WIDTH": 958, "WINDOW_HEIGHT": 488},
+    },
+    "config_gym_pendulum.json": {
+        "RUN_NAME": "pendulum_sac",
+        **_GENERIC_TRAINING,
+        "ALG": _GENERIC_ALG,
+        "ENV": {"RTGYM_INTERFACE": "GYM", "GYM_ID": "Pendulum-v1", "GYM_KWARGS": {}},
+    },
+    "config_drone.json": {
+        "RUN_NAME": "drone_sac",
+        **_GENERIC_TRAINING,
+        "ALG": _GENERIC_ALG,
+        "ENV": {
+            "RTGYM_INTERFACE": "DRONE",
+            "RTGYM_CONFIG": {"time_step_duration": 0.05, "start_obs_capture": 0.05, "act_buf_len": 2,
+                             "wait_on_done": False, "ep_max_length": 100, "interface_kwargs": {}},
+        },
+    },
+}
+"""Example files shipped beside the default ``config/config.json``: the defaults with these keys
+changed (starting points: copy one over your ``config.json``)."""
+
+
+def example_json(name: str) -> str:
+    """The text of the shipped example ``config/<name>``: a complete, valid config."""
+    cfg = SCHEMA.check(defaults(), "")
+    delta = SCHEMA.check(EXAMPLES[name], "", fill=False)
+
+    def merge(base: dict[str, Any], upd: dict[str, Any], spec: Section) -> dict[str, Any]:
+        out = dict(base)
+        for k, v in upd.items():
+            sub = spec.fields[k]
+            out[k] = merge(out[k], v, sub) if isinstance(sub, Section) else v
+        return out
+
+    full = merge(cfg, delta, SCHEMA)
+    check_consistency(full)
+    return json.dumps(full, indent=2) + "\n"
+
+
+def generated_files() -> dict[str, str]:
+    """Repository-relative path -> text of every file generated from the schema."""
+    files = {"docs/config.md": markdown_reference(), "config/config.json": default_config_json()}
+    for name in EXAMPLES:
+        files[f"config/{name}"] = example_json(name)
+    return files
+
+
 def _md_escape(text: str) -> str:
     return text.replace("|", "\\|")
 
@@ -688,7 +766,7 @@ def main(argv: list[str] | None = None) -> int:
     group.add_argument("--markdown", action="store_true", help="print docs/config.md")
     group.add_argument("--json", action="store_true", help="print the default config.json")
     group.add_argument("--write", action="store_true",
-                       help="write docs/config.md and config/config.json of the source checkout")
+                       help="write docs/config.md and the config/*.json files of the source checkout")
     args = parser.parse_args(argv)
     if args.markdown:
         sys.stdout.write(markdown_reference())
@@ -696,7 +774,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.write(default_config_json())
     else:
         root = _repo_root()
-        for rel, text in (("docs/config.md", markdown_reference()), ("config/config.json", default_config_json())):
+        for rel, text in generated_files().items():
             (root / rel).parent.mkdir(parents=True, exist_ok=True)
             (root / rel).write_text(text, encoding="utf-8")
             print(f"wrote {root / rel}")
