@@ -1,0 +1,334 @@
+"""Tests of the built-in simulator: tracks, dynamics, rendering, interfaces, fast environments."""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import gymnasium
+import numpy as np
+import pytest
+
+import tmrl.sim
+from tmrl.driving.compressors import compress_full_sample, compress_lidar_progress_sample, compress_lidar_sample
+from tmrl.driving.preprocessors import preprocess_full_obs, preprocess_lidar_obs, preprocess_lidar_progress_obs
+from tmrl.errors import UserError
+from tmrl.sim.car import Car
+from tmrl.sim.interfaces import (
+    SimEnv,
+    SimFullInterface,
+    SimLidarInterface,
+    SimLidarProgressInterface,
+)
+from tmrl.sim.race import Race, follow_centre_line
+from tmrl.sim.render import BORDER, GROUND, ROAD, encode_png, track_map
+from tmrl.sim.track import DEFAULT_TRACK, TRACK_NAMES, _problems, make_track, named_track, track_from_seed
+
+
+# -- tracks ----------------------------------------------------------------------------------
+
+
+def test_named_tracks_are_pinned_and_valid():
+    lengths = {name: named_track(name).length for name in TRACK_NAMES}
+    assert lengths == pytest.approx({"oval": 454.5, "classic": 617.3, "technical": 611.6}, abs=0.5)
+    widths = [named_track(n).half_width for n in TRACK_NAMES]
+    assert widths == sorted(widths, reverse=True)  # harder tracks are narrower
+    for name in TRACK_NAMES:
+        t = named_track(name)
+        assert _problems(t) == []
+        steps = np.linalg.norm(np.diff(t.centre, axis=0), axis=1)
+        assert np.allclose(steps, 0.1, atol=1e-3)
+    assert make_track(None).name == DEFAULT_TRACK
+
+
+def test_seeded_tracks_are_deterministic_and_differ():
+    a, b = track_from_seed(11), track_from_seed(11)
+    assert np.array_equal(a.centre, b.centre)
+    assert not np.array_equal(track_from_seed(12).centre[:100], a.centre[:100])
+    assert make_track("11").name == "seed-11" and make_track(11) is a
+    for seed in (5, 6):
+        for difficulty in ("easy", "hard"):
+            assert _problems(track_from_seed(seed, difficulty)) == []
+
+
+def test_unknown_tracks_are_user_errors():
+    with pytest.raises(UserError, match="unknown track"):
+        make_track("monza")
+    with pytest.raises(UserError, match="difficulty"):
+        track_from_seed(1, "insane")
+
+
+def test_reward_trajectory_runs_from_start_to_finish_line():
+    t = named_track("oval")
+    traj = t.reward_trajectory()
+    assert np.array_equal(traj[0], traj[-1]) and len(traj) == t.n_points + 1
+
+
+# -- dynamics --------------------------------------------------------------------------------
+
+
+def drive(car: Car, action, seconds: float) -> int:
+    hits = 0
+    for _ in range(int(seconds / 0.0125)):
+        hits += car.step(*action, 0.0125)
+    return hits
+
+
+def test_gas_brake_and_coasting():
+    car = Car(named_track("oval"))
+    drive(car, (1.0, 0.0, 0.0), 2.0)
+    fast = car.state.forward_speed
+    assert fast > 10.0
+    drive(car, (0.0, 0.0, 0.0), 0.5)
+    coasting = car.state.forward_speed
+    assert 0 < fast - coasting < 2.0
+    drive(car, (0.0, 1.0, 0.0), 0.5)
+    assert car.state.forward_speed < coasting - 5.0
+    # negative gas or brake does nothing (only the positive part of a trigger acts)
+    car.reset()
+    drive(car, (-1.0, -1.0, 0.0), 1.0)
+    assert car.state.speed == 0.0
+
+
+def test_steering_right_turns_clockwise_and_slides_at_speed():
+    car = Car(named_track("oval"))
+    h0 = car.state.heading
+    drive(car, (0.5, 0.0, 1.0), 0.5)
+    assert car.state.heading < h0
+    # at speed, a full lock asks for more than the tyres give: the car slides sideways
+    car.reset()
+    car.state.vx, car.state.vy = 35.0 * np.cos(h0), 35.0 * np.sin(h0)
+    car.step(0.0, 0.0, 1.0, 0.0125)
+    car.step(0.0, 0.0, 1.0, 0.0125)
+    c, s = np.cos(car.state.heading), np.sin(car.state.heading)
+    lateral = -car.state.vx * s + car.state.vy * c
+    assert abs(lateral) > 0.1
+
+
+def test_steering_lock_shrinks_with_speed():
+    slow, fast = Car(named_track("oval")), Car(named_track("oval"))
+    h0 = slow.state.heading
+    for car, v in ((slow, 5.0), (fast, 30.0)):
+        car.state.vx, car.state.vy = v * np.cos(h0), v * np.sin(h0)
+        car.step(0.0, 0.0, 1.0, 0.0125)
+    # yaw per metre travelled is the path curvature: tighter at low speed
+    assert (h0 - slow.state.heading) / 5.0 > 2 * (h0 - fast.state.heading) / 30.0
+
+
+def test_walls_hold_the_car_and_cost_speed():
+    car = Car(named_track("classic"))
+    drive(car, (1.0, 0.0, 0.0), 2.0)
+    limit = car.track.half_width - car.params.radius
+    speed_before = car.state.speed
+    hits = drive(car, (1.0, 0.0, 1.0), 1.5)
+    assert hits > 0 and car.state.wall_hits == hits
+    assert abs(car.state.lateral) <= limit + 1e-9
+    assert car.state.speed < speed_before
+
+
+def test_gear_and_rpm_follow_speed():
+    car = Car(named_track("oval"))
+    gears, rpms = [], []
+    for _ in range(8):
+        drive(car, (1.0, 0.0, 0.0), 0.6)
+        gears.append(car.gear)
+        rpms.append(car.rpm)
+    assert gears == sorted(gears) and gears[0] >= 1 and gears[-1] >= 3
+    assert all(2000.0 <= r <= 11000.0 for r in rpms)
+
+
+# -- the race: a driver completes a lap, a random policy never does ---------------------------
+
+
+@pytest.mark.parametrize("name", TRACK_NAMES)
+def test_centre_line_driver_completes_a_lap(name):
+    env = SimEnv("SIMLIDARPROGRESS", track=name, ep_max_length=2000)
+    env.reset()
+    total = 0.0
+    for step in range(2000):
+        obs, rew, terminated, truncated, info = env.step(follow_centre_line(env.race))
+        total += rew
+        if terminated or truncated:
+            break
+    assert terminated and info["lap_completed"] is True
+    assert 10.0 < info["lap_time"] < 100.0
+    assert info["lap_time"] == pytest.approx((step + 1) * 0.05, abs=0.05)
+    track = env.race.track
+    # progress reward of the whole lap (1 per 10 m) plus the finish bonus
+    assert total == pytest.approx(track.length / 10.0 + 100.0, abs=1.0)
+    assert obs[1][0] > 0.99
+
+
+def test_random_policy_never_completes_a_lap():
+    race = Race(make_track(None))
+    rng = np.random.default_rng(0)
+    best = 0.0
+    for _ in range(200):
+        race.reset()
+        for _ in range(1000):
+            race.advance(rng.uniform(-1.0, 1.0, 3), 0.05)
+            _, terminated, info = race.score()
+            assert not info["lap_completed"]
+            if terminated:
+                break
+        best = max(best, race.progress)
+    assert best < 0.1
+
+
+def test_crossing_the_line_backwards_is_no_lap():
+    race = Race(named_track("oval"))
+    race.reset()
+    race.car.state.heading += np.pi  # face backwards and drive over the line, then come back
+    for _ in range(40):
+        race.advance((0.6, 0.0, 0.0), 0.05)
+    assert race.laps == -1
+    race.car.state.heading -= np.pi
+    for _ in range(60):
+        race.advance((1.0, 0.0, 0.0), 0.05)
+    assert race.laps == 0 and not race.finished
+
+
+# -- rendering and observations --------------------------------------------------------------
+
+
+def test_lidar_interface_reads_the_rendered_view():
+    itf = SimLidarInterface(track="classic", img_hist_len=2)
+    obs, info = itf.reset()
+    view = itf.lidar_view()
+    assert view.shape == (488, 958)
+    assert np.array_equal(obs[1][-1], itf.lidar.measure(view))
+    # at the start, the car is in the middle of a 12 m road: the side beams hit the borders about
+    # 6 m - 2.4 m (the beams' first 20 px at 0.12 m/px) away, the forward beam goes much farther
+    lateral = (obs[1][-1][0] + 20) * 0.12, (obs[1][-1][18] + 20) * 0.12
+    assert lateral == pytest.approx((6.0, 6.0), abs=0.5)
+    assert obs[1][-1][9] > 100
+
+
+def test_full_view_has_black_borders_and_dark_ground():
+    itf = SimFullInterface(track="classic")
+    obs, _ = itf.reset()
+    img = obs[3][-1]
+    assert img.dtype == np.uint8 and img.shape == (64, 64)
+    values = set(np.unique(img).tolist())
+    assert {ROAD, BORDER, GROUND} <= values
+    row = img[40]  # a row ahead of the car: ground, border, road, ..., road, border, ground
+    assert row[0] == GROUND and row[32] in (ROAD, 220) and BORDER in row[:32] and BORDER in row[32:]
+    tmap = track_map(itf.track)
+    assert tmap.image.dtype == np.uint8
+
+
+@pytest.mark.parametrize("env_id", sorted(tmrl.sim.ENV_IDS))
+def test_gymnasium_ids_and_spaces(env_id):
+    env = gymnasium.make(f"tmrl.sim:{env_id}", img_hist_len=3, act_buf_len=2)
+    obs, info = env.reset(seed=1)
+    assert env.observation_space.contains(obs)
+    assert np.array_equal(obs[-1], np.zeros(3)) and np.array_equal(obs[-2], np.zeros(3))
+    a1 = np.array([1.0, 0.0, 0.25], dtype=np.float32)
+    a2 = np.array([0.5, 0.0, -0.5], dtype=np.float32)
+    env.step(a1)
+    obs, rew, terminated, truncated, info = env.step(a2)
+    assert env.observation_space.contains(obs)
+    assert np.array_equal(obs[-2], a1) and np.array_equal(obs[-1], a2)  # oldest first
+    assert obs[0][0] > 0  # moving (km/h)
+    assert not terminated and not truncated and info["lap_completed"] is False
+    env.close()
+
+
+def test_truncation_after_ep_max_length():
+    env = SimEnv("SIMLIDAR", ep_max_length=5, img_hist_len=1)
+    env.reset()
+    flags = [env.step(np.array([1.0, 0.0, 0.0]))[3] for _ in range(5)]
+    assert flags == [False] * 4 + [True]
+    with pytest.raises(UserError, match="unknown simulator interface"):
+        SimEnv("SIMSOMETHING")
+
+
+def test_observation_spaces_match_trackmania():
+    lidar = SimLidarInterface(img_hist_len=4).get_observation_space()
+    assert [s.shape for s in lidar.spaces] == [(1,), (4, 19)]
+    prog = SimLidarProgressInterface(img_hist_len=4).get_observation_space()
+    assert [s.shape for s in prog.spaces] == [(1,), (1,), (4, 19)]
+    assert prog.spaces[1].high[0] == 1.0
+    full = SimFullInterface(img_hist_len=4).get_observation_space()
+    assert [s.shape for s in full.spaces] == [(1,), (1,), (1,), (4, 64, 64)]
+    assert full.spaces[3].dtype == np.uint8
+    assert SimLidarInterface().get_action_space().shape == (3,)
+
+
+def test_preprocessors_and_compressors_keep_only_the_newest_frame():
+    env = SimEnv("SIMLIDARPROGRESS", img_hist_len=4)
+    env.reset()
+    obs, rew, te, tr, info = env.step(np.array([1.0, 0.0, 0.0]))
+    pre = preprocess_lidar_progress_obs(obs)
+    assert pre[2].shape == (76,)
+    act, small, r, *_ = compress_lidar_progress_sample(np.ones(3), pre, rew, te, tr, info)
+    assert len(small) == 3 and np.array_equal(small[2], obs[2][-1]) and isinstance(r, np.float32)
+    lid = SimEnv("SIMLIDAR", img_hist_len=4)
+    obs = lid.reset()[0]
+    _, small, *_ = compress_lidar_sample(None, preprocess_lidar_obs(obs), 0.0, False, False, {})
+    assert len(small) == 2 and np.array_equal(small[1], obs[1][-1])
+    full = SimEnv("SIMFULL", img_hist_len=4)
+    obs = full.reset()[0]
+    pre = preprocess_full_obs(obs)
+    assert pre[3].dtype == np.float32 and pre[3].max() < 1.0
+    _, small, *_ = compress_full_sample(None, pre, 0.0, False, False, {})
+    assert small[3].dtype == np.uint8 and np.array_equal(small[3], obs[3][-1])
+    assert len(small) == 4
+
+
+# -- real time --------------------------------------------------------------------------------
+
+
+def test_real_time_environment_drives_the_sim():
+    from tmrl.realtime import DEFAULT_CONFIG_DICT, RealTimeEnv, check_realtime_interface
+
+    config = dict(DEFAULT_CONFIG_DICT, interface=SimLidarInterface, interface_kwargs={"img_hist_len": 2},
+                  time_step_duration=0.02, start_obs_capture=0.02, act_buf_len=2, ep_max_length=30)
+    env = RealTimeEnv(config)
+    try:
+        obs, _ = env.reset()
+        assert env.observation_space.contains(obs)
+        total = 0.0
+        for _ in range(20):
+            obs, rew, terminated, truncated, info = env.step(np.array([1.0, 0.0, 0.0], dtype=np.float32))
+            total += rew
+        race = env.unwrapped.interface.race if hasattr(env.unwrapped, "interface") else None
+        assert obs[0][0] > 5.0  # km/h after ~0.4 s of full gas
+        assert total > 0.0
+        if race is not None:
+            assert race.time == pytest.approx(0.4, abs=0.2)
+    finally:
+        env.close()
+    problems = check_realtime_interface(dict(config, interface=SimFullInterface, interface_kwargs={}), n_steps=3)
+    assert problems == []
+
+
+def test_wait_freezes_the_car():
+    now = [0.0]
+    itf = SimLidarInterface(img_hist_len=1, clock=lambda: now[0])
+    itf.reset()
+    itf.send_control(np.array([1.0, 0.0, 0.0]))
+    now[0] = 1.0
+    itf.get_obs_rew_terminated_info()
+    moved = itf.race.car.state.speed
+    assert moved > 5.0 and itf.race.time == pytest.approx(1.0, abs=0.02)
+    itf.wait()
+    now[0] = 5.0
+    itf.get_obs_rew_terminated_info()
+    assert itf.race.time == pytest.approx(1.0, abs=0.02)
+
+
+def test_png_encoder_writes_valid_files(tmp_path):
+    from tmrl.sim.render import write_png
+
+    img = (np.arange(12 * 7) % 256).astype(np.uint8).reshape(7, 12)
+    data = encode_png(img)
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    w, h = struct.unpack(">II", data[16:24])
+    assert (w, h) == (12, 7)
+    idat_len = struct.unpack(">I", data[33:37])[0]
+    raw = zlib.decompress(data[41:41 + idat_len])
+    rows = np.frombuffer(raw, dtype=np.uint8).reshape(7, 13)
+    assert np.array_equal(rows[:, 1:], img) and not rows[:, 0].any()
+    write_png(tmp_path / "x.png", np.stack([img] * 3, axis=-1))
+    assert (tmp_path / "x.png").read_bytes()[:4] == b"\x89PNG"
