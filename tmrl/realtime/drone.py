@@ -100,6 +100,12 @@ class DummyRCDrone:
             return self._obs
 
     @property
+    def velocity(self) -> tuple[float, float]:
+        """The velocity the drone applies now (the last command that reached it)."""
+        with self._cond:
+            return self._vel
+
+    @property
     def position(self) -> tuple[float, float]:
         """The drone's true position now (for tests; a real drone would not tell)."""
         with self._cond:

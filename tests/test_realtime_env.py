@@ -1,0 +1,444 @@
+"""Rules of the real-time environment, checked in virtual time (FakeClock) for both ids."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import warnings
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium import spaces
+
+import tmrl.realtime as rt
+from tmrl.errors import UserError
+from tmrl.realtime import DEFAULT_CONFIG_DICT, FakeClock, RealTimeGymInterface, TimeStepTimeoutWarning
+
+IDS = ["real-time-gym-v1", "real-time-gym-ts-v1"]
+T = 0.05  # time step
+C = 0.03  # start_obs_capture
+
+
+class Scripted(RealTimeGymInterface):
+    """Records every call with the caller's virtual time and thread; observation k is [k]."""
+
+    def __init__(self, clock, log, capture=0.0, terminate_at=(), fail_at=None, fail_init=False):
+        if fail_init:
+            raise ValueError("no device")
+        self.clock, self.log, self.capture = clock, log, capture
+        self.terminate_at, self.fail_at = set(terminate_at), fail_at
+        self.k = 0
+
+    def _rec(self, name, *extra):
+        self.log.append((name, round(self.clock.now(), 9), threading.current_thread().name, *extra))
+
+    def get_observation_space(self):
+        return spaces.Tuple((spaces.Box(-np.inf, np.inf, (1,), np.float32),))
+
+    def get_action_space(self):
+        return spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def get_default_action(self):
+        return np.full(1, -1.0, dtype=np.float32)
+
+    def send_control(self, control):
+        self._rec("send", float(control[0]))
+
+    def reset(self, seed=None, options=None):
+        self._rec("reset")
+        self.k = 0
+        return [np.zeros(1, np.float32)], {"seed": seed}
+
+    def get_obs_rew_terminated_info(self):
+        self._rec("obs")
+        self.clock.sleep(self.capture)
+        self.k += 1
+        if self.k == self.fail_at:
+            raise OSError("device unplugged")
+        return [np.full(1, self.k, np.float32)], float(self.k), self.k in self.terminate_at, {"k": self.k}
+
+    def wait(self):
+        self._rec("wait")
+
+    def render(self):
+        self._rec("render")
+        return "frame"
+
+    def close(self):
+        self._rec("close")
+
+
+def a(x):
+    return np.full(1, x, dtype=np.float32)
+
+
+def times(log, name):
+    return [entry[1] for entry in log if entry[0] == name]
+
+
+def sent(log):
+    return [entry[3] for entry in log if entry[0] == "send"]
+
+
+@pytest.fixture
+def make_env():
+    envs = []
+
+    def make(env_id, clock=None, **overrides):
+        clock = clock or FakeClock()
+        log = []
+        kwargs = {"clock": clock, "log": log, **overrides.pop("iface", {})}
+        cfg = dict(DEFAULT_CONFIG_DICT, interface=Scripted, interface_kwargs=kwargs, time_step_duration=T,
+                   start_obs_capture=C, ep_max_length=1000)
+        cfg.update(overrides)
+        env = gymnasium.make(env_id, config=cfg, clock=clock, disable_env_checker=True)
+        envs.append(env)
+        return env, clock, log
+
+    yield make
+    for env in envs:
+        env.close()
+
+
+def test_ids_registered_with_tmrl_names():
+    for env_id in IDS + ["tmrl/real-time-gym-v1", "tmrl/real-time-gym-ts-v1"]:
+        assert env_id in gymnasium.registry
+    assert gymnasium.registry["tmrl/real-time-gym-ts-v1"].entry_point == "tmrl.realtime.env:RealTimeEnvTS"
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_observation_space_is_interface_tuple_plus_action_buffer(make_env, env_id):
+    env, _, _ = make_env(env_id, act_buf_len=3)
+    box = spaces.Box(-1.0, 1.0, (1,), np.float32)
+    assert env.observation_space == spaces.Tuple((spaces.Box(-np.inf, np.inf, (1,), np.float32), box, box, box))
+    assert env.action_space == box
+    env2, _, _ = make_env(env_id, act_in_obs=False)
+    assert len(env2.observation_space.spaces) == 1
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_cadence_capture_time_and_overlap(make_env, env_id):
+    env, clock, log = make_env(env_id)
+    obs, info = env.reset(seed=3)
+    assert info == {"seed": 3}
+    assert clock.now() == 0.0  # reset returns as soon as the first time step has started
+    returns = []
+    for i in range(1, 5):
+        clock.sleep(0.01)  # inference, overlapping the running time step
+        obs, rew, terminated, truncated, info = env.step(a(i / 10))
+        returns.append(round(clock.now(), 9))
+        assert obs[0][0] == i and rew == i and info == {"k": i}  # observed during the step that ended
+    # step() returns exactly when the next time step starts, on the nominal grid
+    assert returns == pytest.approx([0.05, 0.10, 0.15, 0.20])
+    env.unwrapped.stop()  # let the running time step finish before reading the log
+    assert times(log, "send") == pytest.approx([0.0, 0.05, 0.10, 0.15, 0.20])
+    assert sent(log) == pytest.approx([-1.0, 0.1, 0.2, 0.3, 0.4])  # default action first
+    assert times(log, "obs") == pytest.approx([0.03, 0.08, 0.13, 0.18, 0.23])
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_elastic_clock_keeps_cadence_when_late_within_timeout(make_env, env_id):
+    env, clock, log = make_env(env_id, time_step_timeout_factor=1.0)
+    env.reset()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", TimeStepTimeoutWarning)
+        clock.sleep(0.01)
+        env.step(a(0.1))  # returns at 0.05
+        clock.sleep(0.08)  # 0.13: 0.03 late for the step ending at 0.10, timeout is 0.05
+        env.step(a(0.2))
+        assert clock.now() == pytest.approx(0.13)  # the late time step started at 0.10, in the past
+        env.step(a(0.3))  # next one on the grid again
+        assert clock.now() == pytest.approx(0.15)
+    env.unwrapped.stop()
+    assert times(log, "send") == pytest.approx([0.0, 0.05, 0.13, 0.15])
+    assert times(log, "obs") == pytest.approx([0.03, 0.08, 0.13, 0.18])
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_elastic_clock_restarts_from_now_with_one_warning(make_env, env_id):
+    env, clock, log = make_env(env_id, time_step_timeout_factor=0.5)
+    env.reset()
+    clock.sleep(0.01)
+    env.step(a(0.1))  # 0.05; this time step ends at 0.10, timeout at 0.125
+    clock.sleep(0.10)  # 0.15
+    with pytest.warns(TimeStepTimeoutWarning) as record:
+        env.step(a(0.2))
+    assert len(record) == 1 and "time_step_timeout_factor" in str(record[0].message)
+    assert clock.now() == pytest.approx(0.15)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", TimeStepTimeoutWarning)
+        env.step(a(0.3))
+        env.step(a(0.4))
+    assert clock.now() == pytest.approx(0.25)  # new grid from 0.15
+    env.unwrapped.stop()
+    assert times(log, "send") == pytest.approx([0.0, 0.05, 0.15, 0.20, 0.25])
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_slow_capture_delays_step_but_not_the_grid(make_env, env_id):
+    env, clock, log = make_env(env_id, iface={"capture": 0.04})  # captured at 0.03, done at 0.07
+    env.reset()
+    env.step(a(0.1))
+    assert clock.now() == pytest.approx(0.07)
+    env.step(a(0.2))  # that time step started on the grid (0.05): capture at 0.08, done at 0.12
+    assert clock.now() == pytest.approx(0.12)
+    env.unwrapped.stop()
+    assert times(log, "obs") == pytest.approx([0.03, 0.08, 0.13])
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_truncation_at_ep_max_length_and_step_after_done(make_env, env_id):
+    env, clock, log = make_env(env_id, ep_max_length=3)
+    env.reset()
+    flags = [env.step(a(0.0))[2:4] for _ in range(3)]
+    assert flags == [(False, False), (False, False), (False, True)]
+    assert len(times(log, "send")) == 3  # no time step started after the episode ended
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(a(0.0))
+    with pytest.raises(UserError):
+        env.step(a(0.0))
+    env.reset()
+    assert env.step(a(0.0))[2:4] == (False, False)
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_terminated_overrides_truncated(make_env, env_id):
+    env, _, _ = make_env(env_id, ep_max_length=2, iface={"terminate_at": (2,)})
+    env.reset()
+    env.step(a(0.0))
+    _, _, terminated, truncated, _ = env.step(a(0.0))
+    assert terminated is True and truncated is False
+
+
+@pytest.mark.parametrize("env_id", IDS)
+@pytest.mark.parametrize("wait_on_done", [True, False])
+def test_wait_on_done(make_env, env_id, wait_on_done):
+    env, _, log = make_env(env_id, wait_on_done=wait_on_done, iface={"terminate_at": (1,)})
+    env.reset()
+    assert env.step(a(0.0))[2] is True
+    assert len(times(log, "wait")) == (1 if wait_on_done else 0)
+    env, _, log = make_env(env_id, ep_max_length=2, wait_on_done=wait_on_done)
+    env.reset()
+    env.step(a(0.0))
+    assert env.step(a(0.0))[3] is True
+    assert len(times(log, "wait")) == (1 if wait_on_done else 0)
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_no_warning_after_wait_and_thread_ownership(make_env, env_id):
+    env, clock, log = make_env(env_id)
+    env.reset()
+    env.step(a(0.1))
+    env.unwrapped.wait()
+    clock.sleep(10.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", TimeStepTimeoutWarning)
+        env.reset()
+    assert clock.now() == pytest.approx(10.10)  # wait() let the running time step end at 0.10
+    env.step(a(0.2))
+    env.unwrapped.stop()
+    assert times(log, "send")[-2:] == pytest.approx([10.10, 10.15])  # restarted from the reset
+    threads = {name: {e[2] for e in log if e[0] == name} for name in ("reset", "wait", "send", "obs")}
+    main = threading.current_thread().name
+    assert len(threads["send"] | threads["obs"]) == 1 and main not in threads["send"]
+    if env_id == "real-time-gym-v1":
+        assert threads["reset"] == threads["wait"] == {main}
+    else:
+        assert threads["reset"] == threads["wait"] == threads["send"]
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_action_buffer_oldest_first_and_reset_act_buf(make_env, env_id):
+    env, _, log = make_env(env_id, act_buf_len=3, reset_act_buf=True)
+    obs, _ = env.reset()
+    assert [float(x[0]) for x in obs[1:]] == [-1.0, -1.0, -1.0]
+    env.step(a(0.1))
+    obs, *_ = env.step(a(0.2))
+    assert [float(x[0]) for x in obs[1:]] == pytest.approx([-1.0, 0.1, 0.2])
+    obs, _ = env.reset()
+    assert [float(x[0]) for x in obs[1:]] == [-1.0, -1.0, -1.0]
+    assert env.unwrapped.default_action[0] == -1.0
+
+
+@pytest.mark.parametrize("env_id", IDS)
+@pytest.mark.parametrize("last_act_on_reset", [False, True])
+def test_buffer_kept_across_episodes_without_reset_act_buf(make_env, env_id, last_act_on_reset):
+    env, _, log = make_env(env_id, act_buf_len=3, reset_act_buf=False, ep_max_length=3,
+                           last_act_on_reset=last_act_on_reset)
+    env.reset()
+    for x in (0.1, 0.2, 0.3):
+        env.step(a(x))  # the last one ends the episode: 0.3 is never applied
+    obs, _ = env.reset()
+    env.unwrapped.stop()
+    expected_last = 0.3 if last_act_on_reset else -1.0
+    assert [float(x[0]) for x in obs[1:]] == pytest.approx([0.1, 0.2, expected_last])
+    assert sent(log)[-1] == pytest.approx(expected_last)  # the action reset() applies
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_set_default_action_applies_at_next_reset(make_env, env_id):
+    env, _, log = make_env(env_id)
+    env.unwrapped.set_default_action(a(0.5))
+    obs, _ = env.reset()
+    env.unwrapped.stop()
+    assert sent(log) == [0.5] and float(obs[-1][0]) == 0.5
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_set_time_step_duration_and_capture(make_env, env_id):
+    env, clock, log = make_env(env_id)
+    env.reset()
+    env.step(a(0.1))  # 0.05
+    env.unwrapped.set_time_step_duration(0.1)
+    env.unwrapped.set_start_obs_capture(0.02)
+    env.step(a(0.2))
+    env.step(a(0.3))
+    env.unwrapped.stop()
+    assert times(log, "send") == pytest.approx([0.0, 0.05, 0.10, 0.20])
+    assert times(log, "obs")[-2:] == pytest.approx([0.12, 0.22])
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_polyak_benchmarks_are_exact_in_virtual_time(make_env, env_id):
+    env, clock, _ = make_env(env_id, benchmark=True, benchmark_polyak=0.5, iface={"capture": 0.002})
+    env.reset()
+    for _ in range(6):
+        clock.sleep(0.01)
+        env.step(a(0.0))
+    b = env.unwrapped.benchmarks()
+    assert set(b) == {"time_step_duration", "step_duration", "join_duration", "inference_duration",
+                      "send_control_duration", "get_obs_duration"}
+    assert b["time_step_duration"] == pytest.approx((T, 0.0))
+    assert b["inference_duration"] == pytest.approx((0.01, 0.0))
+    assert b["get_obs_duration"] == pytest.approx((0.002, 0.0))
+    assert b["step_duration"][0] == pytest.approx(T - 0.01)
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_trace_benchmark_and_disabled_benchmark(make_env, env_id):
+    env, clock, _ = make_env(env_id, benchmark=True, benchmark_type="trace")
+    env.reset()
+    for _ in range(4):
+        env.step(a(0.0))
+    env.unwrapped.stop()
+    trace = env.unwrapped.benchmarks()
+    assert np.allclose(trace["deltas"]["time_step_duration"], T)
+    assert len(trace["clock"]["start_send_control"]) == 5
+    env2, _, _ = make_env(env_id)
+    with pytest.raises(AssertionError, match="benchmark"):
+        env2.unwrapped.benchmarks()
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_render_runs_on_caller_thread(make_env, env_id):
+    env, _, log = make_env(env_id)
+    env.reset()
+    assert env.unwrapped.render() == "frame"
+    assert env.unwrapped.render(join_thread=True) == "frame"
+    assert {e[2] for e in log if e[0] == "render"} == {threading.current_thread().name}
+    env.step(a(0.0))  # the joined time step's observation is still delivered
+    assert env.unwrapped.current_step == 1
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_interface_error_reaches_the_caller(make_env, env_id):
+    env, _, _ = make_env(env_id, iface={"fail_at": 2})
+    env.reset()
+    env.step(a(0.0))
+    with pytest.raises(OSError, match="unplugged"):
+        env.step(a(0.0))
+    with pytest.raises(RuntimeError):
+        env.step(a(0.0))
+    env.reset()  # a new episode works
+    env.step(a(0.0))
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_close_stops_every_thread_and_closes_interface(env_id):
+    before = set(threading.enumerate())
+    clock, log = FakeClock(), []
+    cfg = dict(DEFAULT_CONFIG_DICT, interface=Scripted, interface_kwargs={"clock": clock, "log": log})
+    env = gymnasium.make(env_id, config=cfg, clock=clock)
+    env.reset()
+    env.step(a(0.0))  # a time step is running while we close
+    assert set(threading.enumerate()) - before
+    env.close()
+    env.close()  # idempotent
+    assert set(threading.enumerate()) == before
+    assert times(log, "close") and len([e for e in log if e[0] == "close"]) == 1
+    with pytest.raises(UserError, match="closed"):
+        env.unwrapped.reset()
+
+
+def test_ts_interface_constructor_error_leaves_no_thread():
+    before = set(threading.enumerate())
+    clock = FakeClock()
+    cfg = dict(DEFAULT_CONFIG_DICT, interface=Scripted, interface_kwargs={"clock": clock, "log": [], "fail_init": True})
+    with pytest.raises(ValueError, match="no device"):
+        rt.RealTimeEnvTS(cfg, clock=clock)
+    with pytest.raises(ValueError, match="no device"):
+        rt.RealTimeEnv(cfg, clock=clock)
+    assert set(threading.enumerate()) == before
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        ({"interface": None}, "interface"),
+        ({"act_buf_len": 0}, "act_buf_len"),
+        ({"time_step_duration": -1}, "time_step_duration"),
+        ({"ep_max_length": 0}, "ep_max_length"),
+        ({"benchmark_type": "fancy"}, "benchmark_type"),
+        ({"interface_kwargs": [1]}, "interface_kwargs"),
+    ],
+)
+def test_config_mistakes_are_user_errors(bad, match):
+    clock = FakeClock()
+    cfg = dict(DEFAULT_CONFIG_DICT, interface=Scripted, interface_kwargs={"clock": clock, "log": []})
+    cfg.update(bad)
+    with pytest.raises(UserError, match=match) as err:
+        rt.RealTimeEnv(cfg, clock=clock)
+    assert "\n" not in str(err.value)
+
+
+def test_default_config_is_never_mutated():
+    snapshot = dict(DEFAULT_CONFIG_DICT)
+    clock = FakeClock()
+    cfg = dict(DEFAULT_CONFIG_DICT, interface=Scripted, interface_kwargs={"clock": clock, "log": []})
+    env = rt.RealTimeEnv(cfg, clock=clock)
+    env.close()
+    rt.drone_config(time_step_duration=0.02)
+    assert DEFAULT_CONFIG_DICT == snapshot
+    assert DEFAULT_CONFIG_DICT["interface"] is RealTimeGymInterface
+
+
+def test_prepro_hooks_as_in_rtgym():
+    clock, log = FakeClock(), []
+    cfg = dict(DEFAULT_CONFIG_DICT, interface=Scripted, interface_kwargs={"clock": clock, "log": log},
+               act_prepro_func=lambda act: act * 2, obs_prepro_func=lambda obs: [o + 100 for o in obs])
+    env = rt.RealTimeEnv(cfg, clock=clock)
+    try:
+        obs, _ = env.reset()
+        # at reset the hook sees the buffer too; in step() only the interface's part
+        assert float(obs[0][0]) == 100 and float(obs[1][0]) == 99
+        obs, *_ = env.step(a(0.25))
+        assert float(obs[0][0]) == 101 and float(obs[1][0]) == 0.25
+        env.stop()
+        assert sent(log) == pytest.approx([-2.0, 0.5])
+    finally:
+        env.close()
+
+
+def test_import_registers_ids_and_touches_nothing(tmp_path):
+    code = (
+        "import gymnasium, os\n"
+        "assert 'real-time-gym-v1' not in gymnasium.registry\n"
+        "import tmrl.realtime, tmrl.envs\n"
+        "assert 'real-time-gym-v1' in gymnasium.registry\n"
+        "print(sorted(os.listdir('.')))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+    assert not (tmp_path / "TmrlData").exists()
