@@ -154,11 +154,17 @@ def test_install_twice_keeps_edited_config_and_password(tmrl_env):
     path.write_text(json.dumps(cfg, indent=4))
     edited = path.read_text()
 
+    credentials = sorted((data / "credentials").iterdir())
+    if credentials:  # generated once tmrl.transport.ensure_credentials exists
+        assert "certificate" in " ".join(p.name for p in credentials)
+    kept = {p.name: p.read_bytes() for p in credentials}
+
     second = tmrl(tmrl_env, "--install")
     assert second.returncode == 0, second.stderr
     assert "kept as it was" in second.stdout
     assert path.read_text() == edited
     assert json.loads(path.read_text())["PASSWORD"] == password
+    assert {p.name: p.read_bytes() for p in (data / "credentials").iterdir()} == kept
     assert not tmrl_env["home"].exists() or not any(tmrl_env["home"].iterdir())
 
 
@@ -284,3 +290,39 @@ def test_unknown_arguments_are_refused_outside_demo(tmrl_env):
     out = tmrl(tmrl_env, "--install", "--steps", "3")
     assert out.returncode == 2 and "unrecognized arguments" in out.stderr
     assert not tmrl_env["data"].exists()
+
+
+# --- documentation stays in step with the parser and CI -----------------------------------------
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def readme_commands() -> list[str]:
+    """The fenced code blocks of the README before its first section heading."""
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    head = text.split("\n## ", 1)[0]
+    blocks = head.split("```")[1::2]
+    return [block.split("\n", 1)[1].strip() for block in blocks]
+
+
+def test_readme_opens_with_two_commands_and_ci_runs_the_second_verbatim():
+    commands = readme_commands()
+    assert len(commands) == 2
+    assert all("\n" not in c for c in commands)
+    assert commands[0].startswith("pip install torch==2.13.0 && pip install . && python -m tmrl ")
+    assert "pytest" in commands[1] and "tests" in commands[1]
+    ci = (REPO / ".ci" / "run").read_text(encoding="utf-8")
+    assert commands[1] in ci.splitlines()
+    assert ci.index("pip install torch==2.13.0\n") < ci.index(commands[1])
+    assert "set -euo pipefail" in ci
+    assert os.access(REPO / ".ci" / "run", os.X_OK)
+
+
+def test_cli_reference_documents_every_option():
+    from tmrl.cli import build_parser
+
+    doc = (REPO / "docs" / "cli.md").read_text(encoding="utf-8")
+    for action in build_parser()._actions:
+        for option in action.option_strings:
+            if option not in ("-h", "--help"):
+                assert f"`{option}" in doc, option

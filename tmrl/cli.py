@@ -205,8 +205,13 @@ def _install() -> int:
         transport = None
     ensure = getattr(transport, "ensure_credentials", None) if transport is not None else None
     if callable(ensure) and cfg is not None:
-        ensure(paths.credentials)
-        credentials_note = "ready (existing files are kept)"
+        import inspect
+
+        if "hostname" in inspect.signature(ensure).parameters:
+            ensure(paths.credentials, hostname=cfg["TLS_HOSTNAME"])
+        else:
+            ensure(paths.credentials)
+        credentials_note = "key and certificate ready; existing files are kept"
     state = "created, with a fresh random PASSWORD" if report.created_config else "kept as it was"
     lines = [
         f"tmrl data folder: {paths.root}",
