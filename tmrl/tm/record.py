@@ -82,7 +82,10 @@ def trim_stationary_start(positions: np.ndarray, tolerance: float = 1e-3) -> np.
 
 def resample_path(positions: np.ndarray, step: float = RESAMPLE_STEP) -> np.ndarray:
     """Points every ``step`` metres along the polyline ``positions`` (arc length), starting with
-    its first point; the tail shorter than ``step`` is dropped (as in the original).
+    its first point; the tail shorter than ``step`` is dropped (as in the original recorder).
+
+    A thin wrapper of the shared :func:`tmrl.driving.reward.resample_polyline`, with the checks
+    of a recording (a single point is returned as is).
 
     Args:
         positions: ``(N, 3)`` positions in driving order.
@@ -91,24 +94,16 @@ def resample_path(positions: np.ndarray, step: float = RESAMPLE_STEP) -> np.ndar
     Returns:
         float64 array ``(M, 3)`` with ``M = floor(length / step) + 1``.
     """
+    from tmrl.driving.reward import resample_polyline
+
     p = np.asarray(positions, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
         raise ValueError(f"positions must have shape (N, 3) with N >= 1, got {p.shape}")
     if step <= 0:
         raise ValueError("step must be > 0")
-    seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    cum = np.concatenate([[0.0], np.cumsum(seg)])
-    total = cum[-1]
-    # A small relative slack keeps the last point when the length is a multiple of step.
-    n = int(np.floor(total / step + 1e-9)) + 1
-    targets = np.arange(n) * step
-    # Segment i holds targets in [cum[i], cum[i+1]); zero-length segments are never chosen.
-    idx = np.clip(np.searchsorted(cum, targets, side="right") - 1, 0, max(len(p) - 2, 0))
-    if len(p) == 1:
+    if len(p) == 1 or not np.any(np.diff(p, axis=0)):
         return p[:1].copy()
-    seg_len = seg[idx]
-    frac = np.divide(targets - cum[idx], seg_len, out=np.zeros_like(targets), where=seg_len > 0)
-    return p[idx] + (p[idx + 1] - p[idx]) * frac[:, None]
+    return resample_polyline(p, spacing=step)
 
 
 def validate_recording(

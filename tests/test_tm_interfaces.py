@@ -1,0 +1,277 @@
+"""TM20FULL, TM20LIDAR and TM20LIDARPROGRESS run end to end through tmrl.realtime against a fake
+OpenPlanet plugin (real TCP, real 44-byte frames), a window on Xvfb captured by the real capture
+code, and a gamepad backend that records calls."""
+
+from __future__ import annotations
+
+import os
+import select
+import shutil
+import socket
+import subprocess
+import threading
+import time
+import warnings
+
+import numpy as np
+import pytest
+
+from tmrl.errors import UserError
+from tmrl.tm.capture import preprocess
+from tmrl.tm.control import BUTTON_A, BUTTON_B, GamepadControl
+from tmrl.tm.interfaces import (
+    TM20FullInterface,
+    TM20LidarInterface,
+    TM20LidarProgressInterface,
+    interface_class,
+    realtime_config,
+)
+from tmrl.tm.openplanet import OpenPlanetClient, pack_frame
+
+W, H = 256, 128
+TRAJ = np.c_[np.arange(1001) * 0.1, np.zeros(1001), np.zeros(1001)]  # 100 m straight along x
+
+
+# ------------------------------------------------------------------------ fakes
+class FakePlugin:
+    def __init__(self):
+        self.srv = socket.create_server(("127.0.0.1", 0))
+        self.port = self.srv.getsockname()[1]
+        self.accepted = threading.Event()
+        self.conn = None
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self):
+        try:
+            self.conn, _ = self.srv.accept()
+        except OSError:
+            return
+        self.accepted.set()
+
+    def send(self, x, finished=0.0, speed=50.0):
+        self.conn.sendall(pack_frame((speed, x, x, 0.0, 0.0, 0.0, 1.0, 0.0, finished, 3.0, 7000.0)))
+
+    def close(self):
+        if self.conn is not None:
+            self.conn.close()
+        self.srv.close()
+
+
+class RecordingPad:
+    def __init__(self):
+        self.calls = []
+
+    def __getattr__(self, name):
+        return lambda *a, **k: self.calls.append((name, *a, *k.values()))
+
+
+@pytest.fixture
+def plugin():
+    p = FakePlugin()
+    yield p
+    p.close()
+
+
+@pytest.fixture
+def client(plugin):
+    c = OpenPlanetClient(port=plugin.port, retry_interval=0.05, timeout=10, first_timeout=10)
+    assert plugin.accepted.wait(10)
+    yield c
+    c.close()
+
+
+@pytest.fixture(scope="module")
+def xvfb():
+    if not shutil.which("Xvfb"):
+        pytest.skip("Xvfb is not installed (apt-get install xvfb): the capture needs a display")
+    pytest.importorskip("Xlib", reason="python-xlib is not installed")
+    pytest.importorskip("mss", reason="mss is not installed")
+    r, w = os.pipe()
+    proc = subprocess.Popen(["Xvfb", "-displayfd", str(w), "-screen", "0", "640x480x24", "-nolisten", "tcp"],
+                            pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.close(w)
+    line = b""
+    deadline = time.monotonic() + 20
+    while not line.endswith(b"\n") and time.monotonic() < deadline:
+        ready, _, _ = select.select([r], [], [], max(deadline - time.monotonic(), 0))
+        chunk = os.read(r, 64) if ready else b""
+        if not chunk:
+            break
+        line += chunk
+    if not line.endswith(b"\n"):
+        proc.kill()
+        proc.wait()
+        os.close(r)
+        pytest.skip("Xvfb did not start within 20 s")
+    yield f":{line.decode().strip()}"
+    proc.terminate()
+    proc.wait(timeout=10)
+    os.close(r)
+
+
+def paint_window(display_name, image, title="Trackmania"):
+    """A mapped window whose background pixmap is ``image`` (RGB); returns (display, window)."""
+    from Xlib import X, display
+
+    d = display.Display(display_name)
+    screen = d.screen()
+    h, w = image.shape[:2]
+    pixmap = screen.root.create_pixmap(w, h, screen.root_depth)
+    gc = pixmap.create_gc()
+    for row in range(h):
+        col = 0
+        while col < w:
+            end = col
+            while end < w and (image[row, end] == image[row, col]).all():
+                end += 1
+            r, g, b = (int(v) for v in image[row, col])
+            gc.change(foreground=(r << 16) | (g << 8) | b)
+            pixmap.fill_rectangle(gc, col, row, end - col, 1)
+            col = end
+    win = screen.root.create_window(40, 30, 120, 60, 0, screen.root_depth, X.InputOutput, X.CopyFromParent,
+                                    background_pixmap=pixmap, event_mask=X.StructureNotifyMask)
+    win.set_wm_name(title)
+    win.map()
+    while True:
+        ev = d.next_event()
+        if ev.type == X.MapNotify and ev.window.id == win.id:
+            break
+    d.sync()
+    return d, win
+
+
+def full_image():
+    img = np.zeros((H, W, 3), dtype=np.uint8)
+    img[:, : W // 2] = (200, 120, 40)
+    img[: H // 2, W // 2 :] = (30, 60, 250)
+    img[H // 2 :, W // 2 :] = (255, 255, 255)
+    return img
+
+
+def lidar_image():
+    img = np.full((H, W, 3), 100, dtype=np.uint8)  # grey road
+    img[:, :40] = 0  # dark border on the left
+    img[:, 216:] = 0  # and on the right
+    img[:20] = 0  # and far ahead
+    return img
+
+
+def make_env(xvfb, monkeypatch, client, interface, image, **extra):
+    from tmrl.config.loader import load_config
+    from tmrl.realtime import RealTimeEnv
+
+    monkeypatch.setenv("DISPLAY", xvfb)
+    d, win = paint_window(xvfb, image)
+    cfg = load_config(overrides={"ENV": {"RTGYM_INTERFACE": interface, "IMG_HIST_LEN": 4, "WINDOW_WIDTH": W,
+                                         "WINDOW_HEIGHT": H, "SLEEP_TIME_AT_RESET": 0.0}})
+    pad = RecordingPad()
+    rt = realtime_config(cfg, client=client, trajectory=TRAJ, sleep=lambda s: None, gamepad=True,
+                         control=GamepadControl(backend=pad, sleep=lambda s: None), **extra)
+    env = RealTimeEnv(rt)
+    return env, pad, (d, win)
+
+
+def drive(env, plugin, xs, action):
+    out = []
+    for x in xs:
+        plugin.send(x)
+        out.append(env.step(action))
+    return out
+
+
+# ------------------------------------------------------------------------ tests
+def test_tm20full_end_to_end(xvfb, monkeypatch, plugin, client):
+    env, pad, (d, win) = make_env(xvfb, monkeypatch, client, "TM20FULL", full_image())
+    try:
+        assert env.observation_space[3].shape == (4, 64, 64)
+        plugin.send(0.0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a slow machine may miss a 50 ms deadline
+            obs, info = env.reset()
+            expected = preprocess(np.dstack([full_image()[..., ::-1], np.full((H, W), 255, np.uint8)]), 64, 64)
+            assert len(obs) == 4 + 2  # speed, gear, rpm, images, then the action buffer of 2
+            assert obs[0][0] == 50.0 and obs[1][0] == 3.0 and obs[2][0] == 7000.0
+            assert obs[3].shape == (4, 64, 64) and obs[3].dtype == np.uint8
+            np.testing.assert_array_equal(obs[3][-1], expected)
+            assert env.observation_space.contains(obs)
+            assert ("press_button", BUTTON_B) in pad.calls  # respawned at reset
+            action = np.array([0.8, 0.0, -0.25], dtype=np.float32)
+            steps = drive(env, plugin, [1.0, 2.0, 3.0], action)
+            for o, rew, term, trunc, _ in steps:
+                assert rew == pytest.approx(0.1, abs=1e-6) and not term and not trunc
+            assert ("right_trigger_float", pytest.approx(0.8)) in pad.calls
+            assert ("left_joystick_float", pytest.approx(-0.25), 0.0) in pad.calls
+            pad.calls.clear()
+            plugin.send(4.0, finished=1.0)
+            o, rew, term, trunc, _ = env.step(action)
+        assert term and rew == pytest.approx(100.1, abs=1e-4)
+        # wait_on_done: default action, respawn, then A closes the finish pop-up
+        assert ("press_button", BUTTON_A) in pad.calls and ("press_button", BUTTON_B) in pad.calls
+    finally:
+        env.close()
+        win.destroy()
+        d.close()
+
+
+@pytest.mark.parametrize("name", ["TM20LIDAR", "TM20LIDARPROGRESS"])
+def test_tm20lidar_end_to_end(xvfb, monkeypatch, plugin, client, name):
+    from tmrl.driving.lidar import Lidar
+
+    env, pad, (d, win) = make_env(xvfb, monkeypatch, client, name, lidar_image())
+    img = lidar_image()
+    expected = Lidar.for_image(img).measure(img)
+    assert expected[0] == 68 and expected[-1] == 69  # right and left borders, by hand
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            plugin.send(0.0)
+            obs, _ = env.reset()
+            lidars = obs[-3]
+            assert lidars.shape == (4, 19)
+            np.testing.assert_array_equal(lidars[-1], expected)
+            steps = drive(env, plugin, [2.0, 5.0], np.array([1.0, 0.0, 0.0], dtype=np.float32))
+        assert [round(float(s[1]), 4) for s in steps] == [0.2, 0.3]
+        if name == "TM20LIDARPROGRESS":
+            assert obs[1][0] == 0.0
+            assert steps[-1][0][1][0] == pytest.approx(50 / 1001)
+        assert env.observation_space.contains(steps[-1][0])
+        plugin.send(6.0)  # the time step still running gets its frame, so close() need not wait
+    finally:
+        env.close()
+        win.destroy()
+        d.close()
+
+
+def test_spaces_without_a_game():
+    full = TM20FullInterface(window_size=(W, H), sleep_time_at_reset=0, reward_config={}, grayscale=False)
+    assert full.get_observation_space()[3].shape == (4, 64, 64, 3)
+    lidar = TM20LidarProgressInterface(img_hist_len=3, window_size=(W, H), sleep_time_at_reset=0, reward_config={})
+    assert [s.shape for s in lidar.get_observation_space()] == [(1,), (1,), (3, 19)]
+    assert full.get_action_space().shape == (3,)
+
+
+def test_missing_reward_file_says_how_to_record(monkeypatch):
+    itf = TM20LidarInterface(window_size=(W, H), sleep_time_at_reset=0, reward_config={},
+                             control=GamepadControl(backend=RecordingPad()), capture=object(), client=object())
+    with pytest.raises(UserError, match="--record-reward"):
+        itf.reset()
+
+
+def test_interface_selection_by_name():
+    assert interface_class("tm20lidar") is TM20LidarInterface
+    assert interface_class("TM20FULL") is TM20FullInterface
+    with pytest.raises(UserError, match="not a TrackMania interface"):
+        interface_class("SIMFULL")
+
+
+def test_realtime_config_follows_the_tmrl_config():
+    from tmrl.config.loader import load_config
+
+    cfg = load_config(overrides={"ENV": {"RTGYM_INTERFACE": "TM20FULL", "IMG_WIDTH": 32, "IMG_HEIGHT": 48,
+                                         "IMG_GRAYSCALE": False}})
+    rt = realtime_config(cfg)
+    assert rt["interface"] is TM20FullInterface
+    kw = rt["interface_kwargs"]
+    assert kw["resize_to"] == (32, 48) and kw["grayscale"] is False and kw["save_replays"] is False
+    assert rt["time_step_duration"] == cfg["ENV"]["RTGYM_CONFIG"]["time_step_duration"]
+    assert rt["act_buf_len"] == cfg["ENV"]["RTGYM_CONFIG"]["act_buf_len"]
