@@ -200,7 +200,7 @@ _DIFFICULTY = {
     # (control points, radius in m, radial jitter, half width in m)
     "easy": (7, 70.0, 0.18, 8.0),
     "medium": (11, 80.0, 0.30, 6.0),
-    "hard": (15, 85.0, 0.38, 5.0),
+    "hard": (13, 85.0, 0.32, 5.0),
 }
 
 
@@ -245,7 +245,7 @@ _OVAL = [(0, 0), (60, 0), (105, 8), (122, 40), (105, 72), (60, 80), (0, 80), (-4
 _NAMED: dict[str, tuple[str, int]] = {
     "oval": ("easy", -1),
     "classic": ("medium", 0),
-    "technical": ("hard", 1),
+    "technical": ("hard", 2),
 }
 
 #: Names accepted by :func:`named_track`, easiest first.
@@ -255,7 +255,7 @@ TRACK_NAMES: tuple[str, ...] = tuple(_NAMED)
 @functools.lru_cache(maxsize=8)
 def named_track(name: str) -> Track:
     """One of the fixed tracks of :data:`TRACK_NAMES`: ``"oval"`` (easy, 16 m road, 454 m),
-    ``"classic"`` (the default, 12 m road, 617 m) and ``"technical"`` (hard, 10 m road, 612 m).
+    ``"classic"`` (the default, 12 m road, 617 m) and ``"technical"`` (hard, 10 m road, 617 m).
 
     Raises:
         UserError: an unknown name.
