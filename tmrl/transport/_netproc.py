@@ -592,6 +592,8 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 proto.send_object(dest, data, msg_id)
             self.outstanding = 0
             self.grant()
+            if self.closing:
+                self.finish(proto)
 
         def disconnected(self) -> None:
             was = self.proto is not None
@@ -601,7 +603,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             if was and not self.closing:
                 log_link.warning("lost the connection to the relay at %s; reconnecting", where)
                 self.status(connected=False, refused=None)
-            if self.closing:
+            if self.closing and not self.store:
                 _stop_reactor()
 
         def grant(self) -> None:
@@ -631,15 +633,29 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             if self.closing:
                 return
             self.closing = True
-            if self.store:
-                log_link.warning("closing with %d objects never sent (no connection to %s)", len(self.store), where)
+            if self.proto is not None:
+                self.finish(self.proto)
+            elif self.store:
+                # Not connected: give the relay a chance to take what this process still holds.
+                log_link.info("waiting up to %.0f s to deliver %d unsent objects to %s", cfg["close_timeout"], len(self.store), where)
+                reactor.callLater(cfg["close_timeout"], self.give_up)
+            else:
+                if self.factory is not None:
+                    self.factory.stopTrying()
+                _stop_reactor()
+
+        def finish(self, proto: LinkProtocol) -> None:
             if self.factory is not None:
                 self.factory.stopTrying()
-            if self.proto is not None:
-                self.proto.transport.loseConnection()  # flushes what is queued first
-                reactor.callLater(cfg["close_timeout"], _stop_reactor)
-            else:
-                _stop_reactor()
+            # A registered producer would make a TLS transport wait for it before closing.
+            proto.transport.unregisterProducer()
+            proto.transport.loseConnection()  # flushes what is queued first
+            reactor.callLater(cfg["close_timeout"], _stop_reactor)
+
+        def give_up(self) -> None:
+            if self.store:
+                log_link.warning("closing with %d objects never sent (no connection to %s)", len(self.store), where)
+            _stop_reactor()
 
     def _stop_reactor() -> None:
         try:
@@ -778,7 +794,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self._retry(connector, reason)
 
         def _retry(self, connector: Any, reason: Any) -> None:
-            if self._state.closing:
+            if self._state.closing and not self._state.store:
                 _stop_reactor()
                 return
             msg = reason.getErrorMessage()
