@@ -275,3 +275,97 @@ def test_realtime_config_follows_the_tmrl_config():
     assert kw["resize_to"] == (32, 48) and kw["grayscale"] is False and kw["save_replays"] is False
     assert rt["time_step_duration"] == cfg["ENV"]["RTGYM_CONFIG"]["time_step_duration"]
     assert rt["act_buf_len"] == cfg["ENV"]["RTGYM_CONFIG"]["act_buf_len"]
+
+
+# ------------------------------------------------------------------------ tools on the same fakes
+class StreamingPlugin:
+    """Streams the same telemetry frame every few milliseconds to one client."""
+
+    def __init__(self, x=0.0):
+        self.srv = socket.create_server(("127.0.0.1", 0))
+        self.port = self.srv.getsockname()[1]
+        self.x = x
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self):
+        self.srv.settimeout(0.2)
+        while not self.stop.is_set():
+            try:
+                conn, _ = self.srv.accept()
+            except OSError:
+                continue
+            with conn:
+                while not self.stop.is_set():
+                    try:
+                        conn.sendall(pack_frame((10.0, self.x, self.x, 0.0, 0.0, 0, 0, 0, 0.0, 1.0, 1000.0)))
+                    except OSError:
+                        break
+                    self.stop.wait(0.004)
+
+    def close(self):
+        self.stop.set()
+        self.thread.join(timeout=5)
+        self.srv.close()
+
+
+def read_png(path):
+    """Minimal PNG reader for the files write_png makes (8-bit, filter 0)."""
+    import struct
+    import zlib
+
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos, idat, ihdr = 8, b"", None
+    while pos < len(data):
+        n = struct.unpack(">I", data[pos : pos + 4])[0]
+        kind, body = data[pos + 4 : pos + 8], data[pos + 8 : pos + 8 + n]
+        if kind == b"IHDR":
+            ihdr = struct.unpack(">IIBBBBB", body)
+        elif kind == b"IDAT":
+            idat += body
+        pos += 12 + n
+    w, h, _, color, *_ = ihdr
+    ch = 3 if color == 2 else 1
+    raw = np.frombuffer(zlib.decompress(idat), dtype=np.uint8).reshape(h, 1 + w * ch)
+    assert (raw[:, 0] == 0).all()
+    return raw[:, 1:].reshape(h, w, ch) if ch == 3 else raw[:, 1:].reshape(h, w)
+
+
+def test_write_png_round_trip(tmp_path):
+    from tmrl.tm.tools import write_png
+
+    rgb = (np.random.default_rng(0).random((7, 5, 3)) * 255).astype(np.uint8)
+    np.testing.assert_array_equal(read_png(write_png(tmp_path / "a.png", rgb)), rgb)
+    gray = rgb[..., 0]
+    np.testing.assert_array_equal(read_png(write_png(tmp_path / "b.png", gray)), gray)
+
+
+def test_check_environment_saves_what_the_policy_sees(xvfb, monkeypatch, tmp_path):
+    import io
+
+    from tmrl.config.loader import load_config
+    from tmrl.tm.tools import check_environment
+
+    monkeypatch.setenv("DISPLAY", xvfb)
+    d, win = paint_window(xvfb, lidar_image())
+    stream = StreamingPlugin()
+    try:
+        cfg = load_config(overrides={"ENV": {"RTGYM_INTERFACE": "TM20LIDAR", "WINDOW_WIDTH": W, "WINDOW_HEIGHT": H,
+                                             "SLEEP_TIME_AT_RESET": 0.0}})
+        out = io.StringIO()
+        # the keyboard respawn goes through the real XTest backend on the Xvfb display
+        code = check_environment(cfg, steps=3, out_dir=tmp_path, every=1, out=out, trajectory=TRAJ,
+                                 openplanet_port=stream.port)
+    finally:
+        stream.close()
+        win.destroy()
+        d.close()
+    assert code == 0
+    files = sorted(p.name for p in tmp_path.iterdir())
+    assert files == ["step_000001.png", "step_000002.png", "step_000003.png"]
+    img = read_png(tmp_path / files[-1])
+    assert img.shape == (H, W, 3)
+    assert ((img == (255, 0, 0)).all(axis=-1)).sum() > 100  # the rays are drawn
+    assert "reward" in out.getvalue()

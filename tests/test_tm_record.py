@@ -196,3 +196,44 @@ def test_record_stopped_before_the_finish_is_refused(tmp_path):
     with pytest.raises(DegenerateRecording, match="finish line was never reached"):
         record_reward(ScriptedTelemetry(frames), tmp_path / "r.npy", stop_requested=lambda: next(calls) >= 50)
     assert not (tmp_path / "r.npy").exists()
+
+
+def test_record_reward_tool_against_a_plugin(tmp_path):
+    """The --record-reward entry function over real TCP: stationary at the start, 20 m along x,
+    stationary at the finish line, then the finish flag."""
+    import io
+    import socket
+    import threading
+
+    from tmrl.tm.openplanet import pack_frame
+    from tmrl.tm.tools import record_reward as record_tool
+
+    xs = [0.0] * 20 + list(np.arange(1, 41) * 0.5) + [20.0] * 20
+    frames = [(5.0, x, x, 7.0, 1.0, 0, 1, 0, 0.0, 2, 5000) for x in xs] + [(5.0, 20.0, 20.0, 7.0, 1.0, 0, 1, 0, 1.0, 2, 5000)] * 5
+    srv = socket.create_server(("127.0.0.1", 0))
+    stop = threading.Event()
+
+    def serve():
+        conn, _ = srv.accept()
+        with conn:
+            try:
+                for f in frames:
+                    conn.sendall(pack_frame(f))
+                    stop.wait(0.003)  # one frame per game frame, as the plugin does
+            except OSError:  # the recorder hangs up once it has seen the finish flag
+                pass
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    out = io.StringIO()
+    try:
+        code = record_tool({"RUN_NAME": "r"}, path=tmp_path / "reward.npy", port=srv.getsockname()[1], out=out)
+    finally:
+        stop.set()
+        t.join(5)
+        srv.close()
+    assert code == 0 and "saved to" in out.getvalue()
+    traj = load_reward(tmp_path / "reward.npy")
+    np.testing.assert_allclose(traj[0], [0.0, 7.0, 1.0])
+    assert np.linalg.norm(traj[-1] - [20.0, 7.0, 1.0]) < 0.1 + 1e-9
+    assert np.allclose(np.linalg.norm(np.diff(traj, axis=0), axis=1), 0.1)
