@@ -211,3 +211,34 @@ def test_numpy_resize_agrees_with_opencv_when_installed():
     img = (np.random.default_rng(0).random((128, 256, 3)) * 255).astype(np.uint8)
     diff = np.abs(_resize_bilinear(img, 64, 64).astype(int) - cv2.resize(img, (64, 64)).astype(int))
     assert diff.max() <= 1
+
+
+def test_importing_tmrl_tm_imports_no_optional_package():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "import tmrl.tm, tmrl.tm.openplanet, tmrl.tm.capture, tmrl.tm.control, tmrl.tm.record\n"
+        "import tmrl.tm.doctor, tmrl.tm.tools, tmrl.tm.interfaces\n"
+        "print(sorted(m for m in ('mss', 'vgamepad', 'cv2', 'Xlib', 'libevdev') if m in sys.modules))\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "[]"
+
+
+def test_generic_pipeline_does_not_import_tmrl_tm():
+    import subprocess
+    import sys
+
+    code = (
+        "import importlib, sys\n"
+        "for m in ('tmrl', 'tmrl.realtime', 'tmrl.memory', 'tmrl.networking', 'tmrl.driving.reward',\n"
+        "          'tmrl.driving.lidar', 'tmrl.config.loader'):\n"
+        "    importlib.import_module(m)\n"
+        "print('tmrl.tm' in sys.modules)\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "False"
