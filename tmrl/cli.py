@@ -222,8 +222,9 @@ def _install() -> int:
         f"  reward        {paths.reward}",
         f"  credentials   {paths.credentials}  (TLS: {credentials_note})",
         f"  logs          {paths.logs}",
-        "Edit config.json to configure runs (reference: docs/config.md); copy the same PASSWORD to",
-        "every machine of a run. Set TMRL_DATA to use another folder.",
+        "Edit config.json to configure runs (`python -m tmrl --print-config` shows the result; docs/config.md",
+        "of the tmrl repository lists every key). Use the same PASSWORD on every machine of a run.",
+        "Set TMRL_DATA to use another data folder.",
     ]
     print("\n".join(lines))
     if error is not None:
