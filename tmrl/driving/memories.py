@@ -1,0 +1,116 @@
+"""Array-shaped replay memories for driving observations (TrackMania and the simulator).
+
+The sample compressors (:mod:`tmrl.driving.compressors`) send one frame per sample: the newest
+lidar or image, the scalars, and no action buffer. These memories store that one frame per slot
+and rebuild, by index arithmetic over the ``prev`` pointers of
+:class:`tmrl.memory.GenericTorchMemory`, both the frame history and the action buffer of every
+observation, exactly as the environment built them:
+
+- the history of sample ``j`` is the frames of the ``hist_len`` samples of its episode ending at
+  ``j``, oldest first, with the episode's first frame repeated before the episode starts (what
+  the interfaces do at reset);
+- the action buffer is rebuilt by :class:`tmrl.memory.RealTimeTorchMemory`.
+
+A transition never mixes two episodes or two workers. Rebuilt observations have the preprocessed
+layout the policy sees: lidar histories flattened to ``(hist_len * 19,)`` float32, image
+histories ``(hist_len, h, w)`` float32 scaled by 1/256 (stored as uint8, one byte per pixel).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+
+from tmrl.errors import UserError
+from tmrl.memory import RealTimeTorchMemory
+
+__all__ = ["HistoryMemory", "LidarMemory", "LidarProgressMemory", "ImageMemory"]
+
+
+class HistoryMemory(RealTimeTorchMemory):
+    """A real-time memory whose observations hold a history of one stored element.
+
+    Args:
+        hist_len: frames in each observation's history (``IMG_HIST_LEN``).
+        act_buf_len: actions in each observation's buffer (rtgym's ``act_buf_len``).
+        frame_index: position of the frame in the stored (compressed) observation.
+        flatten: return histories flattened to one dimension (the lidar preprocessors' layout).
+        scale: multiply rebuilt histories by this, as float32 (1/256 for uint8 images); None
+            keeps the stored dtype.
+        **kwargs: :class:`tmrl.memory.RealTimeTorchMemory`'s other arguments (``memory_size``,
+            ``batch_size``, ``device``, ``sample_preprocessor``, ``dataset_path``, ``crc_debug``...).
+
+    Raises:
+        UserError: ``hist_len`` or ``act_buf_len`` below 1.
+    """
+
+    frame_index: int = 1
+    flatten: bool = False
+    scale: float | None = None
+
+    def __init__(self, hist_len: int = 4, act_buf_len: int = 2, frame_index: int | None = None,
+                 flatten: bool | None = None, scale: float | None = None, **kwargs: Any) -> None:
+        if int(hist_len) < 1:
+            raise UserError(f"the history length must be at least 1, got {hist_len}: fix ENV.IMG_HIST_LEN")
+        super().__init__(act_buf_len=act_buf_len, **kwargs)
+        self.hist_len = int(hist_len)
+        if frame_index is not None:
+            self.frame_index = int(frame_index)
+        if flatten is not None:
+            self.flatten = bool(flatten)
+        if scale is not None:
+            self.scale = float(scale)
+        # Sampled transitions need this many prev links intact (histories and action buffers).
+        self.history_depth = max(self.hist_len, self.act_buf_len)
+
+    def build_obs(self, slots: np.ndarray) -> tuple:
+        """Stored elements with the frame replaced by its history, then the action buffer."""
+        elements = list(super().build_obs(slots))
+        n_stored = len(elements) - self.act_buf_len
+        if not 0 <= self.frame_index < n_stored:
+            raise UserError(
+                f"the stored observation has {n_stored} elements, no frame at position {self.frame_index}: "
+                "the sample compressor and the memory do not match"
+            )
+        frames = self.obs_leaf(self.frame_index)
+        hist = frames[self.history_slots(slots, self.hist_len)]  # (B, hist_len, *frame_shape)
+        if self.scale is not None:
+            hist = hist.astype(np.float32) * np.float32(self.scale)
+        if self.flatten:
+            hist = hist.reshape(len(slots), -1)
+        elements[self.frame_index] = hist
+        return tuple(elements)
+
+
+class LidarMemory(HistoryMemory):
+    """For ``(speed, newest lidar (19,))`` samples (``compress_lidar_sample``); rebuilds
+    ``(speed, lidars (hist_len * 19,), *act_buf)``, the ``TM20LIDAR``/``SIMLIDAR`` layout."""
+
+    frame_index = 1
+    flatten = True
+
+
+class LidarProgressMemory(HistoryMemory):
+    """For ``(speed, progress, newest lidar)`` samples; rebuilds
+    ``(speed, progress, lidars (hist_len * 19,), *act_buf)``."""
+
+    frame_index = 2
+    flatten = True
+
+
+class ImageMemory(HistoryMemory):
+    """For ``(speed, gear, rpm, newest uint8 image)`` samples (``compress_full_sample``); rebuilds
+    ``(speed, gear, rpm, images (hist_len, h, w) float32 / 256, *act_buf)``, the full
+    preprocessor's layout. Stores one uint8 frame per sample."""
+
+    frame_index = 3
+    scale = 1.0 / 256.0
+
+
+#: ``RTGYM_INTERFACE`` family -> memory class.
+MEMORY_FOR: dict[str, Callable[..., HistoryMemory]] = {
+    "LIDAR": LidarMemory,
+    "LIDARPROGRESS": LidarProgressMemory,
+    "FULL": ImageMemory,
+}
