@@ -104,10 +104,6 @@ def test_each_config_error_exits_2_with_one_line(tmrl_env, content, expected):
     assert str(path) in line
 
 
-def test_config_error_stops_a_role_before_it_starts(tmrl_env):
-    write_config(tmrl_env, {"BATCH_SIZE": 0})
-    line = one_error_line(tmrl(tmrl_env, "--trainer"))
-    assert "BATCH_SIZE must be a positive integer, got 0" in line
 
 
 def test_override_changes_nested_key_for_one_run_only(tmrl_env):
@@ -246,6 +242,13 @@ def test_trainer_gets_cfg_with_override_and_children_inherit_it(hooked):
     assert seen["child_alg"]["LR_ACTOR"] == 0.25  # a child process sees the override
     assert seen["folder"] is True  # commands that need the data folder create it
     assert (hooked["data"] / "config" / "config.json").is_file()
+
+
+def test_config_error_stops_a_role_before_it_starts(hooked):
+    write_config(hooked, {"BATCH_SIZE": 0})
+    out = tmrl(hooked, "--trainer", code=RUN_WITH_HOOKS)
+    assert "BATCH_SIZE must be a positive integer, got 0" in one_error_line(out)
+    assert "HOOK" not in out.stdout
 
 
 @pytest.mark.parametrize("flag, mode, code", [("--worker", "train", 0), ("--test", "test", 3)])
