@@ -1,0 +1,97 @@
+"""Tests of tmrl.driving.models: the CNN actor-critic on full-observation batches (shapes from
+the space, sizes from arguments, a SAC update, weights round trip) and the lidar MLP wiring."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+
+from tmrl.driving.models import CNNActorCritic, ImageEncoder, REDQCNNActorCritic, lidar_actor_critic
+from tmrl.errors import UserError
+
+ACT = spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
+
+
+def full_space(hist: int = 4, h: int = 64, w: int = 64, act_buf_len: int = 2) -> spaces.Tuple:
+    return spaces.Tuple([
+        spaces.Box(0, 1, (1,)), spaces.Box(0, 1, (1,)), spaces.Box(0, 1, (1,)),
+        spaces.Box(0, 1, (hist, h, w)),
+        *[ACT] * act_buf_len,
+    ])
+
+
+def batch_obs(b: int, hist: int = 4, h: int = 64, w: int = 64) -> tuple:
+    g = torch.Generator().manual_seed(0)
+    return (torch.rand(b, 1, generator=g), torch.rand(b, 1, generator=g), torch.rand(b, 1, generator=g),
+            torch.rand(b, hist, h, w, generator=g), torch.rand(b, 3, generator=g), torch.rand(b, 3, generator=g))
+
+
+def test_shapes_and_bounds():
+    model = CNNActorCritic(full_space(), ACT)
+    obs = batch_obs(5)
+    a, logp = model.actor(obs)
+    assert a.shape == (5, 3) and logp.shape == (5,)
+    assert torch.all(a.abs() <= 1.0)
+    assert model.q1(obs, a).shape == (5,) and len(model.qs) == 2
+    assert model.actor.encoder.out_dim == 128  # 64 -> 29 -> 13 -> 5 -> 1 pixels, as the original
+    one = tuple(o[:1] for o in obs)
+    assert model.act(one, test=True).shape == (3,)
+    assert len(REDQCNNActorCritic(full_space(), ACT).qs) == 10
+
+
+def test_sizes_come_from_the_space_and_arguments():
+    model = CNNActorCritic(full_space(hist=2, h=32, w=48, act_buf_len=1), ACT,
+                           channels=(8, 16), kernels=(4, 3), strides=(2, 2), hidden_sizes=(32,))
+    assert model.actor.encoder.convs[0].in_channels == 2
+    assert model.actor.encoder.out_dim == 16 * 7 * 11
+    g = torch.Generator().manual_seed(1)
+    obs = (torch.rand(3, 1), torch.rand(3, 1), torch.rand(3, 1), torch.rand(3, 2, 32, 48, generator=g), torch.rand(3, 3))
+    assert model.actor(obs)[0].shape == (3, 3)
+    # uint8 frames are scaled like the preprocessor does
+    raw = obs[:3] + ((obs[3] * 256).to(torch.uint8),) + obs[4:]
+    scaled = obs[:3] + ((obs[3] * 256).to(torch.uint8).float() / 256,) + obs[4:]
+    assert torch.allclose(model.actor(raw, test=True)[0], model.actor(scaled, test=True)[0])
+    with pytest.raises(UserError, match="too small"):
+        ImageEncoder((4, 16, 16))
+    with pytest.raises(UserError, match="IMG_GRAYSCALE"):
+        CNNActorCritic(spaces.Tuple([spaces.Box(0, 1, (1,))] * 3 + [spaces.Box(0, 1, (4, 64, 64, 3))]), ACT)
+
+
+def test_one_sac_update_on_memory_batches_and_weights_round_trip(tmp_path):
+    from tmrl.algorithms.sac import SACAgent
+    from tmrl.driving.memories import ImageMemory
+
+    mem = ImageMemory(hist_len=2, act_buf_len=1, memory_size=64, batch_size=8)
+    samples = []
+    for step in range(20):
+        img = np.full((32, 32), step * 5, dtype=np.uint8)
+        act = np.zeros(3, np.float32) if step == 0 else np.full(3, 0.1, np.float32)
+        samples.append((act, (np.float32([0.1]), np.float32([0.2]), np.float32([0.3]), img), 1.0, False, step == 19, {}))
+    mem.append_buffer(SimpleNamespace(memory=samples, sources=None))
+    space = full_space(hist=2, h=32, w=32, act_buf_len=1)
+    small = dict(channels=(8, 8), kernels=(4, 4), strides=(2, 2), hidden_sizes=(32,))
+    agent = SACAgent(space, ACT, device="cpu",
+                     model_cls=lambda o, a, n=2: CNNActorCritic(o, a, n=n, **small))
+    before = [p.detach().clone() for p in agent.model.parameters()]
+    stats = agent.train(mem.sample())
+    assert np.isfinite(float(stats["loss_critic"])) and np.isfinite(float(stats["loss_actor"]))
+    assert any(not torch.equal(p0, p1) for p0, p1 in zip(before, agent.model.parameters()))
+    actor = agent.get_actor()
+    path = tmp_path / "w.safetensors"
+    actor.save(path)
+    other = CNNActorCritic(space, ACT, **small).actor
+    other.load(path, "cpu")
+    obs = tuple(torch.as_tensor(x) for x in mem.sample()[0])
+    assert torch.allclose(other(obs, test=True)[0], actor(obs, test=True)[0])
+
+
+def test_lidar_wiring():
+    space = spaces.Tuple([spaces.Box(0, 1000, (1,)), spaces.Box(0, np.inf, (76,)), ACT, ACT])
+    model = lidar_actor_critic(space, ACT, hidden_sizes=(64, 64))
+    obs = (torch.rand(4, 1), torch.rand(4, 76), torch.rand(4, 3), torch.rand(4, 3))
+    assert model.actor(obs)[0].shape == (4, 3)
+    assert lidar_actor_critic(space, ACT, n=10).n == 10

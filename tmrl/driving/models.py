@@ -1,0 +1,238 @@
+"""Models for driving observations: the CNN actor-critic for image histories, and the MLP wiring
+for lidar observations.
+
+Full observations (after :func:`tmrl.driving.preprocessors.preprocess_full_obs`) are
+``(speed, gear, rpm, images (hist, h, w), *act_buf)``. A convolution stack reads the image
+history (the history is the channel dimension), its flattened features are concatenated with the
+other elements (scalars and the action buffer, and the action for a critic), and an MLP finishes.
+The layer sizes default to tmrl 0.7's ``VanillaCNN`` (channels 64, 64, 128, 128, kernels 8, 4, 4,
+4, strides 2, MLP 256-256) but are arguments, and the input size comes from the observation space
+(``IMG_HIST_LEN``, ``IMG_HEIGHT``, ``IMG_WIDTH``), where the original hard-codes them.
+
+Lidar observations are flat vectors once preprocessed; their models are
+:class:`tmrl.models.MLPActorCritic` / :class:`tmrl.models.REDQMLPActorCritic` as they are
+(:func:`lidar_actor_critic`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from tmrl.actor import TorchActorModule
+from tmrl.errors import UserError
+from tmrl.models import LOG_STD_MAX, LOG_STD_MIN, MLPActorCritic, REDQMLPActorCritic, mlp, space_dim
+
+__all__ = [
+    "DEFAULT_CNN",
+    "ImageEncoder",
+    "SquashedGaussianCNNActor",
+    "CNNQFunction",
+    "CNNActorCritic",
+    "REDQCNNActorCritic",
+    "lidar_actor_critic",
+]
+
+#: tmrl 0.7's VanillaCNN sizes.
+DEFAULT_CNN: dict[str, tuple[int, ...]] = {
+    "channels": (64, 64, 128, 128),
+    "kernels": (8, 4, 4, 4),
+    "strides": (2, 2, 2, 2),
+    "hidden_sizes": (256, 256),
+}
+
+_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+_LOG_2 = math.log(2.0)
+
+
+def _split_space(observation_space: Any, image_index: int) -> tuple[tuple[int, ...], int]:
+    """Image shape ``(hist, h, w)`` and the number of other scalars in the observation."""
+    elements = list(getattr(observation_space, "spaces", ()))
+    if not elements or not 0 <= image_index < len(elements):
+        raise UserError(
+            f"the CNN model needs a Tuple observation space with images at position {image_index}, "
+            f"got {observation_space}: use the full (image) interface or an MLP model"
+        )
+    shape = tuple(int(s) for s in elements[image_index].shape)
+    if len(shape) != 3:
+        raise UserError(
+            f"the CNN model reads grayscale image histories of shape (hist, height, width), got {shape}: "
+            "set ENV.IMG_GRAYSCALE to true"
+        )
+    others = sum(space_dim(s) for i, s in enumerate(elements) if i != image_index)
+    return shape, others
+
+
+def _split_obs(obs: Sequence[torch.Tensor], image_index: int) -> tuple[torch.Tensor, torch.Tensor]:
+    imgs = obs[image_index]
+    if imgs.dtype == torch.uint8:  # raw frames: apply the preprocessor's scaling
+        imgs = imgs.to(torch.float32) / 256.0
+    b = imgs.shape[0]
+    scalars = [o.reshape(b, -1).to(torch.float32) for i, o in enumerate(obs) if i != image_index]
+    return imgs.to(torch.float32), torch.cat(scalars, dim=-1) if scalars else imgs.new_zeros((b, 0))
+
+
+class ImageEncoder(nn.Module):
+    """Convolutions over an image history, flattened.
+
+    Args:
+        image_shape: ``(hist, height, width)``.
+        channels, kernels, strides: one entry per convolution layer.
+
+    Raises:
+        UserError: lists of different lengths, or images too small for the layers.
+    """
+
+    def __init__(self, image_shape: tuple[int, int, int], channels: Sequence[int] = DEFAULT_CNN["channels"],
+                 kernels: Sequence[int] = DEFAULT_CNN["kernels"], strides: Sequence[int] = DEFAULT_CNN["strides"]) -> None:
+        super().__init__()
+        if not len(channels) == len(kernels) == len(strides) >= 1:
+            raise UserError("CNN channels, kernels and strides must be lists of the same length (>= 1)")
+        hist, h, w = image_shape
+        layers: list[nn.Module] = []
+        in_ch = hist
+        for out_ch, k, s in zip(channels, kernels, strides):
+            h, w = (h - k) // s + 1, (w - k) // s + 1
+            if h < 1 or w < 1:
+                raise UserError(
+                    f"images of {image_shape[1]}x{image_shape[2]} are too small for the CNN layers "
+                    f"(kernels {list(kernels)}, strides {list(strides)}): use larger images or fewer layers"
+                )
+            layers += [nn.Conv2d(in_ch, int(out_ch), int(k), stride=int(s)), nn.ReLU()]
+            in_ch = int(out_ch)
+        self.convs = nn.Sequential(*layers)
+        self.out_dim = in_ch * h * w
+
+    def forward(self, imgs: torch.Tensor) -> torch.Tensor:
+        """``(B, hist, h, w)`` float images -> ``(B, out_dim)`` features."""
+        return self.convs(imgs).flatten(1)
+
+
+class SquashedGaussianCNNActor(TorchActorModule):
+    """SAC's squashed Gaussian policy on image-history observations.
+
+    Args:
+        observation_space: Tuple space with the image history at ``image_index``.
+        action_space: bounded Box.
+        channels, kernels, strides: convolution layers (see :data:`DEFAULT_CNN`).
+        hidden_sizes: MLP after the convolutions.
+        image_index: position of the images in the observation (3 for the full interfaces).
+        device: where :meth:`act_` collates observations.
+    """
+
+    def __init__(self, observation_space: Any, action_space: Any, channels: Sequence[int] = DEFAULT_CNN["channels"],
+                 kernels: Sequence[int] = DEFAULT_CNN["kernels"], strides: Sequence[int] = DEFAULT_CNN["strides"],
+                 hidden_sizes: Sequence[int] = DEFAULT_CNN["hidden_sizes"], image_index: int = 3,
+                 device: Any = "cpu") -> None:
+        super().__init__(observation_space, action_space, device=device)
+        shape, others = _split_space(observation_space, image_index)
+        self.image_index = image_index
+        self.encoder = ImageEncoder(shape, channels, kernels, strides)
+        dim_act = int(np.prod(action_space.shape))
+        self.net = mlp([self.encoder.out_dim + others, *hidden_sizes], nn.ReLU, nn.ReLU)
+        self.mu_layer = nn.Linear(hidden_sizes[-1], dim_act)
+        self.log_std_layer = nn.Linear(hidden_sizes[-1], dim_act)
+        low = np.asarray(action_space.low, dtype=np.float32).reshape(-1)
+        high = np.asarray(action_space.high, dtype=np.float32).reshape(-1)
+        self.register_buffer("act_scale", torch.from_numpy((high - low) / 2.0), persistent=False)
+        self.register_buffer("act_offset", torch.from_numpy((high + low) / 2.0), persistent=False)
+
+    def forward(self, obs: Any, test: bool = False, with_logprob: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``(action (B, act_dim), logp (B,) or None)``; ``test`` takes the mean action."""
+        imgs, scalars = _split_obs(obs, self.image_index)
+        h = self.net(torch.cat((self.encoder(imgs), scalars), dim=-1))
+        mu = self.mu_layer(h)
+        log_std = torch.clamp(self.log_std_layer(h), LOG_STD_MIN, LOG_STD_MAX)
+        eps = None if test else torch.randn_like(mu)
+        u = mu if eps is None else mu + log_std.exp() * eps
+        logp = None
+        if with_logprob:
+            sq = 0.0 if eps is None else 0.5 * eps.square()
+            logp = (-(sq + log_std) - _HALF_LOG_2PI).sum(-1)
+            # tanh correction in the numerically stable form
+            logp = logp - (2.0 * (_LOG_2 - u - F.softplus(-2.0 * u))).sum(-1)
+        return torch.tanh(u) * self.act_scale + self.act_offset, logp
+
+    def act(self, obs: Any, test: bool = False) -> np.ndarray:
+        """Action for a batched observation as NumPy (``(act_dim,)`` for a batch of one)."""
+        with torch.no_grad():
+            a, _ = self.forward(obs, test, False)
+        return (a[0] if a.shape[0] == 1 else a).cpu().numpy()
+
+
+class CNNQFunction(nn.Module):
+    """``Q(obs, act)`` on image-history observations: its own convolutions, then an MLP over the
+    features, the other observation elements and the action. Arguments as for
+    :class:`SquashedGaussianCNNActor`."""
+
+    def __init__(self, observation_space: Any, action_space: Any, channels: Sequence[int] = DEFAULT_CNN["channels"],
+                 kernels: Sequence[int] = DEFAULT_CNN["kernels"], strides: Sequence[int] = DEFAULT_CNN["strides"],
+                 hidden_sizes: Sequence[int] = DEFAULT_CNN["hidden_sizes"], image_index: int = 3) -> None:
+        super().__init__()
+        shape, others = _split_space(observation_space, image_index)
+        self.image_index = image_index
+        self.encoder = ImageEncoder(shape, channels, kernels, strides)
+        dim_act = int(np.prod(action_space.shape))
+        self.net = mlp([self.encoder.out_dim + others + dim_act, *hidden_sizes, 1], nn.ReLU)
+
+    def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
+        """Q values of shape ``(B,)``."""
+        imgs, scalars = _split_obs(obs, self.image_index)
+        x = torch.cat((self.encoder(imgs), scalars, act.reshape(act.shape[0], -1).to(torch.float32)), dim=-1)
+        return self.net(x).squeeze(-1)
+
+
+class CNNActorCritic(nn.Module):
+    """SAC's actor-critic for image histories: ``.actor`` and ``n`` critics in ``.qs`` (also
+    ``.q1``, ``.q2``), each with its own convolutions, as in tmrl 0.7.
+
+    Args:
+        observation_space, action_space: the (preprocessed) spaces.
+        channels, kernels, strides, hidden_sizes: layer sizes (config ``MODEL`` values).
+        n: number of critics.
+        image_index: position of the images in the observation.
+    """
+
+    def __init__(self, observation_space: Any, action_space: Any, channels: Sequence[int] = DEFAULT_CNN["channels"],
+                 kernels: Sequence[int] = DEFAULT_CNN["kernels"], strides: Sequence[int] = DEFAULT_CNN["strides"],
+                 hidden_sizes: Sequence[int] = DEFAULT_CNN["hidden_sizes"], n: int = 2, image_index: int = 3) -> None:
+        super().__init__()
+        if int(n) < 1:
+            raise UserError(f"an actor-critic needs at least one critic, got n={n}")
+        sizes = dict(channels=channels, kernels=kernels, strides=strides, hidden_sizes=hidden_sizes, image_index=image_index)
+        self.actor = SquashedGaussianCNNActor(observation_space, action_space, **sizes)
+        self.qs = nn.ModuleList(CNNQFunction(observation_space, action_space, **sizes) for _ in range(int(n)))
+
+    @property
+    def q1(self) -> CNNQFunction:
+        """The first critic."""
+        return self.qs[0]  # type: ignore[return-value]
+
+    @property
+    def q2(self) -> CNNQFunction:
+        """The second critic."""
+        return self.qs[1]  # type: ignore[return-value]
+
+    def act(self, obs: Any, test: bool = False) -> np.ndarray:
+        """The actor's action for a batched observation."""
+        return self.actor.act(obs, test)
+
+
+class REDQCNNActorCritic(CNNActorCritic):
+    """:class:`CNNActorCritic` with 10 critics by default, for REDQ-SAC."""
+
+    def __init__(self, observation_space: Any, action_space: Any, n: int = 10, **kwargs: Any) -> None:
+        super().__init__(observation_space, action_space, n=n, **kwargs)
+
+
+def lidar_actor_critic(observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
+                       n: int = 2, activation: Callable[[], nn.Module] = nn.ReLU) -> MLPActorCritic:
+    """The lidar models: an MLP actor-critic over the flattened observation (speed, optional
+    progress, lidar history, action buffer); REDQ's variant when ``n > 2``."""
+    cls = REDQMLPActorCritic if n > 2 else MLPActorCritic
+    return cls(observation_space, action_space, hidden_sizes=hidden_sizes, activation=activation, n=n)
