@@ -141,17 +141,27 @@ else:  # DRONE
     CONFIG_DICT = dict(_attr("tmrl.realtime", "DEFAULT_CONFIG_DICT"))
     CONFIG_DICT.update({k: v for k, v in _rtgym.items() if k not in ("interface_args",)})
     CONFIG_DICT["interface_args"] = tuple(_rtgym["interface_args"])
+    # Files written for the original carry TrackMania's "save_replays", which the drone does not take.
+    CONFIG_DICT["interface_kwargs"] = {k: v for k, v in _rtgym["interface_kwargs"].items() if k != "save_replays"}
     CONFIG_DICT["interface"] = INT
     if CONFIG_DICT.get("ep_max_length") is None:
         CONFIG_DICT["ep_max_length"] = float("inf")  # the real-time env's "no limit"
     ENV_CLS = partial(_GenericGymEnv, id=cfg.RTGYM_VERSION, gym_kwargs={"config": CONFIG_DICT})
-    SAMPLE_COMPRESSOR = DropActionBuffer(cfg.ACT_BUF_LEN) if _rtgym["act_in_obs"] else None
-    MEMORY = partial(
-        _attr("tmrl.memory", "RealTimeTorchMemory"),
-        memory_size=cfg.TMRL_CONFIG["MEMORY_SIZE"],
-        batch_size=cfg.TMRL_CONFIG["BATCH_SIZE"],
-        act_buf_len=cfg.ACT_BUF_LEN if _rtgym["act_in_obs"] else 0,
-    )
+    if _rtgym["act_in_obs"]:
+        SAMPLE_COMPRESSOR = DropActionBuffer(cfg.ACT_BUF_LEN)
+        MEMORY = partial(
+            _attr("tmrl.memory", "RealTimeTorchMemory"),
+            memory_size=cfg.TMRL_CONFIG["MEMORY_SIZE"],
+            batch_size=cfg.TMRL_CONFIG["BATCH_SIZE"],
+            act_buf_len=cfg.ACT_BUF_LEN,
+        )
+    else:  # no action buffer in the observations: nothing to drop or rebuild
+        SAMPLE_COMPRESSOR = None
+        MEMORY = partial(
+            _attr("tmrl.memory", "GenericTorchMemory"),
+            memory_size=cfg.TMRL_CONFIG["MEMORY_SIZE"],
+            batch_size=cfg.TMRL_CONFIG["BATCH_SIZE"],
+        )
 
 OBS_PREPROCESSOR: Any = None
 SAMPLE_PREPROCESSOR: Any = None

@@ -495,7 +495,7 @@ _RTGYM = Section(
         "wait_on_done": Bool(True, "pause the environment when an episode ends"),
         "ep_max_length": Int(1000, "episodes are truncated after this many steps (null: never)", min=1,
                              nullable=True),
-        "interface_kwargs": AnyDict({"save_replays": False}, "keyword arguments of the interface"),
+        "interface_kwargs": AnyDict({}, "keyword arguments of the interface (TrackMania: save_replays)"),
         "interface_args": AnyList([], "positional arguments of the interface"),
         "act_in_obs": Bool(True, "append the action buffer to observations"),
         "reset_act_buf": Bool(True, "fill the action buffer with the default action at reset"),
