@@ -1,0 +1,260 @@
+"""Training metrics: one compact console line per round, the same row in a CSV file, and
+optionally TensorBoard and wandb.
+
+Nothing is written until the first row arrives: building a :class:`MetricsLogger` creates no
+folder. TensorBoard is used when it is installed (``tensorboard=None``, the default) and wandb
+only when asked (``wandb=True``).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import math
+import numbers
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from tmrl.errors import UserError
+
+__all__ = ["MetricsLogger", "STANDARD_COLUMNS", "format_row"]
+
+logger = logging.getLogger(__name__)
+
+#: Columns that always come first in the CSV file, in this order (stable names across versions).
+STANDARD_COLUMNS = (
+    "epoch",
+    "round",
+    "total_updates",
+    "total_samples",
+    "loss_actor",
+    "loss_critic",
+    "entropy_coef",
+    "return_train",
+    "return_test",
+    "episode_length_train",
+    "episode_length_test",
+    "memory_len",
+    "updates_per_second",
+    "samples_per_second",
+    "round_time",
+    "idle_time",
+)
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return str(value)
+    if isinstance(value, int):
+        return str(value)
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return str(value)
+    if math.isnan(f):
+        return "-"
+    return f"{f:.4g}"
+
+
+def format_row(row: Mapping[str, Any]) -> str:
+    """The compact console line for one round, e.g.
+    ``epoch 2 round 7/50 | loss_actor -3.21 loss_critic 0.123 entropy_coef 0.0412 | return train
+    -140.5 test -130.2 | memory 12000 | 105.3 upd/s 51.2 smp/s``."""
+    rounds = row.get("rounds")
+    where = f"epoch {row.get('epoch', '-')} round {row.get('round', '-')}"
+    if rounds is not None:
+        where += f"/{rounds}"
+    losses = " ".join(
+        f"{k} {_fmt(row[k])}" for k in ("loss_actor", "loss_critic", "entropy_coef") if k in row
+    )
+    parts = [where]
+    if losses:
+        parts.append(losses)
+    parts.append(f"return train {_fmt(row.get('return_train'))} test {_fmt(row.get('return_test'))}")
+    parts.append(f"memory {_fmt(row.get('memory_len'))}")
+    parts.append(
+        f"{_fmt(row.get('updates_per_second'))} upd/s {_fmt(row.get('samples_per_second'))} smp/s"
+    )
+    return " | ".join(parts)
+
+
+def _scalar(value: Any) -> float | None:
+    """A float for numeric values (tensors and NumPy scalars included), else ``None``."""
+    if isinstance(value, bool):
+        return float(value)
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None
+
+
+class MetricsLogger:
+    """Receives one row of metrics per training round and reports it.
+
+    Args:
+        run_name: name of the run (CSV folder, TensorBoard folder, wandb run name).
+        folder: the data folder; the CSV goes to ``<folder>/logs/<run_name>/metrics.csv`` and
+            TensorBoard events to ``<folder>/logs/<run_name>/tensorboard``. ``None``: console only.
+        tensorboard: ``None`` uses TensorBoard when it is installed, ``True`` requires it,
+            ``False`` never uses it. Needs ``folder``.
+        wandb: log to wandb (never happens unless ``True``).
+        wandb_project: wandb project.
+        wandb_entity: wandb entity (user or team).
+        wandb_run_id: wandb run id, to resume the same run after a restart.
+        wandb_config: hyperparameters recorded with the wandb run.
+        console: print each row through ``logging`` (level INFO) as one compact line.
+
+    Raises:
+        UserError: ``tensorboard=True`` or ``wandb=True`` and the package is not installed.
+    """
+
+    def __init__(
+        self,
+        run_name: str,
+        folder: str | os.PathLike[str] | None = None,
+        tensorboard: bool | None = None,
+        wandb: bool = False,
+        wandb_project: str | None = None,
+        wandb_entity: str | None = None,
+        wandb_run_id: str | None = None,
+        wandb_config: Mapping[str, Any] | None = None,
+        console: bool = True,
+    ) -> None:
+        self.run_name = str(run_name)
+        self.folder = Path(folder) if folder is not None else None
+        self.console = console
+        self._columns: list[str] | None = None
+        self._rows = 0
+        self._tb_writer: Any = None
+        self._tb_cls: Any = None
+        if tensorboard is not False and self.folder is not None:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                self._tb_cls = SummaryWriter
+            except ImportError:
+                if tensorboard:
+                    raise UserError(
+                        "TensorBoard logging was asked for but tensorboard is not installed: "
+                        "pip install tensorboard, or set tensorboard=False"
+                    ) from None
+                logger.debug("tensorboard is not installed: metrics go to the console and CSV only")
+        self._wandb: Any = None
+        self._wandb_run: Any = None
+        self._wandb_kwargs = {
+            "project": wandb_project,
+            "entity": wandb_entity,
+            "id": wandb_run_id,
+            "name": self.run_name,
+            "config": dict(wandb_config) if wandb_config else None,
+            "resume": "allow",
+        }
+        if wandb:
+            try:
+                import wandb as wandb_module
+            except ImportError:
+                raise UserError(
+                    'wandb logging was asked for but wandb is not installed: pip install "tmrl[wandb]"'
+                ) from None
+            self._wandb = wandb_module
+
+    @property
+    def run_folder(self) -> Path | None:
+        """``<folder>/logs/<run_name>`` (``None`` without a folder)."""
+        return None if self.folder is None else self.folder / "logs" / self.run_name
+
+    @property
+    def csv_path(self) -> Path | None:
+        """Where the CSV rows go (``None`` without a folder)."""
+        run = self.run_folder
+        return None if run is None else run / "metrics.csv"
+
+    def log_round(self, row: Mapping[str, Any]) -> None:
+        """Report one round: console line, CSV row, TensorBoard scalars, wandb.
+
+        Args:
+            row: metric name to value. Standard names: see :data:`STANDARD_COLUMNS`; ``rounds``
+                (rounds per epoch) is shown on the console; ``total_updates`` is the step for
+                TensorBoard and wandb.
+        """
+        self._rows += 1
+        if self.console:
+            logger.info("%s", format_row(row))
+        if self.csv_path is not None:
+            self._write_csv(row)
+        step = int(row.get("total_updates", self._rows))
+        numeric = {k: v for k, v in ((k, _scalar(v)) for k, v in row.items()) if v is not None}
+        if self._tb_cls is not None:
+            if self._tb_writer is None:
+                self._tb_writer = self._tb_cls(log_dir=str(self.run_folder / "tensorboard"))
+            for key, value in numeric.items():
+                self._tb_writer.add_scalar(key, value, global_step=step)
+            self._tb_writer.flush()
+        if self._wandb is not None:
+            if self._wandb_run is None:
+                kwargs = {k: v for k, v in self._wandb_kwargs.items() if v is not None}
+                self._wandb_run = self._wandb.init(**kwargs)
+            self._wandb.log(numeric, step=step)
+
+    def _write_csv(self, row: Mapping[str, Any]) -> None:
+        path = self.csv_path
+        assert path is not None
+        header = ""
+        if self._columns is None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            existing = self._existing_columns(path)
+            if existing is None:
+                standard = [c for c in STANDARD_COLUMNS if c in row]
+                self._columns = standard + sorted(k for k in row if k not in standard)
+                out = io.StringIO()
+                csv.writer(out, lineterminator="\n").writerow(self._columns)
+                header = out.getvalue()
+            else:
+                self._columns = existing
+        out = io.StringIO()
+        # Keys unknown to the header (new metrics mid-run) stay out of the CSV; TensorBoard and
+        # wandb still get them.
+        csv.writer(out, lineterminator="\n").writerow(
+            ["" if row.get(c) is None else _fmt_csv(row.get(c)) for c in self._columns]
+        )
+        # One append of whole lines per round: rewriting the file atomically every round would cost
+        # I/O quadratic in the run length; a crash can at worst cut the last line.
+        with open(path, "a", encoding="utf-8", newline="") as f:
+            f.write(header + out.getvalue())
+            f.flush()
+
+    @staticmethod
+    def _existing_columns(path: Path) -> list[str] | None:
+        """Columns of a CSV from an earlier run of the same name (resume), or ``None``."""
+        if not path.is_file() or path.stat().st_size == 0:
+            return None
+        with open(path, "r+", encoding="utf-8", newline="") as f:
+            first = f.readline()
+            f.seek(0, os.SEEK_END)
+            if f.tell() > 0:
+                f.seek(f.tell() - 1)
+                if f.read(1) != "\n":
+                    f.write("\n")  # close a line cut by a crash, so new rows start cleanly
+        columns = next(csv.reader([first]), None)
+        return columns or None
+
+    def close(self) -> None:
+        """Flush and close TensorBoard and wandb (the CSV is never left open)."""
+        if self._tb_writer is not None:
+            self._tb_writer.close()
+            self._tb_writer = None
+        if self._wandb_run is not None:
+            self._wandb_run.finish()
+            self._wandb_run = None
+
+
+def _fmt_csv(value: Any) -> str:
+    if isinstance(value, numbers.Integral):  # bool, int and NumPy integers
+        return str(int(value))
+    s = _scalar(value)
+    return str(value) if s is None else repr(s)

@@ -1,0 +1,338 @@
+"""The training loop of the trainer: epochs of rounds of training steps, fed by the workers.
+
+:class:`TrainingOffline` owns the replay memory and the training agent. The networking
+``Trainer`` builds it, calls :meth:`TrainingOffline.run_epoch` with an *interface* (see
+docs/internals.md: ``retrieve_buffer()`` and ``broadcast_model(actor)``) and checkpoints it
+between epochs (:mod:`tmrl.checkpoint`). The loop itself holds no networking code, so it runs
+just as well with an in-process interface (tests, benchmarks, single-machine training).
+"""
+
+from __future__ import annotations
+
+import cProfile
+import io
+import logging
+import math
+import pstats
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from tmrl.errors import UserError
+from tmrl.metrics import MetricsLogger
+
+__all__ = ["TrainingOffline", "TorchTrainingOffline"]
+
+logger = logging.getLogger(__name__)
+_log = logger  # run_epoch's `logger` argument shadows the module logger inside it
+
+_WAIT_LOG_INTERVAL_S = 30.0
+
+
+def _mean_rows(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """Mean of each numeric metric over a round's training steps (NaN and None skipped).
+
+    Tensors are averaged on their device and read once per round, not once per step.
+    """
+    values: dict[str, list[Any]] = {}
+    for row in rows:
+        for key, value in row.items():
+            if value is not None:
+                values.setdefault(key, []).append(value)
+    out: dict[str, float] = {}
+    for key, vals in values.items():
+        tensors = [v for v in vals if isinstance(v, torch.Tensor)]
+        if tensors:
+            stacked = torch.stack([t.detach().float().reshape(()) for t in tensors if t.numel() == 1])
+            finite = stacked[torch.isfinite(stacked)]
+            out[key] = float(finite.mean().item()) if finite.numel() else math.nan
+            continue
+        nums = []
+        for v in vals:
+            try:
+                f = float(v)
+            except (TypeError, ValueError):
+                continue
+            if math.isfinite(f):
+                nums.append(f)
+        if nums:
+            out[key] = sum(nums) / len(nums)
+    return out
+
+
+@dataclass(eq=False)
+class TrainingOffline:
+    """Training loop of off-policy algorithms.
+
+    Args:
+        env_cls: class of a (dummy) environment, built once to read its observation and action
+            spaces; or a tuple ``(observation_space, action_space)``.
+        memory_cls: class (or partial) of the replay memory, called with ``nb_steps=steps`` and
+            ``device=device``.
+        training_agent_cls: class (or partial) of the training agent, called with
+            ``observation_space``, ``action_space`` and ``device``.
+        epochs: total number of epochs (the trainer checkpoints after each).
+        rounds: rounds per epoch (one row of metrics per round).
+        steps: training steps per round.
+        update_model_interval: training steps between two broadcasts of the actor's weights.
+        update_buffer_interval: training steps between two retrievals of the samples received.
+        max_training_steps_per_env_step: training pauses while updates per received sample
+            exceed this ratio.
+        sleep_between_buffer_retrieval_attempts: seconds between two retrievals while waiting
+            for samples.
+        profiling: profile each round with cProfile and log the top functions.
+        agent_scheduler: ``f(agent, epoch)`` called at the start of each epoch, or ``None``.
+        start_training: samples to receive before the first training step.
+        device: device of the memory's batches and of the agent (``None``: left to them).
+
+    Attributes:
+        memory: the replay memory.
+        agent: the training agent.
+        epoch: epochs completed.
+        total_updates: training steps done.
+        total_samples: samples received (plus those the memory held when built).
+        metrics_logger: the :class:`~tmrl.metrics.MetricsLogger` used by :meth:`run_epoch` when
+            it is given none; ``None`` logs one line per round through ``logging``.
+        max_wait_s: ``None`` (default) waits for samples as long as it takes; a number of
+            seconds makes a longer wait raise ``TimeoutError``.
+
+    Raises:
+        UserError: a required class is missing or an interval is not positive.
+    """
+
+    env_cls: Any = None
+    memory_cls: Any = None
+    training_agent_cls: Any = None
+    epochs: int = 10
+    rounds: int = 50
+    steps: int = 2000
+    update_model_interval: int = 100
+    update_buffer_interval: int = 100
+    max_training_steps_per_env_step: float = 1.0
+    sleep_between_buffer_retrieval_attempts: float = 1.0
+    profiling: bool = False
+    agent_scheduler: Callable[[Any, int], None] | None = None
+    start_training: int = 0
+    device: str | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("env_cls", "memory_cls", "training_agent_cls"):
+            if getattr(self, name) is None:
+                raise UserError(f"TrainingOffline needs {name}: pass it (e.g. with tmrl.util.partial)")
+        for name in ("rounds", "steps", "update_model_interval", "update_buffer_interval"):
+            if int(getattr(self, name)) < 1:
+                raise UserError(f"TrainingOffline {name} must be at least 1, got {getattr(self, name)}")
+        self.epoch = 0
+        self.total_updates = 0
+        self.metrics_logger: MetricsLogger | None = None
+        self.max_wait_s: float | None = None
+        self._stop = threading.Event()
+        self._default_logger: MetricsLogger | None = None
+        self._round_samples = 0
+        self.memory = self.memory_cls(nb_steps=self.steps, device=self.device)
+        if isinstance(self.env_cls, tuple):
+            if len(self.env_cls) != 2:
+                raise UserError("env_cls as a tuple must be (observation_space, action_space)")
+            observation_space, action_space = self.env_cls
+        else:
+            env = self.env_cls()
+            try:
+                observation_space, action_space = env.observation_space, env.action_space
+            finally:
+                close = getattr(env, "close", None)
+                if close is not None:
+                    close()
+        self.agent = self.training_agent_cls(
+            observation_space=observation_space, action_space=action_space, device=self.device
+        )
+        self.total_samples = len(self.memory)
+        logger.info("training set up: %d samples in memory", self.total_samples)
+
+    # --- control -------------------------------------------------------------------------------
+
+    def stop(self) -> None:
+        """Ask :meth:`run_epoch` to return as soon as possible (thread-safe). The epoch in
+        progress is not counted; :attr:`stopped` becomes ``True``."""
+        self._stop.set()
+
+    @property
+    def stopped(self) -> bool:
+        """Whether :meth:`stop` was called."""
+        return self._stop.is_set()
+
+    # --- samples -------------------------------------------------------------------------------
+
+    def update_buffer(self, interface: Any) -> int:
+        """Move every sample the interface received into the memory.
+
+        Returns:
+            The number of samples received.
+        """
+        buffer = interface.retrieve_buffer()
+        n = len(buffer)
+        if n:
+            self.memory.append(buffer)
+            self.total_samples += n
+            self._round_samples += n
+        return n
+
+    def _ready(self) -> bool:
+        if self.total_samples <= 0 or self.total_samples < self.start_training:
+            return False
+        if self.total_updates / self.total_samples > self.max_training_steps_per_env_step:
+            return False
+        return len(self.memory) > 0
+
+    def check_ratio(self, interface: Any) -> bool:
+        """Wait, pulling samples, until training may go on: at least ``start_training`` samples
+        received, a non-empty memory, and no more than ``max_training_steps_per_env_step``
+        updates per received sample.
+
+        Returns:
+            ``True`` when training may go on, ``False`` when :meth:`stop` was called.
+
+        Raises:
+            TimeoutError: :attr:`max_wait_s` is set and was exceeded.
+        """
+        if self._ready():
+            return not self._stop.is_set()
+        logger.info("waiting for samples (%d received, %d updates done)", self.total_samples, self.total_updates)
+        start = last_log = time.monotonic()
+        while True:
+            self.update_buffer(interface)
+            if self._ready():
+                break
+            now = time.monotonic()
+            if self.max_wait_s is not None and now - start > self.max_wait_s:
+                raise TimeoutError(
+                    f"no usable samples after waiting {now - start:.0f} s ({self.total_samples} received, "
+                    f"start_training={self.start_training}): are the workers running?"
+                )
+            if now - last_log >= _WAIT_LOG_INTERVAL_S:
+                logger.info("still waiting for samples: %d received so far", self.total_samples)
+                last_log = now
+            # Event.wait rather than time.sleep: stop() ends the wait at once.
+            if self._stop.wait(max(0.0, float(self.sleep_between_buffer_retrieval_attempts))):
+                return False
+        logger.info("resuming training (%d samples received)", self.total_samples)
+        return not self._stop.is_set()
+
+    # --- the loop ------------------------------------------------------------------------------
+
+    def _logger(self, given: MetricsLogger | None) -> MetricsLogger:
+        if given is not None:
+            return given
+        if self.metrics_logger is not None:
+            return self.metrics_logger
+        if self._default_logger is None:
+            self._default_logger = MetricsLogger(run_name="", folder=None, tensorboard=False)
+        return self._default_logger
+
+    def run_epoch(self, interface: Any, logger: MetricsLogger | None = None) -> list[dict[str, Any]]:
+        """Run one epoch: ``rounds`` rounds of ``steps`` training steps.
+
+        Every ``update_buffer_interval`` steps the samples received are moved into the memory,
+        every ``update_model_interval`` steps the actor is broadcast, and after each step the loop
+        waits while training is ahead of the samples (see :meth:`check_ratio`).
+
+        Args:
+            interface: has ``retrieve_buffer() -> Buffer`` and ``broadcast_model(actor)``.
+            logger: where each round's row goes; default :attr:`metrics_logger`, else a console
+                line through ``logging``.
+
+        Returns:
+            One dict per round completed: ``epoch``, ``round``, ``rounds``, ``total_updates``,
+            ``total_samples``, ``memory_len``, ``return_train``, ``return_test``,
+            ``episode_length_train``, ``episode_length_test``, ``round_time`` (s), ``idle_time``
+            (s spent waiting for samples), ``sampling_time`` and ``training_time`` (s in the
+            round), ``updates_per_second`` and ``samples_per_second`` (over the round's wall
+            time), then the means of the agent's metrics (``loss_actor``, ``loss_critic``,
+            ``entropy_coef``...). After :meth:`stop`, the rounds done so far; the epoch is then
+            not counted.
+        """
+        metrics = self._logger(logger)
+        stats: list[dict[str, Any]] = []
+        if self.agent_scheduler is not None:
+            self.agent_scheduler(self.agent, self.epoch)
+        stopped = False
+        for rnd in range(self.rounds):
+            t0 = time.perf_counter()
+            self._round_samples = 0
+            updates_before = self.total_updates
+            if not self.check_ratio(interface):
+                stopped = True
+                break
+            idle = time.perf_counter() - t0
+            profiler = cProfile.Profile() if self.profiling else None
+            if profiler is not None:
+                profiler.enable()
+            train_rows: list[dict[str, Any]] = []
+            sampling = training = 0.0
+            t_prev = time.perf_counter()
+            for batch in self.memory:
+                t_sample = time.perf_counter()
+                sampling += t_sample - t_prev
+                if self.total_updates % self.update_buffer_interval == 0:
+                    self.update_buffer(interface)
+                if self.total_updates == 0:
+                    _log.info("starting training")
+                t_train = time.perf_counter()
+                train_rows.append(self.agent.train(batch))
+                training += time.perf_counter() - t_train
+                self.total_updates += 1
+                if self.total_updates % self.update_model_interval == 0:
+                    interface.broadcast_model(self.agent.get_actor())
+                t_wait = time.perf_counter()
+                if not self.check_ratio(interface):
+                    stopped = True
+                    break
+                t_prev = time.perf_counter()
+                idle += t_prev - t_wait
+            if profiler is not None:
+                profiler.disable()
+                text = io.StringIO()
+                pstats.Stats(profiler, stream=text).sort_stats("cumulative").print_stats(25)
+                _log.info("profile of round %d:\n%s", rnd, text.getvalue())
+            round_time = time.perf_counter() - t0
+            updates = self.total_updates - updates_before
+            row: dict[str, Any] = {
+                "epoch": self.epoch,
+                "round": rnd,
+                "rounds": self.rounds,
+                "total_updates": self.total_updates,
+                "total_samples": self.total_samples,
+                "memory_len": len(self.memory),
+                "return_train": self.memory.stat_train_return,
+                "return_test": self.memory.stat_test_return,
+                "episode_length_train": self.memory.stat_train_steps,
+                "episode_length_test": self.memory.stat_test_steps,
+                "round_time": round_time,
+                "idle_time": idle,
+                "sampling_time": sampling,
+                "training_time": training,
+                "updates_per_second": updates / round_time if round_time > 0 else math.nan,
+                "samples_per_second": self._round_samples / round_time if round_time > 0 else math.nan,
+            }
+            row.update(_mean_rows(train_rows))
+            stats.append(row)
+            metrics.log_round(row)
+            if stopped:
+                break
+        if not stopped:
+            self.epoch += 1
+        return stats
+
+
+@dataclass(eq=False)
+class TorchTrainingOffline(TrainingOffline):
+    """:class:`TrainingOffline` for PyTorch agents: ``device=None`` selects ``"cuda"`` when
+    available, else ``"cpu"``. Same arguments."""
+
+    def __post_init__(self) -> None:
+        if self.device is None:
+            self.device = "cuda" if torch.cuda.is_available() else "cpu"
+        super().__post_init__()
