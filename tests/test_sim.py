@@ -332,3 +332,31 @@ def test_png_encoder_writes_valid_files(tmp_path):
     assert np.array_equal(rows[:, 1:], img) and not rows[:, 0].any()
     write_png(tmp_path / "x.png", np.stack([img] * 3, axis=-1))
     assert (tmp_path / "x.png").read_bytes()[:4] == b"\x89PNG"
+
+
+# -- building from a config ------------------------------------------------------------------
+
+
+def sim_config(name: str) -> dict:
+    return {"ENV": {"RTGYM_INTERFACE": name, "IMG_HIST_LEN": 2, "IMG_WIDTH": 48, "IMG_HEIGHT": 40,
+                    "RTGYM_CONFIG": {"time_step_duration": 0.05, "act_buf_len": 3, "ep_max_length": 7,
+                                     "interface_kwargs": {"track": "oval"}},
+                    "REWARD_CONFIG": {"END_OF_TRACK": 50.0}}}
+
+
+def test_fast_env_and_realtime_config_from_a_config():
+    from tmrl.sim.interfaces import fast_env, pipeline_parts, realtime_config
+
+    env = fast_env(sim_config("SIMFULL"))
+    obs, _ = env.reset()
+    assert obs[3].shape == (2, 40, 48) and len(obs) == 4 + 3
+    assert env.race.track.name == "oval" and env.race.reward.end_of_track == 50.0
+    truncated = [env.step(np.zeros(3))[3] for _ in range(7)]
+    assert truncated[-1] and not any(truncated[:-1])
+    rt = realtime_config(sim_config("SIMLIDAR"))
+    assert rt["interface"] is SimLidarInterface and rt["act_buf_len"] == 3
+    assert rt["interface_kwargs"]["track"] == "oval" and rt["interface_kwargs"]["img_hist_len"] == 2
+    parts = pipeline_parts("SIMLIDARPROGRESS")
+    assert parts["memory_cls"].__name__ == "LidarProgressMemory"
+    with pytest.raises(UserError, match="RTGYM_INTERFACE"):
+        fast_env(sim_config("TM20FULL"))

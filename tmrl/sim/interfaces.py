@@ -53,6 +53,11 @@ __all__ = [
     "SimEnv",
     "SIM_INTERFACES",
     "DEFAULT_SIM_RTGYM_CONFIG",
+    "interface_class",
+    "interface_kwargs",
+    "realtime_config",
+    "fast_env",
+    "pipeline_parts",
 ]
 
 #: rtgym settings the simulator configs ship with (TrackMania's, 20 steps per second).
@@ -366,3 +371,99 @@ class SimFullEnv(SimEnv):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(SimFullInterface, **kwargs)
+
+
+# ---------------------------------------------------------------------------------------------
+# building from a config
+
+
+def interface_class(name: str) -> type[_SimInterface]:
+    """The simulator interface for an ``ENV.RTGYM_INTERFACE`` value.
+
+    Raises:
+        UserError: not a simulator interface name.
+    """
+    try:
+        return SIM_INTERFACES[name.upper()]
+    except KeyError:
+        raise UserError(
+            f"ENV.RTGYM_INTERFACE {name!r} is not a simulator interface: use one of {', '.join(SIM_INTERFACES)}"
+        ) from None
+
+
+def interface_kwargs(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """Keyword arguments of the interface selected by a validated tmrl config: ``IMG_HIST_LEN``,
+    ``REWARD_CONFIG``, ``IMG_WIDTH``/``IMG_HEIGHT`` (full), then ``RTGYM_CONFIG.interface_kwargs``
+    on top (``track``, ``lidar_size``, ``lidar_scale``, ``view_width``...)."""
+    env = cfg["ENV"]
+    name = str(env["RTGYM_INTERFACE"]).upper()
+    interface_class(name)
+    kwargs: dict[str, Any] = {
+        "img_hist_len": int(env.get("IMG_HIST_LEN", 4)),
+        "reward_config": dict(env.get("REWARD_CONFIG", {})),
+    }
+    if name == "SIMFULL":
+        kwargs["img_size"] = (int(env.get("IMG_WIDTH", 64)), int(env.get("IMG_HEIGHT", 64)))
+    kwargs.update(dict(env.get("RTGYM_CONFIG", {}).get("interface_kwargs") or {}))
+    return kwargs
+
+
+def realtime_config(cfg: Mapping[str, Any], **extra_kwargs: Any) -> dict[str, Any]:
+    """The :mod:`tmrl.realtime` configuration of a simulator run: the defaults,
+    ``ENV.RTGYM_CONFIG`` on top, and the interface with :func:`interface_kwargs`."""
+    from tmrl.realtime import DEFAULT_CONFIG_DICT
+
+    env = cfg["ENV"]
+    rt = dict(DEFAULT_CONFIG_DICT)
+    overrides = dict(env.get("RTGYM_CONFIG", {}))
+    overrides.pop("interface_kwargs", None)
+    overrides.pop("interface_args", None)
+    rt.update(overrides)
+    rt["interface"] = interface_class(str(env["RTGYM_INTERFACE"]))
+    rt["interface_args"] = ()
+    rt["interface_kwargs"] = {**interface_kwargs(cfg), **extra_kwargs}
+    return rt
+
+
+def fast_env(cfg: Mapping[str, Any], **extra_kwargs: Any) -> SimEnv:
+    """The plain Gymnasium environment of a simulator run (fast mode): same observations and
+    action buffer as :func:`realtime_config`'s environment, ``time_step_duration`` of simulated
+    time per step, ``ep_max_length`` steps per episode at most."""
+    env = cfg["ENV"]
+    rt = dict(DEFAULT_SIM_RTGYM_CONFIG)
+    rt.update(env.get("RTGYM_CONFIG", {}))
+    max_len = rt.get("ep_max_length") or 10**9
+    return SimEnv(
+        interface_class(str(env["RTGYM_INTERFACE"])),
+        time_step_duration=float(rt["time_step_duration"]),
+        ep_max_length=int(min(max_len, 10**9)),
+        act_buf_len=int(rt["act_buf_len"]),
+        act_in_obs=bool(rt.get("act_in_obs", True)),
+        **{**interface_kwargs(cfg), **extra_kwargs},
+    )
+
+
+def pipeline_parts(name: str) -> dict[str, Any]:
+    """What a worker and a trainer need besides the environment, for an ``RTGYM_INTERFACE``
+    value of the simulator or of TrackMania (the observations are the same):
+    ``obs_preprocessor``, ``sample_compressor``, ``memory_cls`` (call it with ``hist_len``,
+    ``act_buf_len`` and the memory arguments) and ``model_cls`` (actor-critic class; the MLP for
+    lidar, the CNN for images; REDQ variants are chosen by the caller)."""
+    from tmrl.driving import compressors, memories, preprocessors
+    from tmrl.driving.models import CNNActorCritic
+    from tmrl.models import MLPActorCritic
+
+    key = name.upper()
+    if key in ("SIMLIDAR", "TM20LIDAR"):
+        return dict(obs_preprocessor=preprocessors.preprocess_lidar_obs,
+                    sample_compressor=compressors.compress_lidar_sample,
+                    memory_cls=memories.LidarMemory, model_cls=MLPActorCritic)
+    if key in ("SIMLIDARPROGRESS", "TM20LIDARPROGRESS"):
+        return dict(obs_preprocessor=preprocessors.preprocess_lidar_progress_obs,
+                    sample_compressor=compressors.compress_lidar_progress_sample,
+                    memory_cls=memories.LidarProgressMemory, model_cls=MLPActorCritic)
+    if key in ("SIMFULL", "TM20FULL"):
+        return dict(obs_preprocessor=preprocessors.preprocess_full_obs,
+                    sample_compressor=compressors.compress_full_sample,
+                    memory_cls=memories.ImageMemory, model_cls=CNNActorCritic)
+    raise UserError(f"no driving pipeline for ENV.RTGYM_INTERFACE {name!r}: use a SIM* or TM20* interface")
