@@ -66,8 +66,10 @@ def policy_error(agent) -> float:
                          lr_actor=3e-3, lr_critic=3e-3, lr_entropy=3e-3, alpha=0.05),
         lambda: REDQSACAgent(OBS, ACT, "cpu", model_cls=partial(REDQMLPActorCritic, hidden_sizes=(64, 64)),
                              lr_actor=3e-3, lr_critic=3e-3, lr_entropy=3e-3, alpha=0.05, n=5),
+        lambda: REDQSACAgent(OBS, ACT, "cpu", lr_actor=3e-3, lr_critic=3e-3, lr_entropy=3e-3, alpha=0.05, n=5,
+                             model_cls=partial(REDQMLPActorCritic, hidden_sizes=(64, 64), critic_dtype="bfloat16")),
     ],
-    ids=["sac", "redq"],
+    ids=["sac", "redq", "redq-bf16"],
 )
 def test_learns_the_probe_problem(make):
     torch.manual_seed(0)
@@ -368,3 +370,19 @@ def test_names_and_compat_aliases():
 
     assert custom_models.REDQMLPActorCritic is REDQMLPActorCritic
     assert len(custom_models.REDQMLPActorCritic(OBS, ACT, hidden_sizes=(4,)).qs) == 10
+
+
+def test_bfloat16_critics_keep_float32_parameters_and_close_values():
+    torch.manual_seed(0)
+    ens = EnsembleQFunction(OBS3, ACT2, hidden_sizes=(64, 64), n=3)
+    low = EnsembleQFunction(OBS3, ACT2, hidden_sizes=(64, 64), n=3, compute_dtype="bfloat16")
+    low.load_state_dict(ens.state_dict())
+    o, a, *_ = random_batch(torch.Generator().manual_seed(12), size=32)
+    ref, out = ens(o, a), low(o, a)
+    assert out.dtype == torch.float32
+    torch.testing.assert_close(out, ref, rtol=0.05, atol=0.02)
+    out.sum().backward()
+    assert all(p.dtype == torch.float32 and p.grad is not None and p.grad.dtype == torch.float32
+               for p in low.parameters())
+    with pytest.raises(UserError, match="bfloat16"):
+        EnsembleQFunction(OBS3, ACT2, compute_dtype="float16")

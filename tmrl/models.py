@@ -111,6 +111,14 @@ def _action_bounds(action_space: Any) -> tuple[np.ndarray, np.ndarray]:
     return low, high
 
 
+def _compute_dtype(value: str | torch.dtype | None) -> torch.dtype | None:
+    if value is None or value in ("float32", torch.float32):
+        return None
+    if value in ("bfloat16", torch.bfloat16):
+        return torch.bfloat16
+    raise UserError(f"compute_dtype={value!r} is not supported: use None (float32) or 'bfloat16'")
+
+
 class SquashedGaussianMLPActor(TorchActorModule):
     """SAC's policy: an MLP outputs the mean and log-std of a Gaussian, a sample is squashed
     by ``tanh`` and scaled to the action space's bounds.
@@ -196,6 +204,10 @@ class EnsembleQFunction(nn.Module):
         hidden_sizes: widths of the hidden layers.
         activation: activation class applied after every hidden layer (elementwise).
         n: number of Q functions.
+        compute_dtype: None (float32 throughout) or ``"bfloat16"``: the hidden layers' matrix
+            products run in bfloat16 (float32 accumulation, float32 weights and optimizer state,
+            float32 output layer). Several times faster on CPUs with AVX512-BF16 or AMX and on
+            recent GPUs, at the cost of about 3 significant digits in hidden activations.
     """
 
     def __init__(
@@ -205,11 +217,13 @@ class EnsembleQFunction(nn.Module):
         hidden_sizes: Sequence[int] = (256, 256),
         activation: Callable[[], nn.Module] = nn.ReLU,
         n: int = 2,
+        compute_dtype: str | torch.dtype | None = None,
     ) -> None:
         super().__init__()
         if n < 1:
             raise UserError(f"an ensemble needs at least one Q function, got n={n}: set n >= 1")
         self.n = int(n)
+        self.compute_dtype = _compute_dtype(compute_dtype)
         sizes = [space_dim(observation_space) + int(np.prod(action_space.shape)), *hidden_sizes, 1]
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
@@ -249,10 +263,19 @@ class EnsembleQFunction(nn.Module):
             weights = [w.detach() for w in weights]
             biases = [b.detach() for b in biases]
         k = weights[0].shape[0]
+        low = self.compute_dtype
+        if low is not None:
+            # Hidden layers in low precision; the output layer (256 -> 1) stays float32.
+            x = x.to(low)
+            weights = [w.to(low) for w in weights[:-1]] + weights[-1:]
+            biases = [b.to(low) for b in biases[:-1]] + biases[-1:]
         # The input is shared by all members: broadcast it instead of copying it k times.
         h = torch.baddbmm(biases[0], x.unsqueeze(0).expand(k, -1, -1), weights[0])
         for w, b in zip(weights[1:], biases[1:]):
-            h = torch.baddbmm(b, self.activation(h), w)
+            h = self.activation(h)
+            if h.dtype != w.dtype:
+                h = h.to(w.dtype)
+            h = torch.baddbmm(b, h, w)
         return h.squeeze(-1)
 
     def __len__(self) -> int:
@@ -293,6 +316,8 @@ class MLPActorCritic(nn.Module):
         hidden_sizes: widths of the hidden layers of the actor and of each critic.
         activation: activation class.
         n: number of critics (2 for SAC).
+        critic_dtype: the critics' ``compute_dtype`` (None: float32; ``"bfloat16"``: see
+            :class:`EnsembleQFunction`).
     """
 
     def __init__(
@@ -302,10 +327,13 @@ class MLPActorCritic(nn.Module):
         hidden_sizes: Sequence[int] = (256, 256),
         activation: Callable[[], nn.Module] = nn.ReLU,
         n: int = 2,
+        critic_dtype: str | torch.dtype | None = None,
     ) -> None:
         super().__init__()
         self.actor = SquashedGaussianMLPActor(observation_space, action_space, hidden_sizes, activation)
-        self.qs = EnsembleQFunction(observation_space, action_space, hidden_sizes, activation, n=n)
+        self.qs = EnsembleQFunction(
+            observation_space, action_space, hidden_sizes, activation, n=n, compute_dtype=critic_dtype
+        )
 
     @property
     def n(self) -> int:
@@ -336,6 +364,7 @@ class REDQMLPActorCritic(MLPActorCritic):
         hidden_sizes: widths of the hidden layers.
         activation: activation class.
         n: number of critics.
+        critic_dtype: as in :class:`MLPActorCritic`.
     """
 
     def __init__(
@@ -345,5 +374,6 @@ class REDQMLPActorCritic(MLPActorCritic):
         hidden_sizes: Sequence[int] = (256, 256),
         activation: Callable[[], nn.Module] = nn.ReLU,
         n: int = 10,
+        critic_dtype: str | torch.dtype | None = None,
     ) -> None:
-        super().__init__(observation_space, action_space, hidden_sizes, activation, n=n)
+        super().__init__(observation_space, action_space, hidden_sizes, activation, n=n, critic_dtype=critic_dtype)
