@@ -95,12 +95,23 @@ class PaintedWindow:
                 col = end
         parent = screen.root
         if frame_at is not None:  # a parent window, as a window manager's frame would be
-            parent = screen.root.create_window(*frame_at, w + 20, h + 40, 0, screen.root_depth,
-                                               background_pixel=screen.white_pixel)
+            parent = screen.root.create_window(
+                *frame_at, w + 20, h + 40, 0, screen.root_depth, background_pixel=screen.white_pixel
+            )
             parent.map()
         ww, wh = size or (w, h)
-        self.win = parent.create_window(x, y, ww, wh, 0, screen.root_depth, X.InputOutput, X.CopyFromParent,
-                                        background_pixmap=pixmap, event_mask=X.StructureNotifyMask)
+        self.win = parent.create_window(
+            x,
+            y,
+            ww,
+            wh,
+            0,
+            screen.root_depth,
+            X.InputOutput,
+            X.CopyFromParent,
+            background_pixmap=pixmap,
+            event_mask=X.StructureNotifyMask,
+        )
         self.win.set_wm_name(title)
         self.win.map()
         while True:  # wait for the map event: the server has painted the background by then
@@ -168,8 +179,10 @@ def test_capture_and_preprocess_speed(window):
                 obs = preprocess(cap.screenshot(), 64, 64, grayscale=True, use_cv2=use_cv2)
             ms = (time.perf_counter() - t0) / frames * 1e3
             assert obs.shape == (64, 64) and obs.dtype == np.uint8
-            print(f"\ncapture 256x128 + grayscale 64x64 ({name}): {ms:.2f} ms per frame "
-                  f"(load {os.getloadavg()[0]:.2f})")
+            print(
+                f"\ncapture 256x128 + grayscale 64x64 ({name}): {ms:.2f} ms per frame "
+                f"(load {os.getloadavg()[0]:.2f})"
+            )
 
 
 def test_display_problems_are_named():

@@ -75,8 +75,16 @@ def test_respawn_presses_b_and_close_pop_up_presses_a(pad):
     c.respawn()
     c.close_finish_pop_up()
     assert pad.calls == [
-        ("reset",), ("press_button", BUTTON_B), ("update",), ("release_button", BUTTON_B), ("update",),
-        ("reset",), ("press_button", BUTTON_A), ("update",), ("release_button", BUTTON_A), ("update",),
+        ("reset",),
+        ("press_button", BUTTON_B),
+        ("update",),
+        ("release_button", BUTTON_B),
+        ("update",),
+        ("reset",),
+        ("press_button", BUTTON_A),
+        ("update",),
+        ("release_button", BUTTON_A),
+        ("update",),
     ]
     assert waits == [0.1, 0.1]
 
@@ -99,12 +107,21 @@ def test_keyboard_sends_only_changes():
     c.send([1.0, 0.0, 0.9])  # nothing changes: nothing sent
     c.send([0.0, 0.5, -0.9])
     assert kb.calls == [
-        ("press", "Up"), ("press", "Right"),
-        ("release", "Up"), ("press", "Down"), ("release", "Right"), ("press", "Left"),
+        ("press", "Up"),
+        ("press", "Right"),
+        ("release", "Up"),
+        ("press", "Down"),
+        ("release", "Right"),
+        ("press", "Left"),
     ]
     kb.calls.clear()
     c.respawn()
-    assert kb.calls == [("release", "Down"), ("release", "Left"), ("press", "BackSpace"), ("release", "BackSpace")]
+    assert kb.calls == [
+        ("release", "Down"),
+        ("release", "Left"),
+        ("press", "BackSpace"),
+        ("release", "BackSpace"),
+    ]
 
 
 def test_uinput_missing_names_the_fix(tmp_path):

@@ -25,15 +25,30 @@ from tmrl.tm.record import save_reward
 
 def base_cfg(**top):
     env = {
-        "RTGYM_INTERFACE": "TM20FULL", "WINDOW_WIDTH": 256, "WINDOW_HEIGHT": 128, "IMG_WIDTH": 64,
-        "IMG_HEIGHT": 64, "IMG_GRAYSCALE": True,
+        "RTGYM_INTERFACE": "TM20FULL",
+        "WINDOW_WIDTH": 256,
+        "WINDOW_HEIGHT": 128,
+        "IMG_WIDTH": 64,
+        "IMG_HEIGHT": 64,
+        "IMG_GRAYSCALE": True,
         "RTGYM_CONFIG": {"time_step_duration": 0.05, "start_obs_capture": 0.04},
         "REWARD_CONFIG": {"CONSTANT_PENALTY": 0.0},
     }
-    cfg = {"ENV": env, "VIRTUAL_GAMEPAD": True, "LOCALHOST_WORKER": True, "LOCALHOST_TRAINER": True,
-           "PUBLIC_IP_SERVER": "0.0.0.0", "PORT": 55555, "TLS": False, "ALLOW_PLAIN_TCP": False,
-           "CUDA_TRAINING": False, "CUDA_INFERENCE": False, "PASSWORD": "x", "RUN_NAME": "run",
-           "TLS_CREDENTIALS_DIRECTORY": ""}
+    cfg = {
+        "ENV": env,
+        "VIRTUAL_GAMEPAD": True,
+        "LOCALHOST_WORKER": True,
+        "LOCALHOST_TRAINER": True,
+        "PUBLIC_IP_SERVER": "0.0.0.0",
+        "PORT": 55555,
+        "TLS": False,
+        "ALLOW_PLAIN_TCP": False,
+        "CUDA_TRAINING": False,
+        "CUDA_INFERENCE": False,
+        "PASSWORD": "x",
+        "RUN_NAME": "run",
+        "TLS_CREDENTIALS_DIRECTORY": "",
+    }
     cfg.update(top)
     return cfg
 
@@ -42,7 +57,9 @@ def test_without_the_game_every_failure_has_a_fix(port_factory, monkeypatch):
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     out = io.StringIO()
-    code = run_doctor(base_cfg(PORT=port_factory()), out=out, openplanet_port=port_factory(), openplanet_wait=0.3)
+    code = run_doctor(
+        base_cfg(PORT=port_factory()), out=out, openplanet_port=port_factory(), openplanet_wait=0.3
+    )
     text = out.getvalue()
     assert code == 1
     assert "Traceback" not in text
@@ -117,8 +134,12 @@ def test_server_check_against_a_listening_socket(port_factory):
 
 def test_report_format():
     text = format_report([CheckResult("a", "pass", "fine"), CheckResult("bb", "fail", "broken", "do x")])
-    assert text.splitlines() == ["[PASS] a   fine", "[FAIL] bb  broken", "           fix: do x",
-                                 "1 of 2 checks passed or skipped, 1 failed"]
+    assert text.splitlines() == [
+        "[PASS] a   fine",
+        "[FAIL] bb  broken",
+        "           fix: do x",
+        "1 of 2 checks passed or skipped, 1 failed",
+    ]
 
 
 # ------------------------------------------------------------------------ against the fakes
@@ -177,8 +198,12 @@ def xvfb_window(monkeypatch):
     from Xlib import X, display
 
     r, w = os.pipe()
-    proc = subprocess.Popen(["Xvfb", "-displayfd", str(w), "-screen", "0", "640x480x24", "-nolisten", "tcp"],
-                            pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        ["Xvfb", "-displayfd", str(w), "-screen", "0", "640x480x24", "-nolisten", "tcp"],
+        pass_fds=(w,),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     os.close(w)
     line = b""
     deadline = time.monotonic() + 20
@@ -197,8 +222,18 @@ def xvfb_window(monkeypatch):
     monkeypatch.setenv("DISPLAY", name)
     d = display.Display(name)
     screen = d.screen()
-    win = screen.root.create_window(30, 40, 256, 128, 0, screen.root_depth, X.InputOutput, X.CopyFromParent,
-                                    background_pixel=0x336699, event_mask=X.StructureNotifyMask)
+    win = screen.root.create_window(
+        30,
+        40,
+        256,
+        128,
+        0,
+        screen.root_depth,
+        X.InputOutput,
+        X.CopyFromParent,
+        background_pixel=0x336699,
+        event_mask=X.StructureNotifyMask,
+    )
     win.set_wm_name("Trackmania")
     win.map()
     while not (lambda ev: ev.type == X.MapNotify)(d.next_event()):
@@ -212,8 +247,13 @@ def xvfb_window(monkeypatch):
 
 
 def test_window_and_capture_checks_pass_on_xvfb(xvfb_window, plugin, port_factory):
-    results = run_checks(base_cfg(PORT=port_factory()), openplanet_port=plugin.port, openplanet_wait=5.0,
-                         min_frame_rate=1.0, only=("openplanet", "window", "capture"))
+    results = run_checks(
+        base_cfg(PORT=port_factory()),
+        openplanet_port=plugin.port,
+        openplanet_wait=5.0,
+        min_frame_rate=1.0,
+        only=("openplanet", "window", "capture"),
+    )
     by_name = {r.name: r for r in results}
     assert by_name["OpenPlanet telemetry"].status == "pass", by_name["OpenPlanet telemetry"]
     assert by_name["game window"].status == "pass", by_name["game window"]

@@ -87,8 +87,12 @@ def xvfb():
     pytest.importorskip("Xlib", reason="python-xlib is not installed")
     pytest.importorskip("mss", reason="mss is not installed")
     r, w = os.pipe()
-    proc = subprocess.Popen(["Xvfb", "-displayfd", str(w), "-screen", "0", "640x480x24", "-nolisten", "tcp"],
-                            pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        ["Xvfb", "-displayfd", str(w), "-screen", "0", "640x480x24", "-nolisten", "tcp"],
+        pass_fds=(w,),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     os.close(w)
     line = b""
     deadline = time.monotonic() + 20
@@ -128,8 +132,18 @@ def paint_window(display_name, image, title="Trackmania"):
             gc.change(foreground=(r << 16) | (g << 8) | b)
             pixmap.fill_rectangle(gc, col, row, end - col, 1)
             col = end
-    win = screen.root.create_window(40, 30, 120, 60, 0, screen.root_depth, X.InputOutput, X.CopyFromParent,
-                                    background_pixmap=pixmap, event_mask=X.StructureNotifyMask)
+    win = screen.root.create_window(
+        40,
+        30,
+        120,
+        60,
+        0,
+        screen.root_depth,
+        X.InputOutput,
+        X.CopyFromParent,
+        background_pixmap=pixmap,
+        event_mask=X.StructureNotifyMask,
+    )
     win.set_wm_name(title)
     win.map()
     while True:
@@ -162,11 +176,27 @@ def make_env(xvfb, monkeypatch, client, interface, image, **extra):
 
     monkeypatch.setenv("DISPLAY", xvfb)
     d, win = paint_window(xvfb, image)
-    cfg = load_config(overrides={"ENV": {"RTGYM_INTERFACE": interface, "IMG_HIST_LEN": 4, "WINDOW_WIDTH": W,
-                                         "WINDOW_HEIGHT": H, "SLEEP_TIME_AT_RESET": 0.0}})
+    cfg = load_config(
+        overrides={
+            "ENV": {
+                "RTGYM_INTERFACE": interface,
+                "IMG_HIST_LEN": 4,
+                "WINDOW_WIDTH": W,
+                "WINDOW_HEIGHT": H,
+                "SLEEP_TIME_AT_RESET": 0.0,
+            }
+        }
+    )
     pad = RecordingPad()
-    rt = realtime_config(cfg, client=client, trajectory=TRAJ, sleep=lambda s: None, gamepad=True,
-                         control=GamepadControl(backend=pad, sleep=lambda s: None), **extra)
+    rt = realtime_config(
+        cfg,
+        client=client,
+        trajectory=TRAJ,
+        sleep=lambda s: None,
+        gamepad=True,
+        control=GamepadControl(backend=pad, sleep=lambda s: None),
+        **extra,
+    )
     env = RealTimeEnv(rt)
     return env, pad, (d, win)
 
@@ -188,7 +218,9 @@ def test_tm20full_end_to_end(xvfb, monkeypatch, plugin, client):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # a slow machine may miss a 50 ms deadline
             obs, info = env.reset()
-            expected = preprocess(np.dstack([full_image()[..., ::-1], np.full((H, W), 255, np.uint8)]), 64, 64)
+            expected = preprocess(
+                np.dstack([full_image()[..., ::-1], np.full((H, W), 255, np.uint8)]), 64, 64
+            )
             assert len(obs) == 4 + 2  # speed, gear, rpm, images, then the action buffer of 2
             assert obs[0][0] == 50.0 and obs[1][0] == 3.0 and obs[2][0] == 7000.0
             assert obs[3].shape == (4, 64, 64) and obs[3].dtype == np.uint8
@@ -197,7 +229,7 @@ def test_tm20full_end_to_end(xvfb, monkeypatch, plugin, client):
             assert ("press_button", BUTTON_B) in pad.calls  # respawned at reset
             action = np.array([0.8, 0.0, -0.25], dtype=np.float32)
             steps = drive(env, plugin, [1.0, 2.0, 3.0], action)
-            for o, rew, term, trunc, _ in steps:
+            for _obs, rew, term, trunc, _ in steps:
                 assert rew == pytest.approx(0.1, abs=1e-6) and not term and not trunc
             assert ("right_trigger_float", pytest.approx(0.8)) in pad.calls
             assert ("left_joystick_float", pytest.approx(-0.25), 0.0) in pad.calls
@@ -245,14 +277,22 @@ def test_tm20lidar_end_to_end(xvfb, monkeypatch, plugin, client, name):
 def test_spaces_without_a_game():
     full = TM20FullInterface(window_size=(W, H), sleep_time_at_reset=0, reward_config={}, grayscale=False)
     assert full.get_observation_space()[3].shape == (4, 64, 64, 3)
-    lidar = TM20LidarProgressInterface(img_hist_len=3, window_size=(W, H), sleep_time_at_reset=0, reward_config={})
+    lidar = TM20LidarProgressInterface(
+        img_hist_len=3, window_size=(W, H), sleep_time_at_reset=0, reward_config={}
+    )
     assert [s.shape for s in lidar.get_observation_space()] == [(1,), (1,), (3, 19)]
     assert full.get_action_space().shape == (3,)
 
 
 def test_missing_reward_file_says_how_to_record(monkeypatch):
-    itf = TM20LidarInterface(window_size=(W, H), sleep_time_at_reset=0, reward_config={},
-                             control=GamepadControl(backend=RecordingPad()), capture=object(), client=object())
+    itf = TM20LidarInterface(
+        window_size=(W, H),
+        sleep_time_at_reset=0,
+        reward_config={},
+        control=GamepadControl(backend=RecordingPad()),
+        capture=object(),
+        client=object(),
+    )
     with pytest.raises(UserError, match="--record-reward"):
         itf.reset()
 
@@ -267,12 +307,22 @@ def test_interface_selection_by_name():
 def test_realtime_config_follows_the_tmrl_config():
     from tmrl.config.loader import load_config
 
-    cfg = load_config(overrides={"ENV": {"RTGYM_INTERFACE": "TM20FULL", "IMG_WIDTH": 32, "IMG_HEIGHT": 48,
-                                         "IMG_GRAYSCALE": False}})
+    cfg = load_config(
+        overrides={
+            "ENV": {
+                "RTGYM_INTERFACE": "TM20FULL",
+                "IMG_WIDTH": 32,
+                "IMG_HEIGHT": 48,
+                "IMG_GRAYSCALE": False,
+                "RTGYM_CONFIG": {"interface_kwargs": {"save_replays": True}},
+            }
+        }
+    )
     rt = realtime_config(cfg)
     assert rt["interface"] is TM20FullInterface
     kw = rt["interface_kwargs"]
-    assert kw["resize_to"] == (32, 48) and kw["grayscale"] is False and kw["save_replays"] is False
+    assert kw["resize_to"] == (32, 48) and kw["grayscale"] is False and kw["save_replays"] is True
+    assert kw["window_size"] == (cfg["ENV"]["WINDOW_WIDTH"], cfg["ENV"]["WINDOW_HEIGHT"])
     assert rt["time_step_duration"] == cfg["ENV"]["RTGYM_CONFIG"]["time_step_duration"]
     assert rt["act_buf_len"] == cfg["ENV"]["RTGYM_CONFIG"]["act_buf_len"]
 
@@ -352,12 +402,21 @@ def test_check_environment_saves_what_the_policy_sees(xvfb, monkeypatch, tmp_pat
     d, win = paint_window(xvfb, lidar_image())
     stream = StreamingPlugin()
     try:
-        cfg = load_config(overrides={"ENV": {"RTGYM_INTERFACE": "TM20LIDAR", "WINDOW_WIDTH": W, "WINDOW_HEIGHT": H,
-                                             "SLEEP_TIME_AT_RESET": 0.0}})
+        cfg = load_config(
+            overrides={
+                "ENV": {
+                    "RTGYM_INTERFACE": "TM20LIDAR",
+                    "WINDOW_WIDTH": W,
+                    "WINDOW_HEIGHT": H,
+                    "SLEEP_TIME_AT_RESET": 0.0,
+                }
+            }
+        )
         out = io.StringIO()
         # the keyboard respawn goes through the real XTest backend on the Xvfb display
-        code = check_environment(cfg, steps=3, out_dir=tmp_path, every=1, out=out, trajectory=TRAJ,
-                                 openplanet_port=stream.port)
+        code = check_environment(
+            cfg, steps=3, out_dir=tmp_path, every=1, out=out, trajectory=TRAJ, openplanet_port=stream.port
+        )
     finally:
         stream.close()
         win.destroy()

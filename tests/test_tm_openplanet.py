@@ -22,7 +22,7 @@ class FakePlugin:
         self._srv: socket.socket | None = None
         self._thread: threading.Thread | None = None
 
-    def start(self) -> "FakePlugin":
+    def start(self) -> FakePlugin:
         srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         srv.bind(("127.0.0.1", self.port))

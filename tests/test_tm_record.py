@@ -35,7 +35,9 @@ def test_resample_follows_corners_and_drops_the_short_tail():
     # L-shaped path: 0.25 m along x, then 0.27 m along y (total 0.52 m: the last 2 cm are dropped)
     path = np.array([[0.0, 0, 0], [0.25, 0, 0], [0.25, 0.27, 0]])
     out = resample_path(path)
-    expected = np.array([[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [0.25, 0.05, 0], [0.25, 0.15, 0], [0.25, 0.25, 0]])
+    expected = np.array(
+        [[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [0.25, 0.05, 0], [0.25, 0.15, 0], [0.25, 0.25, 0]]
+    )
     np.testing.assert_allclose(out, expected, atol=1e-12)
 
 
@@ -131,7 +133,9 @@ class Payload:
 def test_malicious_pickle_is_refused_and_nothing_runs(tmp_path):
     target = tmp_path / "pwned"
     (tmp_path / "reward.pkl").write_bytes(pickle.dumps(Payload(str(target))))
-    with pytest.raises(RewardFileError, match="refusing to reference posix.mkdir|refusing to reference os.mkdir"):
+    with pytest.raises(
+        RewardFileError, match="refusing to reference posix.mkdir|refusing to reference os.mkdir"
+    ):
         load_reward(tmp_path / "reward.pkl")
     assert not target.exists()
 
@@ -209,7 +213,9 @@ def test_record_reward_tool_against_a_plugin(tmp_path):
     from tmrl.tm.tools import record_reward as record_tool
 
     xs = [0.0] * 20 + list(np.arange(1, 41) * 0.5) + [20.0] * 20
-    frames = [(5.0, x, x, 7.0, 1.0, 0, 1, 0, 0.0, 2, 5000) for x in xs] + [(5.0, 20.0, 20.0, 7.0, 1.0, 0, 1, 0, 1.0, 2, 5000)] * 5
+    frames = [(5.0, x, x, 7.0, 1.0, 0, 1, 0, 0.0, 2, 5000) for x in xs] + [
+        (5.0, 20.0, 20.0, 7.0, 1.0, 0, 1, 0, 1.0, 2, 5000)
+    ] * 5
     srv = socket.create_server(("127.0.0.1", 0))
     stop = threading.Event()
 
@@ -227,7 +233,9 @@ def test_record_reward_tool_against_a_plugin(tmp_path):
     t.start()
     out = io.StringIO()
     try:
-        code = record_tool({"RUN_NAME": "r"}, path=tmp_path / "reward.npy", port=srv.getsockname()[1], out=out)
+        code = record_tool(
+            {"RUN_NAME": "r"}, path=tmp_path / "reward.npy", port=srv.getsockname()[1], out=out
+        )
     finally:
         stop.set()
         t.join(5)

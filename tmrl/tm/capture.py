@@ -83,7 +83,8 @@ def display_problem(system: str | None = None, env: dict[str, str] | None = None
         if not env.get("DISPLAY"):
             if env.get("WAYLAND_DISPLAY"):
                 return (
-                    "this is a Wayland session without XWayland (DISPLAY is unset): screen capture needs X11; "
+                    "this is a Wayland session without XWayland (DISPLAY is unset): "
+                    "screen capture needs X11; "
                     "log in with an X11 (Xorg) session, or run the game through XWayland"
                 )
             return "no display (DISPLAY is unset): run from the desktop session that shows the game"
@@ -111,8 +112,10 @@ class _XlibBackend:
         try:
             self.d = xdisplay.Display(display_name)
         except Exception as err:  # Xlib raises its own DisplayError family
-            raise CaptureUnavailable(f"cannot open the X display {display_name or os.environ.get('DISPLAY')!r} ({err}): "
-                                     "run from the desktop session that shows the game") from None
+            raise CaptureUnavailable(
+                f"cannot open the X display {display_name or os.environ.get('DISPLAY')!r} ({err}): "
+                "run from the desktop session that shows the game"
+            ) from None
         self.root = self.d.screen().root
         self._lock = threading.Lock()  # one X connection shared by the threads of one capture
         self._net_wm_name = self.d.intern_atom("_NET_WM_NAME")
@@ -172,16 +175,24 @@ class _XdotoolBackend:
     """X11 through the xdotool command (fallback when python-xlib is not installed)."""
 
     def find(self, title: str) -> Any:
-        res = subprocess.run(["xdotool", "search", "--onlyvisible", "--name", f"^{re.escape(title)}$"],
-                             capture_output=True, text=True, check=False)
+        res = subprocess.run(
+            ["xdotool", "search", "--onlyvisible", "--name", f"^{re.escape(title)}$"],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
         ids = res.stdout.split()
         return ids[0] if ids else None
 
     def geometry(self, handle: Any) -> Geometry:
         res = subprocess.run(["xwininfo", "-id", str(handle)], capture_output=True, text=True, check=True)
         fields = dict(re.findall(r"^\s*(Absolute upper-left [XY]|Width|Height):\s*(-?\d+)", res.stdout, re.M))
-        return Geometry(int(fields["Absolute upper-left X"]), int(fields["Absolute upper-left Y"]),
-                        int(fields["Width"]), int(fields["Height"]))
+        return Geometry(
+            int(fields["Absolute upper-left X"]),
+            int(fields["Absolute upper-left Y"]),
+            int(fields["Width"]),
+            int(fields["Height"]),
+        )
 
     def move_resize(self, handle: Any, x: int, y: int, width: int, height: int) -> None:
         subprocess.run(["xdotool", "windowsize", str(handle), str(width), str(height)], check=False)
@@ -220,8 +231,15 @@ class _Win32Backend:
         style = self.user32.GetWindowLongW(handle, -16)
         exstyle = self.user32.GetWindowLongW(handle, -20)
         self.user32.AdjustWindowRectEx(self.ct.byref(rect), style, False, exstyle)
-        self.user32.SetWindowPos(handle, None, x + rect.left, y + rect.top, rect.right - rect.left,
-                                 rect.bottom - rect.top, 0x0004 | 0x0010)  # NOZORDER | NOACTIVATE
+        self.user32.SetWindowPos(
+            handle,
+            None,
+            x + rect.left,
+            y + rect.top,
+            rect.right - rect.left,
+            rect.bottom - rect.top,
+            0x0004 | 0x0010,
+        )  # NOZORDER | NOACTIVATE
 
 
 def _default_backend(display_name: str | None) -> _WindowBackend:
@@ -237,7 +255,8 @@ def _default_backend(display_name: str | None) -> _WindowBackend:
         if shutil.which("xdotool") and shutil.which("xwininfo"):
             return _XdotoolBackend()
         raise CaptureUnavailable(
-            f"cannot read window geometry: {TRACKMANIA_EXTRA_HINT} (python-xlib), or install xdotool and x11-utils"
+            f"cannot read window geometry: {TRACKMANIA_EXTRA_HINT} (python-xlib), "
+            "or install xdotool and x11-utils"
         ) from None
 
 
@@ -310,7 +329,8 @@ class WindowCapture:
         if (geo.width, geo.height) != (self.width, self.height):
             raise WindowSizeError(
                 f"the {self.title!r} window's picture is {geo.width}x{geo.height}, expected "
-                f"{self.width}x{self.height}: set the game to windowed mode (not fullscreen or maximised), "
+                f"{self.width}x{self.height}: set the game to windowed mode "
+                f"(not fullscreen, maximised or minimised), "
                 f"or change ENV.WINDOW_WIDTH/ENV.WINDOW_HEIGHT in config.json"
             )
         return geo
@@ -351,7 +371,7 @@ class WindowCapture:
         if closer is not None:
             closer()
 
-    def __enter__(self) -> "WindowCapture":
+    def __enter__(self) -> WindowCapture:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -413,6 +433,10 @@ def preprocess(
         return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if grayscale else np.ascontiguousarray(img[..., ::-1])
     img = bgr if width is None else _resize_bilinear(bgr, width, height)
     if grayscale:
-        gray = img[..., 0] * np.float32(0.114) + img[..., 1] * np.float32(0.587) + img[..., 2] * np.float32(0.299)
+        gray = (
+            img[..., 0] * np.float32(0.114)
+            + img[..., 1] * np.float32(0.587)
+            + img[..., 2] * np.float32(0.299)
+        )
         return np.clip(np.rint(gray), 0, 255).astype(np.uint8)
     return np.ascontiguousarray(img[..., ::-1])

@@ -79,11 +79,15 @@ class KeyboardBackend(Protocol):
 def _uinput_fix(path: str = UINPUT_PATH) -> str | None:
     """None when ``path`` is writable, else the one-line fix."""
     if not os.path.exists(path):
-        return f"{path} does not exist: load the uinput module (sudo modprobe uinput), or use the keyboard (--use-keyboard)"
+        return (
+            f"{path} does not exist: load the uinput module (sudo modprobe uinput), "
+            "or use the keyboard (--use-keyboard)"
+        )
     if not os.access(path, os.R_OK | os.W_OK):
         return (
             f"no read/write access to {path}: add the udev rule '{UDEV_RULE}' to "
-            f"/etc/udev/rules.d/99-uinput.rules, add yourself to the input group (sudo usermod -aG input $USER), "
+            f"/etc/udev/rules.d/99-uinput.rules, add yourself to the input group "
+            f"(sudo usermod -aG input $USER), "
             f"then log in again; or use the keyboard (--use-keyboard)"
         )
     return None
@@ -141,7 +145,9 @@ def make_vgamepad() -> Any:
     except ImportError as err:
         raise ControlUnavailable(_import_fix(err)) from None
     except OSError as err:
-        raise ControlUnavailable(f"vgamepad cannot load its driver library ({err}): {_driver_fix(system)}") from None
+        raise ControlUnavailable(
+            f"vgamepad cannot load its driver library ({err}): {_driver_fix(system)}"
+        ) from None
     try:
         return vgamepad.VX360Gamepad()
     except PermissionError as err:
@@ -154,8 +160,13 @@ def make_vgamepad() -> Any:
 
 def _driver_fix(system: str) -> str:
     if system == "Windows":
-        return f"install the ViGEmBus driver ({VIGEMBUS_URL}) and restart, or use the keyboard (--use-keyboard)"
-    return f"install libevdev (sudo apt install libevdev2) and make {UINPUT_PATH} writable (udev rule '{UDEV_RULE}')"
+        return (
+            f"install the ViGEmBus driver ({VIGEMBUS_URL}) and restart, or use the keyboard (--use-keyboard)"
+        )
+    return (
+        f"install libevdev (sudo apt install libevdev2) and make {UINPUT_PATH} writable "
+        f"(udev rule '{UDEV_RULE}')"
+    )
 
 
 # ---------------------------------------------------------------------------------------- gamepad
@@ -329,8 +340,20 @@ class _XdotoolKeyboard:
 class _SendInputKeyboard:
     """Windows keyboard through user32.SendInput with scan codes (no pywin32)."""
 
-    SCAN = {"w": 0x11, "a": 0x1E, "s": 0x1F, "d": 0x20, "delete": 0xD3, "r": 0x13,
-            "up": 0xC8, "down": 0xD0, "left": 0xCB, "right": 0xCD, "enter": 0x1C, "backspace": 0x0E}
+    SCAN = {
+        "w": 0x11,
+        "a": 0x1E,
+        "s": 0x1F,
+        "d": 0x20,
+        "delete": 0xD3,
+        "r": 0x13,
+        "up": 0xC8,
+        "down": 0xD0,
+        "left": 0xCB,
+        "right": 0xCD,
+        "enter": 0x1C,
+        "backspace": 0x0E,
+    }
     EXTENDED = {"delete", "up", "down", "left", "right"}
 
     def __init__(self) -> None:
@@ -338,8 +361,13 @@ class _SendInputKeyboard:
         from ctypes import wintypes
 
         class KEYBDINPUT(ctypes.Structure):
-            _fields_ = [("wVk", wintypes.WORD), ("wScan", wintypes.WORD), ("dwFlags", wintypes.DWORD),
-                        ("time", wintypes.DWORD), ("dwExtraInfo", ctypes.c_size_t)]
+            _fields_ = [
+                ("wVk", wintypes.WORD),
+                ("wScan", wintypes.WORD),
+                ("dwFlags", wintypes.DWORD),
+                ("time", wintypes.DWORD),
+                ("dwExtraInfo", ctypes.c_size_t),
+            ]
 
         class _U(ctypes.Union):
             # MOUSEINPUT is the largest member; padding keeps sizeof(INPUT) right.
@@ -357,7 +385,9 @@ class _SendInputKeyboard:
             raise ControlUnavailable(f"unknown key {key!r}: use one of {sorted(self.SCAN)}")
         flags = 0x0008 | (0x0002 if up else 0) | (0x0001 if name in self.EXTENDED else 0)
         inp = self._INPUT(type=1)
-        inp.u.ki = self._KEYBDINPUT(0, self.SCAN[name] & 0x7F if name in self.EXTENDED else self.SCAN[name], flags, 0, 0)
+        inp.u.ki = self._KEYBDINPUT(
+            0, self.SCAN[name] & 0x7F if name in self.EXTENDED else self.SCAN[name], flags, 0, 0
+        )
         self._send(1, self._ctypes.byref(inp), self._ctypes.sizeof(inp))
 
     def press(self, key: str) -> None:
@@ -378,7 +408,9 @@ def make_keyboard() -> KeyboardBackend:
         return _SendInputKeyboard()
     if system == "Linux":
         if not os.environ.get("DISPLAY"):
-            raise ControlUnavailable("no X display (DISPLAY is unset): run from the desktop session that shows the game")
+            raise ControlUnavailable(
+                "no X display (DISPLAY is unset): run from the desktop session that shows the game"
+            )
         try:
             return _XTestKeyboard()
         except ImportError:

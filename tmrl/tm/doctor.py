@@ -91,28 +91,42 @@ def _split(message: str) -> tuple[str, str]:
 
 
 # ---------------------------------------------------------------------------------------- checks
-def check_openplanet(host: str = "127.0.0.1", port: int = 9000, wait: float = 3.0, measure: float = 1.0,
-                     min_rate: float = 20.0) -> CheckResult:
+def check_openplanet(
+    host: str = "127.0.0.1", port: int = 9000, wait: float = 3.0, measure: float = 1.0, min_rate: float = 20.0
+) -> CheckResult:
     """Connect to the TMRL_GrabData plugin, wait up to ``wait`` s for a frame, count frames for
     ``measure`` s; fail below ``min_rate`` frames per second (one frame per 50 ms time step)."""
     from tmrl.tm.openplanet import OpenPlanetClient, TelemetryTimeout
 
     name = "OpenPlanet telemetry"
-    with OpenPlanetClient(host=host, port=port, first_timeout=wait, timeout=wait, retry_interval=0.2) as client:
+    with OpenPlanetClient(
+        host=host, port=port, first_timeout=wait, timeout=wait, retry_interval=0.2
+    ) as client:
         try:
             first = client.retrieve_data(timeout=wait)
         except TelemetryTimeout as err:
             return _fail(name, *_split(str(err)))
         rate = client.measure_rate(measure)
     if rate < min_rate:
-        return _fail(name, f"only {rate:.1f} frames/s from {host}:{port} (need {min_rate:g})",
-                     "raise the game's frame rate (windowed, lower graphics settings, no frame limiter below 30 fps)")
-    return _pass(name, f"{host}:{port}, {rate:.0f} frames/s, speed {first.speed:.1f}, "
-                       f"position ({first.x:.1f}, {first.y:.1f}, {first.z:.1f})")
+        return _fail(
+            name,
+            f"only {rate:.1f} frames/s from {host}:{port} (need {min_rate:g})",
+            "raise the game's frame rate (windowed, lower graphics settings, no frame limiter below 30 fps)",
+        )
+    return _pass(
+        name,
+        f"{host}:{port}, {rate:.0f} frames/s, speed {first.speed:.1f}, "
+        f"position ({first.x:.1f}, {first.y:.1f}, {first.z:.1f})",
+    )
 
 
-def check_window(title: str = "Trackmania", width: int = 256, height: int = 128, resize: bool = True,
-                 display: str | None = None) -> CheckResult:
+def check_window(
+    title: str = "Trackmania",
+    width: int = 256,
+    height: int = 128,
+    resize: bool = True,
+    display: str | None = None,
+) -> CheckResult:
     """Find the game window, move and resize it as training would, and check its client size."""
     from tmrl.tm.capture import WindowCapture
 
@@ -125,9 +139,17 @@ def check_window(title: str = "Trackmania", width: int = 256, height: int = 128,
     return _pass(name, f"{title!r} at ({geo.left}, {geo.top}), picture {geo.width}x{geo.height}")
 
 
-def check_capture_speed(title: str = "Trackmania", width: int = 256, height: int = 128, img_width: int = 64,
-                        img_height: int = 64, grayscale: bool = True, time_step: float = 0.05,
-                        frames: int = 30, display: str | None = None) -> CheckResult:
+def check_capture_speed(
+    title: str = "Trackmania",
+    width: int = 256,
+    height: int = 128,
+    img_width: int = 64,
+    img_height: int = 64,
+    grayscale: bool = True,
+    time_step: float = 0.05,
+    frames: int = 30,
+    display: str | None = None,
+) -> CheckResult:
     """Time capture plus preprocessing; fail above a quarter of the time step."""
     from tmrl.tm.capture import WindowCapture, preprocess
 
@@ -143,8 +165,12 @@ def check_capture_speed(title: str = "Trackmania", width: int = 256, height: int
         return _skip(name, f"needs the game window ({_split(str(err))[0]})")
     budget = time_step * 1e3 / 4
     if ms > budget:
-        return _fail(name, f"{ms:.1f} ms per frame, more than a quarter of the {time_step * 1e3:.0f} ms step",
-                     "close other programs, use a smaller window, or install OpenCV (pip install opencv-python-headless)")
+        return _fail(
+            name,
+            f"{ms:.1f} ms per frame, more than a quarter of the {time_step * 1e3:.0f} ms step",
+            "close other programs, use a smaller window, "
+            "or install OpenCV (pip install opencv-python-headless)",
+        )
     return _pass(name, f"{ms:.2f} ms per frame (capture + resize to {img_width}x{img_height})")
 
 
@@ -183,9 +209,14 @@ def check_gpu(cuda_training: bool = False, cuda_inference: bool = False) -> Chec
         available, device = False, f"CUDA error ({type(err).__name__}: {err})"
     wanted = [k for k, v in (("CUDA_TRAINING", cuda_training), ("CUDA_INFERENCE", cuda_inference)) if v]
     if wanted and not available:
-        return _fail(name, f"{' and '.join(wanted)} set but no CUDA device ({device})",
-                     f"install a CUDA build of PyTorch (https://pytorch.org) or set {' and '.join(wanted)} to false")
-    return _pass(name, f"CUDA device: {device}" + ("" if wanted else " (not used: CUDA_TRAINING/CUDA_INFERENCE false)"))
+        return _fail(
+            name,
+            f"{' and '.join(wanted)} set but no CUDA device ({device})",
+            f"install a CUDA build of PyTorch (https://pytorch.org) or set {' and '.join(wanted)} to false",
+        )
+    return _pass(
+        name, f"CUDA device: {device}" + ("" if wanted else " (not used: CUDA_TRAINING/CUDA_INFERENCE false)")
+    )
 
 
 def check_server(host: str, port: int, timeout: float = 2.0) -> CheckResult:
@@ -195,9 +226,12 @@ def check_server(host: str, port: int, timeout: float = 2.0) -> CheckResult:
         with socket.create_connection((host, port), timeout=timeout):
             pass
     except OSError as err:
-        return _fail(name, f"nothing accepts connections at {host}:{port} ({err.strerror or err})",
-                     "start the server (python -m tmrl --server), or fix PORT, LOCALHOST_WORKER and PUBLIC_IP_SERVER "
-                     "in config.json, and open the port in the server's firewall")
+        return _fail(
+            name,
+            f"nothing accepts connections at {host}:{port} ({err.strerror or err})",
+            "start the server (python -m tmrl --server), or fix PORT, LOCALHOST_WORKER and PUBLIC_IP_SERVER "
+            "in config.json, and open the port in the server's firewall",
+        )
     return _pass(name, f"{host}:{port} accepts connections")
 
 
@@ -209,13 +243,21 @@ def check_tls(cfg: Mapping[str, Any], credentials_dir: Path | None = None) -> Ch
         folder = credentials_dir or _credentials_dir(cfg)
         cert = folder / "certificate.pem"
         if not cert.is_file():
-            return _fail(name, f"TLS is on but {cert} is missing",
-                         f"run the server once to create the credentials, then copy its certificate.pem to {folder}")
+            return _fail(
+                name,
+                f"TLS is on but {cert} is missing",
+                f"run the server once to create the credentials, then copy its certificate.pem to {folder}",
+            )
         return _pass(name, f"certificate at {cert}")
     if remote and not cfg.get("ALLOW_PLAIN_TCP", False):
-        return _fail(name, "the server is on another machine but TLS is off",
-                     "set TLS to true in config.json (or ALLOW_PLAIN_TCP to true on a trusted private network)")
-    return _pass(name, "TLS off, connections stay on this machine" if not remote else "TLS off, plain TCP allowed")
+        return _fail(
+            name,
+            "the server is on another machine but TLS is off",
+            "set TLS to true in config.json (or ALLOW_PLAIN_TCP to true on a trusted private network)",
+        )
+    return _pass(
+        name, "TLS off, connections stay on this machine" if not remote else "TLS off, plain TCP allowed"
+    )
 
 
 def _credentials_dir(cfg: Mapping[str, Any]) -> Path:
@@ -234,33 +276,57 @@ def check_config(cfg: Mapping[str, Any]) -> CheckResult:
     problems: list[tuple[str, str]] = []
     interface = str(env.get("RTGYM_INTERFACE", ""))
     if interface.upper() not in TM_INTERFACES:
-        problems.append((f"ENV.RTGYM_INTERFACE is {interface!r}, not a TrackMania interface",
-                         f"set ENV.RTGYM_INTERFACE to one of {', '.join(TM_INTERFACES)} to train on TrackMania"))
+        problems.append(
+            (
+                f"ENV.RTGYM_INTERFACE is {interface!r}, not a TrackMania interface",
+                f"set ENV.RTGYM_INTERFACE to one of {', '.join(TM_INTERFACES)} to train on TrackMania",
+            )
+        )
     rt = env.get("RTGYM_CONFIG", {})
     step, capture = rt.get("time_step_duration", 0.05), rt.get("start_obs_capture", 0.04)
     if capture > step:
-        problems.append((f"start_obs_capture ({capture}) is after the end of the step ({step})",
-                         "set ENV.RTGYM_CONFIG.start_obs_capture below time_step_duration"))
-    if interface.upper() == "TM20FULL" and (env.get("IMG_WIDTH", 64) > env.get("WINDOW_WIDTH", 256)
-                                            or env.get("IMG_HEIGHT", 64) > env.get("WINDOW_HEIGHT", 128)):
-        problems.append(("IMG_WIDTH/IMG_HEIGHT exceed the window size",
-                         "make ENV.IMG_WIDTH/IMG_HEIGHT at most ENV.WINDOW_WIDTH/WINDOW_HEIGHT"))
+        problems.append(
+            (
+                f"start_obs_capture ({capture}) is after the end of the step ({step})",
+                "set ENV.RTGYM_CONFIG.start_obs_capture below time_step_duration",
+            )
+        )
+    if interface.upper() == "TM20FULL" and (
+        env.get("IMG_WIDTH", 64) > env.get("WINDOW_WIDTH", 256)
+        or env.get("IMG_HEIGHT", 64) > env.get("WINDOW_HEIGHT", 128)
+    ):
+        problems.append(
+            (
+                "IMG_WIDTH/IMG_HEIGHT exceed the window size",
+                "make ENV.IMG_WIDTH/IMG_HEIGHT at most ENV.WINDOW_WIDTH/WINDOW_HEIGHT",
+            )
+        )
     if env.get("REWARD_CONFIG", {}).get("CONSTANT_PENALTY", 0.0) > 0:
-        problems.append(("REWARD_CONFIG.CONSTANT_PENALTY is positive (a reward for standing still)",
-                         "set ENV.REWARD_CONFIG.CONSTANT_PENALTY to 0 or a negative value"))
+        problems.append(
+            (
+                "REWARD_CONFIG.CONSTANT_PENALTY is positive (a reward for standing still)",
+                "set ENV.REWARD_CONFIG.CONSTANT_PENALTY to 0 or a negative value",
+            )
+        )
     try:
         from tmrl.config.schema import PASSWORD_PLACEHOLDER
     except ImportError:  # pragma: no cover
         PASSWORD_PLACEHOLDER = "YourRandomPasswordHere"
     remote = not (cfg.get("LOCALHOST_WORKER", True) and cfg.get("LOCALHOST_TRAINER", True))
     if remote and cfg.get("PASSWORD") == PASSWORD_PLACEHOLDER:
-        problems.append(("PASSWORD is still the shipped placeholder and the server is remote",
-                         "run python -m tmrl --install for a random PASSWORD and copy it to every machine"))
+        problems.append(
+            (
+                "PASSWORD is still the shipped placeholder and the server is remote",
+                "run python -m tmrl --install for a random PASSWORD and copy it to every machine",
+            )
+        )
     if problems:
         detail = "; ".join(p[0] for p in problems)
         return _fail(name, detail, "; ".join(p[1] for p in problems))
-    return _pass(name, f"{interface}, window {env.get('WINDOW_WIDTH')}x{env.get('WINDOW_HEIGHT')}, "
-                       f"step {step * 1e3:.0f} ms")
+    return _pass(
+        name,
+        f"{interface}, window {env.get('WINDOW_WIDTH')}x{env.get('WINDOW_HEIGHT')}, step {step * 1e3:.0f} ms",
+    )
 
 
 # ---------------------------------------------------------------------------------------- runner
@@ -269,8 +335,11 @@ def _guard(name: str, fn: Callable[[], CheckResult]) -> CheckResult:
         return fn()
     except Exception as err:  # a check must never end the report with a traceback
         logger.debug("check %s crashed", name, exc_info=True)
-        return _fail(name, f"unexpected {type(err).__name__}: {err}",
-                     "please report this at the tmrl issue tracker with the output of --doctor")
+        return _fail(
+            name,
+            f"unexpected {type(err).__name__}: {err}",
+            "please report this at the tmrl issue tracker with the output of --doctor",
+        )
 
 
 def run_checks(
@@ -301,7 +370,9 @@ def run_checks(
     env = cfg.get("ENV", {})
     width, height = int(env.get("WINDOW_WIDTH", 256)), int(env.get("WINDOW_HEIGHT", 128))
     step = float(env.get("RTGYM_CONFIG", {}).get("time_step_duration", 0.05))
-    server_host = "127.0.0.1" if cfg.get("LOCALHOST_WORKER", True) else str(cfg.get("PUBLIC_IP_SERVER", "127.0.0.1"))
+    server_host = (
+        "127.0.0.1" if cfg.get("LOCALHOST_WORKER", True) else str(cfg.get("PUBLIC_IP_SERVER", "127.0.0.1"))
+    )
     if reward_path is None:
         try:
             from tmrl.config.loader import data_paths
@@ -314,19 +385,35 @@ def run_checks(
     def capture() -> CheckResult:
         if "window" in state and not state["window"].ok:
             return _skip("capture time", "needs the game window (see above)")
-        return check_capture_speed(window_title, width, height, int(env.get("IMG_WIDTH", 64)),
-                                   int(env.get("IMG_HEIGHT", 64)), bool(env.get("IMG_GRAYSCALE", True)), step)
+        return check_capture_speed(
+            window_title,
+            width,
+            height,
+            int(env.get("IMG_WIDTH", 64)),
+            int(env.get("IMG_HEIGHT", 64)),
+            bool(env.get("IMG_GRAYSCALE", True)),
+            step,
+        )
 
     checks: list[tuple[str, str, Callable[[], CheckResult]]] = [
         ("config", "config", lambda: check_config(cfg)),
-        ("openplanet", "OpenPlanet telemetry",
-         lambda: check_openplanet(openplanet_host, openplanet_port, openplanet_wait, min_rate=min_frame_rate)),
+        (
+            "openplanet",
+            "OpenPlanet telemetry",
+            lambda: check_openplanet(
+                openplanet_host, openplanet_port, openplanet_wait, min_rate=min_frame_rate
+            ),
+        ),
         ("window", "game window", lambda: check_window(window_title, width, height)),
         ("gamepad", "gamepad driver", lambda: check_gamepad(bool(cfg.get("VIRTUAL_GAMEPAD", True)))),
         ("capture", "capture time", capture),
         ("reward", "reward file", lambda: check_reward_file(reward_path)),
         ("gpu", "GPU", lambda: check_gpu(bool(cfg.get("CUDA_TRAINING")), bool(cfg.get("CUDA_INFERENCE")))),
-        ("server", "server reachable", lambda: check_server(server_host, int(cfg.get("PORT", 55555)), server_timeout)),
+        (
+            "server",
+            "server reachable",
+            lambda: check_server(server_host, int(cfg.get("PORT", 55555)), server_timeout),
+        ),
         ("tls", "TLS credentials", lambda: check_tls(cfg)),
     ]
     results = []

@@ -116,11 +116,17 @@ class TM20FullInterface(RealTimeGymInterface):
         self.resize_to = None if resize_to is None else (int(resize_to[0]), int(resize_to[1]))
         needs_config = window_size is None or sleep_time_at_reset is None or reward_config is None
         env = dict(_env_config().get("ENV", {})) if needs_config else {}
-        self.window_size = tuple(window_size) if window_size is not None else (
-            int(env.get("WINDOW_WIDTH", 256)), int(env.get("WINDOW_HEIGHT", 128)))
-        self.sleep_time_at_reset = float(sleep_time_at_reset if sleep_time_at_reset is not None
-                                         else env.get("SLEEP_TIME_AT_RESET", 1.5))
-        self.reward_config = dict(reward_config if reward_config is not None else env.get("REWARD_CONFIG", {}))
+        self.window_size = (
+            tuple(window_size)
+            if window_size is not None
+            else (int(env.get("WINDOW_WIDTH", 256)), int(env.get("WINDOW_HEIGHT", 128)))
+        )
+        self.sleep_time_at_reset = float(
+            sleep_time_at_reset if sleep_time_at_reset is not None else env.get("SLEEP_TIME_AT_RESET", 1.5)
+        )
+        self.reward_config = dict(
+            reward_config if reward_config is not None else env.get("REWARD_CONFIG", {})
+        )
         self.reward_path = reward_path
         self.window_title = window_title
         self.openplanet_host = openplanet_host
@@ -157,7 +163,9 @@ class TM20FullInterface(RealTimeGymInterface):
         if self.client is None:
             from tmrl.tm.openplanet import OpenPlanetClient
 
-            self.client = OpenPlanetClient(self.openplanet_host, self.openplanet_port, timeout=self.telemetry_timeout)
+            self.client = OpenPlanetClient(
+                self.openplanet_host, self.openplanet_port, timeout=self.telemetry_timeout
+            )
         self.initialized = True
 
     def close(self) -> None:
@@ -221,7 +229,9 @@ class TM20FullInterface(RealTimeGymInterface):
 
     def get_obs_rew_terminated_info(self) -> tuple[list[Any], float, bool, dict]:
         item, data = self._grab()
-        rew, terminated = self.reward_function.compute_reward(np.array([data[2], data[3], data[4]], dtype=np.float64))
+        rew, terminated = self.reward_function.compute_reward(
+            np.array([data[2], data[3], data[4]], dtype=np.float64)
+        )
         self.hist.append(item)
         obs = self._observation(item, data)
         if bool(data[8]):  # the plugin's "race finished" flag
@@ -254,7 +264,9 @@ class TM20LidarInterface(TM20FullInterface):
     ``TM2020InterfaceLidar``). Takes the arguments of :class:`TM20FullInterface`; the image ones
     are unused. ``img_hist_len`` is the number of lidar scans per observation (default 1)."""
 
-    def __init__(self, img_hist_len: int = 1, gamepad: bool = False, save_replays: bool = False, **kwargs: Any) -> None:
+    def __init__(
+        self, img_hist_len: int = 1, gamepad: bool = False, save_replays: bool = False, **kwargs: Any
+    ) -> None:
         kwargs.pop("grayscale", None)
         kwargs.pop("resize_to", None)
         super().__init__(img_hist_len, gamepad, save_replays, grayscale=False, resize_to=None, **kwargs)
@@ -267,8 +279,9 @@ class TM20LidarInterface(TM20FullInterface):
 
         img = self.capture.screenshot()[..., :3]
         if self.lidar is None:
-            self.lidar = Lidar.for_image(img, DEFAULT_BLACK_THRESHOLD if self.black_threshold is None
-                                         else self.black_threshold)
+            self.lidar = Lidar.for_image(
+                img, DEFAULT_BLACK_THRESHOLD if self.black_threshold is None else self.black_threshold
+            )
         self.screenshot = img  # for --check-environment, which draws the rays on it
         return self.lidar.measure(img)
 
@@ -321,8 +334,9 @@ def interface_class(name: str) -> type[TM20FullInterface]:
     try:
         return INTERFACES[name.upper()]
     except KeyError:
-        raise UserError(f"ENV.RTGYM_INTERFACE {name!r} is not a TrackMania interface: use one of "
-                        f"{', '.join(INTERFACES)}") from None
+        raise UserError(
+            f"ENV.RTGYM_INTERFACE {name!r} is not a TrackMania interface: use one of {', '.join(INTERFACES)}"
+        ) from None
 
 
 def realtime_config(cfg: Mapping[str, Any], **interface_kwargs: Any) -> dict[str, Any]:

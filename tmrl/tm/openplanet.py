@@ -60,7 +60,7 @@ class Telemetry(NamedTuple):
     rpm: float
 
 
-def pack_frame(values: "tuple[float, ...] | list[float] | Telemetry") -> bytes:
+def pack_frame(values: tuple[float, ...] | list[float] | Telemetry) -> bytes:
     """Encode 11 values as the plugin does (44 bytes, little-endian float32). Used by fakes."""
     return struct.pack(FRAME_FORMAT, *values)
 
@@ -142,7 +142,7 @@ class OpenPlanetClient:
         with self._cond:
             self._cond.notify_all()
 
-    def __enter__(self) -> "OpenPlanetClient":
+    def __enter__(self) -> OpenPlanetClient:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -174,7 +174,9 @@ class OpenPlanetClient:
                 attempts += 1
                 self._last_error = f"{type(err).__name__}: {err}"
                 if attempts == 1 or attempts % 20 == 0:
-                    logger.info("no OpenPlanet plugin at %s:%d yet (%s)", self.host, self.port, self._last_error)
+                    logger.info(
+                        "no OpenPlanet plugin at %s:%d yet (%s)", self.host, self.port, self._last_error
+                    )
                 self._stop.wait(self.retry_interval)
                 continue
             attempts = 0
@@ -255,7 +257,9 @@ class OpenPlanetClient:
         elif self._seq == 0:
             cause = f"connected to {where} but no telemetry frame came in {timeout:g} s"
         else:
-            cause = f"OpenPlanet stopped sending frames on {where} for {timeout:g} s (game paused or in a menu?)"
+            cause = (
+                f"OpenPlanet stopped sending frames on {where} for {timeout:g} s (game paused or in a menu?)"
+            )
         return f"{cause}: {_hint(self.host, self.port)}"
 
     def wait_frames(self, count: int, timeout: float) -> bool:

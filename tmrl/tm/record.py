@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import io
 import logging
+import math
 import os
 import struct
 import time
@@ -130,7 +131,9 @@ def validate_recording(
         raise DegenerateRecording("the recording holds NaN or infinite positions: record again")
     length = float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
     if length < 1e-3:
-        raise DegenerateRecording("the car never moved during the recording: drive from the start line to the finish")
+        raise DegenerateRecording(
+            "the car never moved during the recording: drive from the start line to the finish"
+        )
     if length < min_length:
         raise DegenerateRecording(
             f"the recorded path is only {length:.1f} m long (need {min_length:g} m): drive the whole track"
@@ -183,7 +186,8 @@ def load_reward(path: str | os.PathLike[str] | None = None) -> np.ndarray:
     arr = np.asarray(arr)
     if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) < 2 or arr.dtype.kind not in "fiu":
         raise RewardFileError(
-            f"{path} holds an array of shape {arr.shape} and dtype {arr.dtype}, not positions (N, 3): {RECORD_HINT}"
+            f"{path} holds an array of shape {arr.shape} and dtype {arr.dtype}, "
+            f"not positions (N, 3): {RECORD_HINT}"
         )
     return arr.astype(np.float64, copy=False)
 
@@ -229,14 +233,23 @@ def _make_dtype(stub: Any) -> np.dtype:
 
 
 def _build_array(raw: Any, dtype: np.dtype, shape: Any, fortran: bool) -> np.ndarray:
+    if isinstance(raw, str):  # Python 2 pickles hold the data as a latin-1 str
+        raw = raw.encode("latin-1")
     if not isinstance(raw, (bytes, bytearray)):
         raise ValueError("array data is not a byte string")
-    if not (isinstance(shape, tuple) and all(isinstance(s, int) and s >= 0 for s in shape)):
+    if not (
+        isinstance(shape, tuple)
+        and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
+    ):
         raise ValueError("array shape is not a tuple of sizes")
-    count = int(np.prod(shape, dtype=np.int64))
+    count = math.prod(shape)  # exact Python integers: no overflow to fool the size check
     if count * dtype.itemsize != len(raw):
         raise ValueError("array data does not match its shape")
-    return np.frombuffer(bytes(raw), dtype=dtype, count=count).reshape(shape, order="F" if fortran else "C").copy()
+    return (
+        np.frombuffer(bytes(raw), dtype=dtype, count=count)
+        .reshape(shape, order="F" if fortran else "C")
+        .copy()
+    )
 
 
 def read_legacy_reward_pickle(path: str | os.PathLike[str], max_bytes: int = 512 * 2**20) -> np.ndarray:
@@ -499,5 +512,7 @@ def record_reward(
     validate_recording(raw, finished, min_length=min_length)
     traj = resample_path(trim_stationary_start(raw), step=step)
     out = save_reward(traj, path)
-    logger.info("saved a reward trajectory of %d points (%.1f m) to %s", len(traj), (len(traj) - 1) * step, out)
+    logger.info(
+        "saved a reward trajectory of %d points (%.1f m) to %s", len(traj), (len(traj) - 1) * step, out
+    )
     return out

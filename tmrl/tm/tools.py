@@ -81,6 +81,7 @@ def record_reward(
 
         path = data_paths(cfg).reward_file
     if use_keyboard and wait_start is None:
+
         def wait_start() -> None:
             input("Respawn at the start line, then press Enter here and drive to the finish... ")
     else:
@@ -105,10 +106,19 @@ def write_png(path: str | Path, img: np.ndarray) -> Path:
     raw = b"".join(b"\x00" + img[row].tobytes() for row in range(h))  # filter type 0 per row
 
     def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+        return (
+            struct.pack(">I", len(data))
+            + kind
+            + data
+            + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+        )
 
-    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, color_type, 0, 0, 0))
-           + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+    png = (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, color_type, 0, 0, 0))
+        + chunk(b"IDAT", zlib.compress(raw, 6))
+        + chunk(b"IEND", b"")
+    )
     return atomic_write_bytes(path, png)
 
 
@@ -168,8 +178,11 @@ def check_environment(
     rt = realtime_config(cfg, **interface_kwargs)
     rt["wait_on_done"] = False
     env = RealTimeEnv(rt)
-    print(f"Drive by hand; what the policy sees is saved to {out_dir} every {every} steps (Ctrl+C stops).",
-          file=out, flush=True)
+    print(
+        f"Drive by hand; what the policy sees is saved to {out_dir} every {every} steps (Ctrl+C stops).",
+        file=out,
+        flush=True,
+    )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # driving by hand: a late step is expected, not a problem
@@ -193,8 +206,9 @@ def check_environment(
     return 0
 
 
-def benchmark(cfg: Mapping[str, Any] | None = None, steps: int = 500, out: TextIO | None = None,
-              **interface_kwargs: Any) -> int:
+def benchmark(
+    cfg: Mapping[str, Any] | None = None, steps: int = 500, out: TextIO | None = None, **interface_kwargs: Any
+) -> int:
     """``--benchmark`` for TrackMania: run ``steps`` steps with the default action and print the
     real-time environment's timing report (rtgym-style averages, in seconds)."""
     from tmrl.realtime import RealTimeEnv
@@ -220,9 +234,16 @@ def benchmark(cfg: Mapping[str, Any] | None = None, steps: int = 500, out: TextI
     return 0
 
 
-def benchmark_capture(title: str = "Trackmania", width: int = 256, height: int = 128, img_width: int = 64,
-                      img_height: int = 64, grayscale: bool = True, frames: int = 200,
-                      out: TextIO | None = None) -> float:
+def benchmark_capture(
+    title: str = "Trackmania",
+    width: int = 256,
+    height: int = 128,
+    img_width: int = 64,
+    img_height: int = 64,
+    grayscale: bool = True,
+    frames: int = 200,
+    out: TextIO | None = None,
+) -> float:
     """Capture ``frames`` frames of the window plus preprocessing; print and return ms per frame."""
     from tmrl.tm.capture import WindowCapture, preprocess
 
@@ -233,5 +254,7 @@ def benchmark_capture(title: str = "Trackmania", width: int = 256, height: int =
         for _ in range(frames):
             preprocess(cap.screenshot(), img_width, img_height, grayscale)
         ms = (time.perf_counter() - t0) / frames * 1e3
-    print(f"capture {width}x{height} + preprocess to {img_width}x{img_height}: {ms:.2f} ms per frame", file=out)
+    print(
+        f"capture {width}x{height} + preprocess to {img_width}x{img_height}: {ms:.2f} ms per frame", file=out
+    )
     return ms
