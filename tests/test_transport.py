@@ -373,3 +373,79 @@ def test_big_weight_broadcast_completes(net, n_floats, capsys):
     assert got == weights
     with capsys.disabled():
         print(f"\n[transport] broadcast of {n_floats} float32 ({len(weights) / 1e6:.0f} MB): {elapsed:.2f} s")
+
+
+_OWNER_SCRIPT = """
+import signal, sys, time
+from tmrl.transport import RelayServer, WorkerLink
+relay = RelayServer(int(sys.argv[1]), "pw", security=None)
+link = WorkerLink("127.0.0.1", int(sys.argv[1]), "pw", security=None)
+print(relay.pid, link.pid, flush=True)
+while True:
+    time.sleep(0.05)
+"""
+
+
+def _pid_gone(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGKILL"])
+def test_network_processes_end_with_their_owner_and_free_the_port(tmp_path, port_factory, sig):
+    import signal
+    import subprocess
+    import sys
+
+    script = tmp_path / "owner.py"
+    script.write_text(_OWNER_SCRIPT)
+    port = port_factory()
+    owner = subprocess.Popen([sys.executable, str(script), str(port)], stdout=subprocess.PIPE, text=True)
+    try:
+        pids = [int(p) for p in owner.stdout.readline().split()]
+        assert len(pids) == 2 and not any(_pid_gone(p) for p in pids)
+        # Ctrl-C reaches the whole process group in a terminal; here it is sent to the owner only,
+        # and the network processes ignore SIGINT anyway: they end because their owner does.
+        owner.send_signal(getattr(signal, sig))
+        owner.wait(30)
+    finally:
+        if owner.poll() is None:
+            owner.kill()
+        owner.stdout.close()
+    _wait_for(lambda: all(_pid_gone(p) for p in pids), what="the network processes to exit")
+    with socket.socket() as s:  # the port is free again
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", port))
+
+
+def _rss_bytes(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    raise AssertionError("no VmRSS")
+
+
+def test_a_stalled_worker_does_not_make_the_relay_buffer_every_broadcast(net):
+    import signal
+
+    relay = net.relay()
+    trainer, stalled, fresh = net.trainer(), net.worker(), net.worker()
+    assert trainer.wait_connected(30) and stalled.wait_connected(30) and fresh.wait_connected(30)
+    size = 8 * 2**20
+    trainer.broadcast_weights(b"\x00" * size)
+    _wait_for(lambda: fresh._weights is not None, what="the first broadcast")
+    base = _rss_bytes(relay.pid)
+    os.kill(stalled.pid, signal.SIGSTOP)  # its network process stops reading its socket
+    try:
+        for i in range(1, 13):  # 96 MiB in total
+            trainer.broadcast_weights(bytes([i]) * size)
+            _wait_for(lambda i=i: (fresh._weights or b"\x00")[:1] == bytes([i]), what=f"broadcast {i}")
+        grown = _rss_bytes(relay.pid) - base
+    finally:
+        os.kill(stalled.pid, signal.SIGCONT)
+    assert grown < 6 * size, f"the relay grew by {grown / 2**20:.0f} MiB for a stalled worker"
+    _wait_for(lambda: (stalled._weights or b"\x00")[:1] == bytes([12]), what="the newest weights at the stalled worker")

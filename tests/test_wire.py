@@ -242,3 +242,21 @@ def test_big_array_round_trip_is_exact():
     arr = np.random.default_rng(2).standard_normal(5_000_000).astype(np.float32)
     back = wire.decode(bytearray(wire.encode(arr)))
     assert np.array_equal(arr, back) and not back.flags.owndata
+
+
+def test_decode_keeps_no_reference_to_its_input():
+    import gc
+    import weakref
+
+    class Buf(bytearray):
+        pass
+
+    gc.disable()  # a reference cycle would keep the buffer until the cyclic collector runs
+    try:
+        data = Buf(wire.encode([1, "x", b"y", {"k": 2.5}]))
+        ref = weakref.ref(data)
+        assert wire.decode(data) == [1, "x", b"y", {"k": 2.5}]
+        del data
+        assert ref() is None
+    finally:
+        gc.enable()

@@ -277,37 +277,22 @@ def _corrupt(msg: str) -> DecodeError:
 
 
 class _Decoder:
-    __slots__ = ("mv", "n", "copy", "table")
+    __slots__ = ("mv", "n", "copy")
 
     def __init__(self, mv: memoryview, copy: bool):
         self.mv = mv
         self.n = len(mv)
         self.copy = copy
-        self.table: dict[int, Callable[[int, int], tuple[Any, int]]] = {
-            _NONE[0]: lambda p, d: (None, p),
-            _TRUE[0]: lambda p, d: (True, p),
-            _FALSE[0]: lambda p, d: (False, p),
-            _INT[0]: self.int_,
-            _BIGINT[0]: self.bigint,
-            _FLOAT[0]: self.float_,
-            _STR[0]: self.str_,
-            _BYTES[0]: self.bytes_,
-            _TUPLE[0]: self.tuple_,
-            _LIST[0]: self.list_,
-            _DICT[0]: self.dict_,
-            _ARRAY[0]: self.array,
-            _SCALAR[0]: self.scalar,
-        }
 
     def value(self, pos: int, depth: int) -> tuple[Any, int]:
         if pos >= self.n:
             raise _corrupt("truncated")
         if depth > MAX_DEPTH:
             raise _corrupt(f"nested deeper than {MAX_DEPTH} levels")
-        fn = self.table.get(self.mv[pos])
+        fn = _TABLE.get(self.mv[pos])
         if fn is None:
             raise _corrupt(f"unknown tag {self.mv[pos]:#04x} at byte {pos}")
-        return fn(pos + 1, depth)
+        return fn(self, pos + 1, depth)
 
     def need(self, pos: int, k: int) -> int:
         end = pos + k
@@ -351,9 +336,8 @@ class _Decoder:
     def items(self, pos: int, depth: int) -> tuple[list[Any], int]:
         k, pos = self.length(pos)
         out = []
-        value = self.value
         for _ in range(k):
-            item, pos = value(pos, depth + 1)
+            item, pos = self.value(pos, depth + 1)
             out.append(item)
         return out, pos
 
@@ -429,3 +413,22 @@ class _Decoder:
         end = self.need(pos, dt.itemsize)
         raw = self.mv[pos:end].tobytes()
         return np.frombuffer(raw, dtype=dt).astype(dt.newbyteorder("="))[0], end
+
+
+# Tag -> unbound parser. Kept at module level: a per-decoder table of bound methods would be a
+# reference cycle holding the input buffer alive until the cyclic garbage collector runs.
+_TABLE: dict[int, Callable[[_Decoder, int, int], tuple[Any, int]]] = {
+    _NONE[0]: lambda self, p, d: (None, p),
+    _TRUE[0]: lambda self, p, d: (True, p),
+    _FALSE[0]: lambda self, p, d: (False, p),
+    _INT[0]: _Decoder.int_,
+    _BIGINT[0]: _Decoder.bigint,
+    _FLOAT[0]: _Decoder.float_,
+    _STR[0]: _Decoder.str_,
+    _BYTES[0]: _Decoder.bytes_,
+    _TUPLE[0]: _Decoder.tuple_,
+    _LIST[0]: _Decoder.list_,
+    _DICT[0]: _Decoder.dict_,
+    _ARRAY[0]: _Decoder.array,
+    _SCALAR[0]: _Decoder.scalar,
+}

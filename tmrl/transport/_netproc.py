@@ -151,7 +151,9 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
     from tlspyo.server import ServerProtocol as TlspyoServerProtocol
     from twisted.internet import reactor, ssl
     from twisted.internet.error import CannotListenError, ReactorNotRunning
+    from twisted.internet.interfaces import IPushProducer
     from twisted.internet.protocol import Factory
+    from zope.interface import implementer
 
     max_consumables = cfg["max_consumables"]
 
@@ -223,8 +225,18 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             if part[4] > total:
                 del self.partial[group]
                 return
-            for cid in self.group_info[group]["ids"]:
-                self.to_clients[cid].transport.write(out)
+            members = [self.to_clients[cid] for cid in self.group_info[group]["ids"]]
+            if idx == 0:
+                # A member still draining earlier data does not get this broadcast streamed: it
+                # gets the newest one when it has caught up (resumeProducing). Without this, a
+                # slow worker would make the relay buffer every broadcast for it.
+                for member in members:
+                    if member.paused:
+                        member.stale.add(group)
+                        log_relay.debug("%s is still receiving earlier data: it will get the newest broadcast when it catches up", member._peer)
+            for member in members:
+                if group not in member.stale:
+                    member.transport.write(out)
             if len(part[3]) == count:
                 del self.partial[group]
                 if part[4] == total:
@@ -263,6 +275,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 return
             self.closing = True
             for conn in list(self.connections):
+                conn.transport.unregisterProducer()
                 conn.transport.loseConnection()  # flushes what is queued
             self.maybe_stop()
             reactor.callLater(3.0, _stop_reactor)
@@ -277,6 +290,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
         except ReactorNotRunning:
             pass  # already stopping
 
+    @implementer(IPushProducer)
     class RelayProtocol(TlspyoServerProtocol):
         """One connection at the relay (a worker, the trainer, or anybody who found the port)."""
 
@@ -286,9 +300,12 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self._reader = _FrameReader(server.header_size, server.password_bytes, cfg["max_frame_bytes"])
             self._groups: tuple[str, ...] = ()
             self._partial: list[Any] | None = None  # consumable being received: [msg_id, dest, count, total, chunks, size]
+            self.paused = False
+            self.stale: set[str] = set()
 
         def connectionMade(self) -> None:
             self._server.connections.add(self)
+            self.transport.registerProducer(self, True)
             self.transport.write(_frame(self._header_size, wire.encode((0, "HELLO", None))))
 
         def connectionLost(self, reason: Any = None) -> None:
@@ -373,13 +390,30 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self._state = _ALIVE
             self.transport.write(_frame(self._header_size, wire.encode((0, "WELCOME", None))))
             log_relay.info("%s connected (%s)", self._peer, "/".join(groups))
-            for g in groups:  # the latest broadcast, then the one in progress (if any)
-                for out in self._server.complete.get(g, ()):
+            for g in groups:
+                self._send_stored_broadcast(g)
+
+        def _send_stored_broadcast(self, group: str) -> None:
+            # The latest complete broadcast, then the frames so far of the one in progress (the
+            # rest of it is then streamed to this client like to the others).
+            for out in self._server.complete.get(group, ()):
+                self.transport.write(out)
+            part = self._server.partial.get(group)
+            if part is not None:
+                for out in part[3]:
                     self.transport.write(out)
-                part = self._server.partial.get(g)
-                if part is not None:
-                    for out in part[3]:
-                        self.transport.write(out)
+
+        # IPushProducer: Twisted tells us when this client's send buffer is full / drained.
+        def pauseProducing(self) -> None:
+            self.paused = True
+
+        def resumeProducing(self) -> None:
+            self.paused = False
+            while self.stale and not self.paused:
+                self._send_stored_broadcast(self.stale.pop())
+
+        def stopProducing(self) -> None:
+            self.stale.clear()
 
         def _obj(self, dest: Any, obj: Any) -> None:
             srv = self._server

@@ -55,6 +55,9 @@ class NetProcess:
         self._stop_lock = threading.Lock()
         env = dict(os.environ)
         root = str(Path(__file__).resolve().parents[2])
+        # Frames are large, short-lived buffers: with a fixed mmap threshold glibc returns them to
+        # the system when freed, so the process's memory follows what it actually holds.
+        env.setdefault("MALLOC_MMAP_THRESHOLD_", str(1 << 20))
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "tmrl.transport._netproc"],
