@@ -279,6 +279,18 @@ def test_bug_in_a_hook_prints_traceback_and_report_request(hooked):
 def test_feature_not_landed_exits_2_with_one_line(hooked):
     line = one_error_line(tmrl(hooked, "--record-reward", code=RUN_WITH_HOOKS))
     assert "--record-reward is not available yet" in line
+    assert not hooked["data"].exists()
+
+
+def test_simulator_interfaces_use_the_simulator_tools(hooked):
+    code = RUN_WITH_HOOKS.replace('cli.HOOKS["record_reward"]', 'cli.SIM_HOOKS["check_environment"] = '
+                                  '("fake_hooks", "sim_check")\ncli.HOOKS["record_reward"]')
+    (hooked["hooks"] / "fake_hooks.py").write_text(
+        FAKE_HOOKS + "\ndef sim_check(cfg):\n    print('HOOK ' + json.dumps({'sim': cfg['ENV']['RTGYM_INTERFACE']}))\n"
+    )
+    out = tmrl(hooked, "--check-environment", "-d", '{"ENV": {"RTGYM_INTERFACE": "simlidar"}}', code=code)
+    assert out.returncode == 0, out.stderr
+    assert hook_output(out) == {"sim": "SIMLIDAR"}
 
 
 def test_demo_gets_its_own_arguments_and_our_override(hooked):

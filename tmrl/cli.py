@@ -14,9 +14,10 @@ flag                        calls
 ``--test``                  ``tmrl.roles.run_worker(cfg, "test")``
 ``--benchmark``             ``tmrl.roles.run_benchmark(cfg)``
 ``--demo [ARGS...]``        ``tmrl.sim.demo.main(argv)`` (the arguments after ``--demo``)
-``--check-environment``     ``tmrl.tools.check_environment(cfg)``
-``--record-reward``         ``tmrl.tools.record_reward(cfg, use_keyboard=...)``
-``--doctor``                ``tmrl.tools.doctor(cfg)``
+``--check-environment``     ``tmrl.tm.tools.check_environment(cfg)``
+                            (``tmrl.sim.tools.check_environment(cfg)`` for SIM* interfaces)
+``--record-reward``         ``tmrl.tm.tools.record_reward(cfg, use_keyboard=...)``
+``--doctor``                ``tmrl.tm.tools.doctor(cfg)`` (creates no folder)
 ``--install``               :func:`tmrl.config.loader.install`, then
                             ``tmrl.transport.ensure_credentials(directory)`` when it exists
 ==========================  ===============================================================
@@ -43,7 +44,7 @@ from typing import Any
 
 from tmrl.errors import UserError
 
-__all__ = ["main", "build_parser", "HOOKS"]
+__all__ = ["main", "build_parser", "HOOKS", "SIM_HOOKS"]
 
 logger = logging.getLogger(__name__)
 
@@ -61,9 +62,14 @@ HOOKS: dict[str, tuple[str, str]] = {
     "test": ("tmrl.roles", "run_worker"),
     "benchmark": ("tmrl.roles", "run_benchmark"),
     "demo": ("tmrl.sim.demo", "main"),
-    "check_environment": ("tmrl.tools", "check_environment"),
-    "record_reward": ("tmrl.tools", "record_reward"),
-    "doctor": ("tmrl.tools", "doctor"),
+    "check_environment": ("tmrl.tm.tools", "check_environment"),
+    "record_reward": ("tmrl.tm.tools", "record_reward"),
+    "doctor": ("tmrl.tm.tools", "doctor"),
+}
+
+#: Replacements of :data:`HOOKS` when ``ENV.RTGYM_INTERFACE`` is one of the simulator's.
+SIM_HOOKS: dict[str, tuple[str, str]] = {
+    "check_environment": ("tmrl.sim.tools", "check_environment"),
 }
 
 _SECRET_KEYS = ("PASSWORD", "WANDB_KEY")
@@ -157,8 +163,9 @@ class _NotLanded(UserError):
     """The module behind a command is not part of this version yet."""
 
 
-def _resolve_hook(command: str, flag: str) -> Callable[..., Any]:
-    module_name, func_name = HOOKS[command]
+def _resolve_hook(command: str, flag: str, interface: str | None = None) -> Callable[..., Any]:
+    table = SIM_HOOKS if interface is not None and interface.startswith("SIM") else {}
+    module_name, func_name = table.get(command) or HOOKS[command]
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as e:
@@ -250,24 +257,20 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
         return 0
 
     flag = _flag(command)
-    hook = _resolve_hook(command, flag)
     if command == "demo":
-        result = hook(list(extra))
-        return int(result or 0)
+        hook = _resolve_hook(command, flag)
+        return int(hook(list(extra)) or 0)
     if command == "doctor":
-        # The doctor reports on the data folder and config.json; it must not create them.
-        try:
-            cfg = loader.load_config()
-        except UserError as e:
-            logger.warning("%s", e)
-            cfg = None
-        return int(hook(cfg) or 0)
+        # The doctor reports on the data folder; it must not create it.
+        cfg = loader.load_config()
+        return int(_resolve_hook(command, flag)(cfg) or 0)
 
     if command == "benchmark":
         # Through the override, so that modules reading config_constants see it too.
         loader.set_override_env({"ENV": {"RTGYM_CONFIG": {"benchmark": True}}}, source="--benchmark")
+    cfg = loader.load_config()  # a configuration mistake is reported before anything is created
+    hook = _resolve_hook(command, flag, cfg["ENV"]["RTGYM_INTERFACE"])
     loader.ensure_data_folder()
-    cfg = loader.load_config()
     if command == "trainer":
         result = hook(cfg, wandb=args.wandb)
     elif command in ("worker", "expert", "test"):
