@@ -405,7 +405,11 @@ def _resize_bilinear(img: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def preprocess(
-    bgra: np.ndarray, width: int = 64, height: int = 64, grayscale: bool = True, use_cv2: bool | None = None
+    bgra: np.ndarray,
+    width: int | None = 64,
+    height: int | None = 64,
+    grayscale: bool = True,
+    use_cv2: bool | None = None,
 ) -> np.ndarray:
     """Turn a BGRA capture into an observation image.
 
@@ -429,9 +433,11 @@ def preprocess(
                 raise CaptureUnavailable(f"OpenCV is not installed: {TRACKMANIA_EXTRA_HINT}") from None
             cv2 = None
     if cv2 is not None:
-        img = bgr if width is None else cv2.resize(np.ascontiguousarray(bgr), (width, height))
+        img = (
+            bgr if width is None or height is None else cv2.resize(np.ascontiguousarray(bgr), (width, height))
+        )
         return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if grayscale else np.ascontiguousarray(img[..., ::-1])
-    img = bgr if width is None else _resize_bilinear(bgr, width, height)
+    img = bgr if width is None or height is None else _resize_bilinear(bgr, width, height)
     if grayscale:
         gray = (
             img[..., 0] * np.float32(0.114)

@@ -116,8 +116,8 @@ class TM20FullInterface(RealTimeGymInterface):
         self.resize_to = None if resize_to is None else (int(resize_to[0]), int(resize_to[1]))
         needs_config = window_size is None or sleep_time_at_reset is None or reward_config is None
         env = dict(_env_config().get("ENV", {})) if needs_config else {}
-        self.window_size = (
-            tuple(window_size)
+        self.window_size: tuple[int, int] = (
+            (int(window_size[0]), int(window_size[1]))
             if window_size is not None
             else (int(env.get("WINDOW_WIDTH", 256)), int(env.get("WINDOW_HEIGHT", 128)))
         )
@@ -158,7 +158,7 @@ class TM20FullInterface(RealTimeGymInterface):
         if self.capture is None:
             from tmrl.tm.capture import WindowCapture
 
-            self.capture = WindowCapture(self.window_title, *self.window_size)
+            self.capture = WindowCapture(self.window_title, self.window_size[0], self.window_size[1])
             self.capture.move_and_resize(0, 0)
         if self.client is None:
             from tmrl.tm.openplanet import OpenPlanetClient
@@ -238,7 +238,7 @@ class TM20FullInterface(RealTimeGymInterface):
             terminated = True
             rew += self.reward_function.end_of_track
         rew += self.reward_function.constant_penalty
-        return obs, np.float32(rew), bool(terminated), {}
+        return obs, float(np.float32(rew)), bool(terminated), {}  # float32 precision, as the original
 
     def get_observation_space(self) -> spaces.Tuple:
         speed = spaces.Box(low=0.0, high=1000.0, shape=(1,), dtype=np.float32)

@@ -227,8 +227,10 @@ def _make_dtype(stub: Any) -> np.dtype:
     dt = np.dtype(stub.spec)
     if dt.kind not in "biuf" or dt.fields is not None or dt.subdtype is not None:
         raise ValueError(f"dtype {stub.spec!r} is not a plain numeric dtype")
-    if stub.order in "<>":
-        dt = dt.newbyteorder(stub.order)
+    if stub.order == "<":
+        dt = dt.newbyteorder("<")
+    elif stub.order == ">":
+        dt = dt.newbyteorder(">")
     return dt
 
 
