@@ -29,6 +29,7 @@ import math
 import os
 import secrets
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
@@ -77,6 +78,17 @@ def _cfg(name: str, value: Any, fallback: Any = None) -> Any:
     from tmrl.config import config_constants as cc
 
     return getattr(cc, name, fallback)
+
+
+def _link_options() -> dict[str, Any]:
+    """Transport options that only the config sets (plain TCP beyond localhost, pickle opt-in,
+    frame size limit)."""
+    opts = {"allow_plain_tcp": bool(_cfg("ALLOW_PLAIN_TCP", None, False)),
+            "allow_pickle": bool(_cfg("ALLOW_PICKLE", None, False))}
+    max_frame = _cfg("MAX_FRAME_BYTES", None, None)
+    if max_frame:
+        opts["max_frame_bytes"] = int(max_frame)
+    return opts
 
 
 def _cfg_keep_none(name: str, value: Any, fallback: Any = None) -> Any:
@@ -490,7 +502,7 @@ class Server:
         self._relay = RelayServer(
             port=port, password=password, local_port=local_port, header_size=header_size,
             security=security, keys_dir=str(keys_dir) if keys_dir is not None else None,
-            max_workers=max_workers, allow_plain_tcp=bool(_cfg("ALLOW_PLAIN_TCP", None, False)),
+            max_workers=max_workers, **_link_options(),
         )
         Server._alive.append(self)
         logger.info("server listening on port %d (%s)", port, "TLS" if security else "plain TCP")
@@ -549,8 +561,7 @@ class TrainerInterface:
             self.server_ip, int(_cfg("PORT", server_port, 55555)), _cfg("PASSWORD", password, ""),
             local_port=local_com_port, header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
             security=security, keys_dir=str(keys_dir) if keys_dir is not None else None,
-            hostname=_cfg("HOSTNAME", hostname, "default"),
-            allow_plain_tcp=bool(_cfg("ALLOW_PLAIN_TCP", None, False)),
+            hostname=_cfg("HOSTNAME", hostname, "default"), **_link_options(),
         )
         self._stats: dict[int | None, dict[str, float]] = {}
         self._last_seq: dict[int, int] = {}
@@ -559,7 +570,11 @@ class TrainerInterface:
         self.received_samples = 0
         self.weights_version = 0
         self._last_weights: bytes | None = None
-        self._was_connected = False
+        self._weights_lock = threading.Lock()
+        self._closed = threading.Event()
+        self._watcher = threading.Thread(target=self._rebroadcast_on_reconnect, daemon=True,
+                                         name="tmrl-trainer-reconnect")
+        self._watcher.start()
         logger.info("trainer connecting to the server at %s", self.server_ip)
 
     @property
@@ -571,18 +586,24 @@ class TrainerInterface:
 
     def _rebroadcast_on_reconnect(self) -> None:
         # why: a restarted server has lost the latest weights; workers that (re)connect to it
-        # would otherwise wait for the next training step, which may itself wait for samples.
-        connected = self._link.connected
-        if connected and not self._was_connected and self._last_weights is not None:
-            self._link.broadcast_weights(self._last_weights)
-        self._was_connected = connected
+        # would otherwise wait for the next training step, which may itself wait for their samples.
+        was_connected = False
+        while not self._closed.wait(0.1):
+            connected = self._link.connected
+            if connected and not was_connected:
+                with self._weights_lock:
+                    if self._last_weights is not None:
+                        try:
+                            self._link.broadcast_weights(self._last_weights)
+                        except (ConnectionError, RuntimeError):  # closing: nothing to do
+                            return
+            was_connected = connected
 
     def retrieve_buffer(self) -> Buffer:
         """Every sample received since the last call (possibly none), never blocking.
 
         ``sources`` gives each sample's worker id; malformed payloads are logged and dropped.
         """
-        self._rebroadcast_on_reconnect()
         res = Buffer(maxlen=self.maxlen)
         res.sources = []
         for payload in self._link.receive_samples():
@@ -631,24 +652,14 @@ class TrainerInterface:
         self.weights_version += 1
         envelope = wire.encode({"v": PAYLOAD_VERSION, "kind": "weights", "version": self.weights_version,
                                 "spaces": spaces, "actor": data})
-        self._last_weights = envelope
-        self._link.broadcast_weights(envelope)
+        with self._weights_lock:
+            self._last_weights = envelope
+            self._link.broadcast_weights(envelope)
 
     def close(self) -> None:
         """Disconnect (idempotent)."""
+        self._closed.set()
         self._link.close()
-
-
-def _default_dump(run_instance: Any, path: str) -> None:
-    from tmrl.checkpoint import save_checkpoint
-
-    save_checkpoint(run_instance, path)
-
-
-def _default_load(path: str) -> Any:
-    from tmrl.checkpoint import load_checkpoint
-
-    return load_checkpoint(path)
 
 
 class Trainer:
@@ -671,8 +682,10 @@ class Trainer:
         checkpoint_path: checkpoint file, written after every epoch and resumed from at start;
             ``None`` for no checkpoint (by default ``CHECKPOINT_PATH``).
         dump_run_instance_fn: ``fn(run_instance, path)`` writing a checkpoint
-            (default: :func:`tmrl.checkpoint.save_checkpoint`).
-        load_run_instance_fn: ``fn(path) -> run_instance`` (default: :func:`tmrl.checkpoint.load_checkpoint`).
+            (default: :func:`tmrl.checkpoint.dump_run_instance`: a checkpoint folder with the
+            agent, the replay memory, counters and RNG states, written atomically).
+        load_run_instance_fn: ``fn(path) -> run_instance`` (default: restores the checkpoint
+            folder into a fresh ``training_cls()``; see :func:`tmrl.checkpoint.load_checkpoint`).
         updater_fn: ``fn(run_instance, training_cls) -> run_instance`` applied after loading a
             checkpoint, for example to change hyperparameters of a resumed run.
     """
@@ -702,8 +715,14 @@ class Trainer:
         self.training_cls = training_cls
         cp = _cfg_keep_none("CHECKPOINT_PATH", checkpoint_path, None)
         self.checkpoint_path = str(cp) if cp is not None else None
-        self.dump_run_instance_fn = dump_run_instance_fn or _default_dump
-        self.load_run_instance_fn = load_run_instance_fn or _default_load
+        self._default_checkpoint = dump_run_instance_fn is None and load_run_instance_fn is None
+        if dump_run_instance_fn is None or load_run_instance_fn is None:
+            from tmrl import checkpoint
+
+            dump_run_instance_fn = dump_run_instance_fn or checkpoint.dump_run_instance
+            load_run_instance_fn = load_run_instance_fn or checkpoint.make_load_run_instance_fn(training_cls)
+        self.dump_run_instance_fn = dump_run_instance_fn
+        self.load_run_instance_fn = load_run_instance_fn
         self.updater_fn = updater_fn
         self.run_instance: Any = None
         self.interface = TrainerInterface(
@@ -712,9 +731,21 @@ class Trainer:
             hostname=hostname, model_path=model_path,
         )
 
+    def checkpoint_exists(self) -> bool:
+        """Whether there is a checkpoint to resume from at ``checkpoint_path``."""
+        path = self.checkpoint_path
+        if path is None or not os.path.exists(path):
+            return False
+        if self._default_checkpoint and os.path.isdir(path):
+            from tmrl.checkpoint import HEADER
+
+            # why: a folder without its header is a first save that was interrupted: start afresh
+            return os.path.exists(os.path.join(path, HEADER))
+        return True
+
     def _load_or_create(self) -> Any:
         path = self.checkpoint_path
-        if path is not None and os.path.exists(path):
+        if path is not None and self.checkpoint_exists():
             t0 = time.perf_counter()
             run_instance = self.load_run_instance_fn(path)
             logger.info("resumed from checkpoint %s (epoch %s) in %.1f s", path,
@@ -783,7 +814,7 @@ class Trainer:
             config = partial_to_dict(self.training_cls)
         except (ValueError, TypeError):
             config = {}
-        resume = self.checkpoint_path is not None and os.path.exists(self.checkpoint_path)
+        resume = self.checkpoint_exists()
         wandb_dir = tempfile.mkdtemp(prefix="tmrl-wandb-")
         wandb.init(dir=wandb_dir, entity=entity, project=project, id=run_id,
                    resume="allow" if resume else None, config=config)
@@ -894,8 +925,7 @@ class RolloutWorker:
                 self.server_ip, int(_cfg("PORT", server_port, 55555)), _cfg("PASSWORD", password, ""),
                 local_port=local_port, header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
                 security=security, keys_dir=str(keys_dir) if keys_dir is not None else None,
-                hostname=_cfg("HOSTNAME", hostname, "default"),
-                allow_plain_tcp=bool(_cfg("ALLOW_PLAIN_TCP", None, False)),
+                hostname=_cfg("HOSTNAME", hostname, "default"), **_link_options(),
             )
             logger.info("worker %d connecting to the server at %s", self.source_id, self.server_ip)
 

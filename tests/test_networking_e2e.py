@@ -1,0 +1,380 @@
+"""tmrl.networking over real tlspyo on 127.0.0.1: a trainer and two workers exchange samples and
+weights; a worker built for other spaces gets a clear error; killing (SIGKILL) and restarting the
+worker, the server or the trainer loses no sample held by a live process; TLS with fresh
+credentials; Ctrl-C on ``python -m tmrl --server`` exits cleanly and frees the port.
+
+Samples are counted by id: the counting environment puts a sequence number in ``info["seq"]``.
+Roles killed with SIGKILL run in subprocesses (this file run as a script, see ``_child``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import gymnasium
+import numpy as np
+import pytest
+
+from tmrl.networking import RolloutWorker, Server, SpacesMismatchError, Trainer, TrainerInterface
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_networking import CountingEnv, JsonActor, RecordingTraining, read_log, received_seqs  # noqa: E402
+
+pytestmark = pytest.mark.timeout(60)
+
+PW = "test-password"
+HERE = Path(__file__).resolve()
+
+
+# ------------------------------------------------------------------------------------------------
+# helpers
+
+
+def wait_for(cond: Callable[[], Any], timeout: float = 15.0, what: str = "condition") -> Any:
+    """Poll ``cond`` until it returns something truthy (events in other processes)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = cond()
+        if value:
+            return value
+        time.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def relay_connections(port: int) -> list[str]:
+    """States of the TCP sockets whose local port is ``port`` (the relay's side), excluding the
+    listening socket: lets a test wait until the relay has closed a killed peer's connection."""
+    states = {"01": "ESTABLISHED", "08": "CLOSE_WAIT", "06": "TIME_WAIT", "0A": "LISTEN"}
+    out = []
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            fields = line.split()
+            local_port = int(fields[1].rsplit(":", 1)[1], 16)
+            state = states.get(fields[3], fields[3])
+            if local_port == port and state not in ("LISTEN", "TIME_WAIT"):
+                out.append(state)
+    return out
+
+
+def worker(tmp_path: Path, port: int, name: str, obs_dim: int = 3, **kwargs: Any) -> RolloutWorker:
+    return RolloutWorker(env_cls=lambda: CountingEnv(obs_dim), actor_module_cls=JsonActor, server_ip="127.0.0.1",
+                         server_port=port, password=PW, security=None, model_path=str(tmp_path / f"{name}.json"),
+                         model_history=0, max_samples_per_episode=10, **kwargs)
+
+
+def interface(tmp_path: Path, port: int, **kwargs: Any) -> TrainerInterface:
+    return TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PW, security=None,
+                            model_path=str(tmp_path / "trainer_model.json"), **kwargs)
+
+
+def drain(iface: TrainerInterface, expected: int, timeout: float = 15.0, source: int | None = None) -> list[tuple]:
+    """Retrieve until ``expected`` samples (from ``source`` when given) arrived; returns
+    (source, seq, act) of each sample from that source (or of every sample)."""
+    got: list[tuple] = []
+
+    def more() -> bool:
+        buf = iface.retrieve_buffer()
+        for sample, src in zip(buf.memory, buf.sources):
+            if source is None or src == source:
+                act = None if sample[0] is None else float(sample[0][0])
+                got.append((src, sample[5]["seq"], act))
+        return len(got) >= expected
+
+    wait_for(more, timeout, f"{expected} samples at the trainer")
+    return got
+
+
+class Child:
+    """A role in its own process group, killed with SIGKILL (with its network processes)."""
+
+    def __init__(self, tmp_path: Path, role: str, **args: Any):
+        self.log = open(tmp_path / f"{role}-{time.monotonic_ns()}.log", "wb")
+        self.proc = subprocess.Popen([sys.executable, str(HERE), role, json.dumps(args)], stdout=subprocess.PIPE,
+                                     stderr=self.log, start_new_session=True, cwd=str(tmp_path))
+
+    def line(self, timeout: float = 20.0) -> dict:
+        """Next JSON line the child prints (a readiness or progress event)."""
+        result: list[bytes] = []
+        t = threading.Thread(target=lambda: result.append(self.proc.stdout.readline()), daemon=True)
+        t.start()
+        t.join(timeout)
+        if not result or not result[0]:
+            raise AssertionError(f"child gave no line in {timeout} s (log: {self.log.name})")
+        return json.loads(result[0])
+
+    def kill(self) -> None:
+        try:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        self.proc.wait()
+        self.log.close()
+
+
+@pytest.fixture
+def children():
+    started: list[Child] = []
+    yield started
+    for c in started:
+        c.kill()
+
+
+@pytest.fixture
+def closing():
+    objs: list[Any] = []
+    yield objs
+    for o in reversed(objs):
+        (o.stop if hasattr(o, "stop") else o.close)()
+
+
+# ------------------------------------------------------------------------------------------------
+# tests
+
+
+def test_trainer_and_two_workers_exchange_samples_and_weights(tmp_path, port_factory, closing):
+    port = port_factory()
+    closing.append(Server(port=port, password=PW, security=None))
+    log = tmp_path / "log.jsonl"
+    trainer = Trainer(training_cls=lambda: RecordingTraining(str(log), epochs=2, samples_per_epoch=44),
+                      server_ip="127.0.0.1", server_port=port, password=PW, security=None,
+                      model_path=str(tmp_path / "trainer.json"), checkpoint_path=None)
+    thread = threading.Thread(target=trainer.run, daemon=True)
+    thread.start()
+    workers = [worker(tmp_path, port, f"w{i}") for i in range(2)]
+    closing.extend(workers)
+    for round_ in (1, 2):
+        for w in workers:
+            for _ in range(2):  # 2 episodes of 11 samples (reset + 10 steps)
+                w.collect_train_episode()
+                w.buffer.stat_train_return = -100.0 * (workers.index(w) + 1)
+                w.send_and_clear_buffer()
+        for w in workers:
+            assert w.update_actor_weights(verbose=False, blocking=True) == 1
+            assert w.actor.bias == round_  # the trainer's epoch-th actor reached every worker
+    thread.join(20)
+    assert not thread.is_alive()
+    seqs = received_seqs(log)
+    assert set(seqs) == {str(w.source_id) for w in workers}
+    for w in workers:
+        assert sorted(seqs[str(w.source_id)]) == list(range(44))  # every sample, exactly once
+    # the trainer saw each worker's own statistics, not the last one merged
+    assert read_log(log)[-1]["ret"] == pytest.approx(-150.0)
+
+
+def test_worker_with_other_spaces_gets_clear_error(tmp_path, port_factory, closing):
+    port = port_factory()
+    closing.append(Server(port=port, password=PW, security=None))
+    iface = interface(tmp_path, port)
+    closing.append(iface)
+    w = worker(tmp_path, port, "w4", obs_dim=4)
+    closing.append(w)
+    box3 = gymnasium.spaces.Box(-np.inf, np.inf, (3,), np.float32)
+    iface.broadcast_model(JsonActor(box3, gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)))
+    with pytest.raises(SpacesMismatchError) as err:
+        w.update_actor_weights(verbose=False, blocking=True)
+    msg = str(err.value)
+    assert "(3,)" in msg and "(4,)" in msg and "same environment" in msg
+
+
+def test_worker_killed_and_restarted_gets_latest_weights_and_samples_flow(tmp_path, port_factory, closing, children):
+    port = port_factory()
+    closing.append(Server(port=port, password=PW, security=None))
+    iface = interface(tmp_path, port)
+    closing.append(iface)
+    first = Child(tmp_path, "worker", port=port, episodes=5, model=str(tmp_path / "w1.json"))
+    children.append(first)
+    src1 = first.line()["source"]
+    drain(iface, 11)
+    actor = JsonActor(CountingEnv().observation_space, CountingEnv().action_space)
+    actor.bias = 0.5
+    iface.broadcast_model(actor)
+    first.kill()
+    # a new worker, started after the broadcast, gets it from the server and acts with it
+    second = Child(tmp_path, "worker", port=port, episodes=3, wait_weights=True, model=str(tmp_path / "w2.json"))
+    children.append(second)
+    src2 = second.line()["source"]
+    assert second.line()["bias"] == 0.5
+    mine = drain(iface, 33, timeout=20, source=src2)
+    assert sorted(g[1] for g in mine) == list(range(33))
+    assert all(g[2] == 0.5 for g in mine if g[2] is not None)
+    assert src1 != src2
+
+
+def test_server_killed_and_restarted_keeps_samples_of_live_worker(tmp_path, port_factory, closing, children):
+    port = port_factory()
+    server = Child(tmp_path, "server", port=port)
+    children.append(server)
+    server.line()
+    iface = interface(tmp_path, port)
+    w = worker(tmp_path, port, "w")
+    closing.extend([iface, w])
+    assert w.wait_connected(15) and iface.wait_connected(15)
+    w.collect_train_episode()
+    w.send_and_clear_buffer()
+    assert sorted(g[1] for g in drain(iface, 11)) == list(range(11))
+    actor = JsonActor(CountingEnv().observation_space, CountingEnv().action_space)
+    actor.bias = 0.25
+    iface.broadcast_model(actor)
+    assert w.update_actor_weights(verbose=False, blocking=True) == 1
+
+    server.kill()
+    wait_for(lambda: not w.connected and not iface.connected, what="both links to see the server gone")
+    for _ in range(2):  # samples produced while the server is down stay with the worker
+        w.collect_train_episode()
+        w.send_and_clear_buffer()
+    restarted = Child(tmp_path, "server", port=port)
+    children.append(restarted)
+    restarted.line()
+    got = drain(iface, 22, timeout=30)
+    assert sorted(g[1] for g in got) == list(range(11, 33))
+    # the restarted server has no weights; the trainer sends its latest again on reconnection
+    assert w.update_actor_weights(verbose=False, blocking=True) == 1 and w.actor.bias == 0.25
+
+
+def test_trainer_killed_and_restarted_resumes_from_checkpoint_without_losing_samples(
+        tmp_path, port_factory, closing, children):
+    port = port_factory()
+    closing.append(Server(port=port, password=PW, security=None))
+    w = worker(tmp_path, port, "w")
+    closing.append(w)
+    log, ckpt = tmp_path / "log.jsonl", tmp_path / "ckpt.json"
+    args = dict(port=port, log=str(log), checkpoint=str(ckpt), model=str(tmp_path / "t.json"))
+    first = Child(tmp_path, "trainer", **args)
+    children.append(first)
+    first.line()
+    w.collect_train_episode()
+    w.send_and_clear_buffer()
+    assert w.update_actor_weights(verbose=False, blocking=True) == 1 and w.actor.bias == 1.0  # epoch 1 done
+    wait_for(lambda: ckpt.exists() and json.loads(ckpt.read_text())["epoch"] == 1, what="the epoch-1 checkpoint")
+    first.kill()
+    wait_for(lambda: relay_connections(port).count("ESTABLISHED") == 1 and "CLOSE_WAIT" not in relay_connections(port),
+             what="the server to close the killed trainer's connection")
+    w.collect_train_episode()  # sent while no trainer is connected: the server keeps it
+    w.send_and_clear_buffer()
+    second = Child(tmp_path, "trainer", **args)
+    children.append(second)
+    assert second.line()["epoch"] == 1  # resumed, not restarted from scratch
+    # the resumed trainer re-broadcasts its weights, then finishes epoch 2 with the kept samples
+    biases = set()
+    wait_for(lambda: (w.update_actor_weights(verbose=False) and biases.add(w.actor.bias)) or 2.0 in biases,
+             timeout=20, what="the resumed trainer's epoch-2 weights")
+    entries = read_log(log)
+    assert sorted(s for e in entries if e["epoch"] == 1 for s in e["seqs"][str(w.source_id)]) == list(range(11, 22))
+    assert sorted(s for e in entries for s in e["seqs"][str(w.source_id)]) == list(range(22))
+
+
+def test_tls_with_fresh_credentials(tmp_path, port_factory, closing):
+    from tmrl.transport import ensure_credentials
+
+    keys = tmp_path / "credentials"
+    ensure_credentials(keys)
+    port = port_factory()
+    closing.append(Server(port=port, password=PW, security="TLS", keys_dir=str(keys)))
+    iface = TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PW, security="TLS", keys_dir=str(keys),
+                             model_path=str(tmp_path / "t.json"))
+    w = RolloutWorker(env_cls=CountingEnv, actor_module_cls=JsonActor, server_ip="127.0.0.1", server_port=port,
+                      password=PW, security="TLS", keys_dir=str(keys), model_path=str(tmp_path / "w.json"),
+                      model_history=0, max_samples_per_episode=4)
+    closing.extend([iface, w])
+    w.collect_train_episode()
+    w.send_and_clear_buffer()
+    assert sorted(g[1] for g in drain(iface, 5)) == list(range(5))
+    actor = JsonActor(CountingEnv().observation_space, CountingEnv().action_space)
+    actor.bias = 0.125
+    iface.broadcast_model(actor)
+    assert w.update_actor_weights(verbose=False, blocking=True) == 1 and w.actor.bias == 0.125
+
+
+def test_cli_server_exits_cleanly_on_ctrl_c_and_frees_port(tmp_path, port_factory, _isolated_data_folder):
+    port = port_factory()
+    env = dict(os.environ, TMRL_CONFIG_OVERRIDE=json.dumps({"PORT": port, "TLS": False, "PASSWORD": PW}))
+    proc = subprocess.Popen([sys.executable, "-m", "tmrl", "--server"], env=env, stderr=subprocess.PIPE,
+                            stdout=subprocess.DEVNULL, cwd=str(tmp_path))
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(ln.decode().rstrip() for ln in proc.stderr), daemon=True)
+    reader.start()
+    try:
+        wait_for(lambda: proc.poll() is not None or any("server running on port" in ln for ln in lines),
+                 timeout=30, what="the server to run")
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGINT)
+        proc.wait(20)
+        reader.join(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130
+    # exactly one line about the stop (the relay process may still log its own shutdown around it)
+    assert [ln for ln in lines if "stopped" in ln or "interrupted" in ln] == ["tmrl: server stopped (Ctrl-C)"]
+    assert not any("Traceback" in ln for ln in lines)
+    with socket.socket() as s:  # no child kept the port
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", port))
+
+
+def relay_listening(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+# ------------------------------------------------------------------------------------------------
+# subprocess roles: python tests/test_networking_e2e.py ROLE JSON_ARGS
+
+
+def _say(obj: dict) -> None:
+    print(json.dumps(obj), flush=True)
+
+
+def _child(role: str, args: dict) -> None:
+    port = args["port"]
+    if role == "server":
+        server = Server(port=port, password=PW, security=None)
+        _say({"ready": True})
+        while server.running:
+            time.sleep(0.5)
+    elif role == "worker":
+        w = RolloutWorker(env_cls=CountingEnv, actor_module_cls=JsonActor, server_ip="127.0.0.1", server_port=port,
+                          password=PW, security=None, model_path=args["model"], model_history=0,
+                          max_samples_per_episode=10)
+        _say({"source": w.source_id})
+        if args.get("wait_weights"):
+            w.update_actor_weights(verbose=False, blocking=True)
+            _say({"bias": w.actor.bias})
+        for _ in range(args["episodes"]):
+            w.collect_train_episode()
+            w.send_and_clear_buffer()
+            w.update_actor_weights(verbose=False)
+        w.close()
+        while True:
+            time.sleep(1)
+    elif role == "trainer":
+        trainer = Trainer(training_cls=lambda: RecordingTraining(args["log"], epochs=1000, samples_per_epoch=11),
+                          server_ip="127.0.0.1", server_port=port, password=PW, security=None,
+                          model_path=args["model"], checkpoint_path=args["checkpoint"],
+                          dump_run_instance_fn=RecordingTraining.dump, load_run_instance_fn=RecordingTraining.load)
+        run = trainer._load_or_create()
+        _say({"epoch": run.epoch})
+        while run.epoch < run.epochs:
+            run.run_epoch(interface=trainer.interface)
+            trainer.dump_run_instance_fn(run, trainer.checkpoint_path)
+
+
+if __name__ == "__main__":
+    _child(sys.argv[1], json.loads(sys.argv[2]))

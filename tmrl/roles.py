@@ -1,0 +1,200 @@
+"""What ``python -m tmrl --server/--trainer/--worker/--expert/--test/--benchmark`` start.
+
+Each function builds its object from ``tmrl.config.config_constants`` and
+``tmrl.config.config_objects`` (which read ``config.json`` when first imported), runs it until it
+is done or interrupted, and returns the process exit code (0 done, 130 interrupted). Ctrl-C stops
+the role cleanly: the network link or relay is closed (no child process keeps a port) and one line
+says so.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+from typing import Any, Mapping
+
+from tmrl.errors import UserError
+
+__all__ = ["run_server", "run_trainer", "run_worker", "run_benchmark", "WORKER_MODES"]
+
+logger = logging.getLogger(__name__)
+
+#: Modes of :func:`run_worker`: ``train`` (send samples, load weights), ``expert`` (send samples,
+#: ignore weights), ``test`` (standalone: run the current weights, send nothing).
+WORKER_MODES = ("train", "expert", "test")
+
+#: Exit code of a role stopped by Ctrl-C (128 + SIGINT, as the CLI's).
+INTERRUPTED = 130
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def _constants() -> Any:
+    from tmrl.config import config_constants
+
+    return config_constants
+
+
+def _objects() -> Any:
+    from tmrl.config import config_objects
+
+    return config_objects
+
+
+def run_server(cfg: Mapping[str, Any] | None = None, stop_event: threading.Event | None = None) -> int:
+    """Run the server until Ctrl-C (or until ``stop_event`` is set). Returns the exit code.
+
+    Args:
+        cfg: the loaded config dict (the values themselves are read through ``config_constants``).
+        stop_event: lets a caller (tests, a service wrapper) stop the server without a signal.
+
+    Raises:
+        UserError: the port cannot be bound, or the TLS credentials are missing.
+    """
+    from tmrl.networking import Server
+
+    server = Server()
+    stop_event = stop_event or threading.Event()
+    logger.info("server running on port %d; Ctrl-C to stop", server.port)
+    try:
+        while not stop_event.wait(1.0):
+            if not server.running:
+                _say(f"tmrl: the server on port {server.port} stopped unexpectedly")
+                return 1
+    except KeyboardInterrupt:
+        _say("tmrl: server stopped (Ctrl-C)")
+        return INTERRUPTED
+    finally:
+        server.stop()
+    return 0
+
+
+def _set_aside(path: str) -> None:
+    """Move a checkpoint out of the way (``RESET_TRAINING``), keeping one previous copy."""
+    import os
+    import shutil
+
+    old = f"{path}.previous"
+    if os.path.isdir(old):
+        shutil.rmtree(old)
+    elif os.path.exists(old):
+        os.unlink(old)
+    os.replace(path, old)
+    logger.warning("RESET_TRAINING is true: starting a new run; the previous checkpoint is now %s", old)
+
+
+def trainer_from_config() -> Any:
+    """The :class:`~tmrl.networking.Trainer` that ``--trainer`` runs, built from the config."""
+    from tmrl.networking import Trainer
+
+    cc, co = _constants(), _objects()
+    return Trainer(
+        training_cls=co.TRAINER,
+        server_ip=getattr(cc, "SERVER_IP_FOR_TRAINER", None),
+        model_path=getattr(cc, "MODEL_PATH_TRAINER", None),
+        checkpoint_path=getattr(cc, "CHECKPOINT_PATH", None),
+        dump_run_instance_fn=getattr(co, "DUMP_RUN_INSTANCE_FN", None),
+        load_run_instance_fn=getattr(co, "LOAD_RUN_INSTANCE_FN", None),
+        updater_fn=getattr(co, "UPDATER_FN", None),
+    )
+
+
+def run_trainer(cfg: Mapping[str, Any] | None = None, wandb: bool = False) -> int:
+    """Run the trainer (with Weights & Biases logging when ``wandb``) until its last epoch or
+    Ctrl-C. Returns the exit code."""
+    cc = _constants()
+    trainer = trainer_from_config()
+    if getattr(cc, "RESET_TRAINING", False) and trainer.checkpoint_exists():
+        _set_aside(trainer.checkpoint_path)
+    logger.info("trainer running %s", getattr(_objects(), "ALG_NAME", "the configured algorithm"))
+    try:
+        if wandb:
+            trainer.run_with_wandb(entity=getattr(cc, "WANDB_ENTITY", None),
+                                   project=getattr(cc, "WANDB_PROJECT", None),
+                                   run_id=getattr(cc, "WANDB_RUN_ID", None),
+                                   key=getattr(cc, "WANDB_KEY", None))
+        else:
+            trainer.run()
+    except KeyboardInterrupt:
+        trainer.interface.close()
+        _say("tmrl: trainer stopped (Ctrl-C); the last checkpoint is kept")
+        return INTERRUPTED
+    return 0
+
+
+def _env_cls() -> Any:
+    co, cc = _objects(), _constants()
+    env_cls = getattr(co, "ENV_CLS", None)
+    if env_cls is not None:
+        return env_cls
+    from tmrl.envs import GenericGymEnv
+    from tmrl.util import partial
+
+    return partial(GenericGymEnv, id=cc.RTGYM_VERSION, gym_kwargs={"config": co.CONFIG_DICT})
+
+
+def worker_from_config(standalone: bool = False) -> Any:
+    """The :class:`~tmrl.networking.RolloutWorker` that ``--worker`` runs, built from the config."""
+    from tmrl.networking import RolloutWorker
+
+    cc, co = _constants(), _objects()
+    max_samples = getattr(cc, "RW_MAX_SAMPLES_PER_EPISODE", None)
+    return RolloutWorker(
+        env_cls=_env_cls(),
+        actor_module_cls=co.POLICY,
+        sample_compressor=getattr(co, "SAMPLE_COMPRESSOR", None),
+        device="cuda" if getattr(cc, "CUDA_INFERENCE", False) else "cpu",
+        max_samples_per_episode=max_samples if max_samples is not None else float("inf"),
+        model_path=getattr(cc, "MODEL_PATH_WORKER", None),
+        obs_preprocessor=getattr(co, "OBS_PREPROCESSOR", None),
+        crc_debug=bool(getattr(cc, "CRC_DEBUG", False)),
+        standalone=standalone,
+        server_ip=getattr(cc, "SERVER_IP_FOR_WORKER", None),
+    )
+
+
+def run_worker(cfg: Mapping[str, Any] | None = None, mode: str = "train") -> int:
+    """Run a rollout worker until Ctrl-C. Returns the exit code.
+
+    Args:
+        cfg: the loaded config dict.
+        mode: ``"train"`` (``--worker``), ``"expert"`` (``--expert``) or ``"test"`` (``--test``:
+            standalone, no server).
+
+    Raises:
+        UserError: unknown ``mode``, or bad connection settings.
+    """
+    if mode not in WORKER_MODES:
+        raise UserError(f"unknown worker mode {mode!r}: use one of {', '.join(WORKER_MODES)}")
+    worker = worker_from_config(standalone=mode == "test")
+    try:
+        if mode == "train":
+            worker.run()
+        elif mode == "expert":
+            worker.run(expert=True)
+        else:
+            worker.run_episodes(10_000)
+    except KeyboardInterrupt:
+        _say(f"tmrl: worker stopped (Ctrl-C){'' if mode == 'test' else '; samples already sent are kept'}")
+        return INTERRUPTED
+    finally:
+        worker.close()
+    return 0
+
+
+def run_benchmark(cfg: Mapping[str, Any] | None = None, nb_steps: int = 1000) -> int:
+    """Benchmark the configured environment (``--benchmark``): a standalone worker steps it
+    ``nb_steps`` times and the environment's timing figures are printed. Returns the exit code."""
+    worker = worker_from_config(standalone=True)
+    try:
+        res = worker.run_env_benchmark(nb_steps=nb_steps, test=False, verbose=False)
+    except KeyboardInterrupt:
+        _say("tmrl: benchmark stopped (Ctrl-C)")
+        return INTERRUPTED
+    finally:
+        worker.close()
+    print(f"benchmark ({nb_steps} steps): {res}")
+    return 0
