@@ -98,7 +98,8 @@ def test_drone_config():
     assert fast["interface_kwargs"]["communication_delay_max"] == pytest.approx(0.005)
     with pytest.raises(UserError, match="time_step"):
         drone_config(time_step=0.1)
-    assert not rt.check_realtime_interface(drone_config(fast=True), n_steps=3)
+    # virtual time for the checker's timing, so that a loaded machine cannot fail it
+    assert rt.check_realtime_interface(drone_config(fast=True), n_steps=3, clock=rt.FakeClock()) == []
 
 
 @pytest.mark.parametrize("env_id", ["real-time-gym-v1", "real-time-gym-ts-v1"])

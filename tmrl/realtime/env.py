@@ -64,6 +64,19 @@ class BenchmarkDisabledError(UserError, AssertionError):
     """``benchmarks()`` was called without ``"benchmark": True`` (an ``AssertionError``, as in rtgym)."""
 
 
+def _next_start(decision_time: float, t_end: float, timeout: float) -> tuple[float, bool]:
+    """The elastic rule: where the next time step starts, and whether the clock restarted.
+
+    ``decision_time`` is when the next time step could start at the earliest (the later of the
+    ``step()`` call, the end of the capture and the nominal end ``t_end``). Within ``timeout``
+    after ``t_end``, the next time step starts at ``t_end`` (the cadence is kept); later, at
+    ``decision_time``.
+    """
+    if decision_time < t_end + timeout:
+        return t_end, False
+    return decision_time, True
+
+
 def _read_config(config: Mapping[str, Any]) -> dict[str, Any]:
     """Complete ``config`` with the defaults and check the values a user can get wrong.
 
@@ -229,42 +242,67 @@ class RealTimeEnv(gymnasium.Env):
         return value
 
     def _worker_loop(self, t0: float) -> None:
-        """The time-step thread: runs jobs in order until told to stop."""
+        """The time-step thread: runs jobs in order until told to stop.
+
+        Jobs: ``("start", (action, t_start, t_co, t_end))`` runs a time step with timestamps
+        decided by the caller; ``("next", (action, t_call, truncating, T, c, timeout))`` chains a
+        time step to the one just captured, deciding its start with the same rule as the caller
+        (:func:`_next_start`), so the control goes out right at the end of the previous time step
+        without waiting for the caller to wake up; ``("call", fn)`` runs ``fn(interface)``.
+        """
         clock = self._clock
         clock.sleep_until(t0)
+        # (t_end, capture_end) of the last time step when it may be chained, else None
+        last: tuple[float, float] | None = None
         while True:
             kind, payload = self._jobs.get()
             if kind == "stop":
                 self._results.put(("ok", None))
                 return
-            try:
-                if kind == "step":
-                    value = self._time_step(*payload)
-                else:
-                    value = payload(self._interface)
-            except BaseException as err:  # handed to the caller, who re-raises it
-                self._results.put(("error", err))
+            if kind == "next":
+                action, t_call, truncating, duration, capture, timeout = payload
+                if last is None or truncating:
+                    continue  # the episode ended: no time step starts
+                t_end, capture_end = last
+                t_start, _ = _next_start(max(t_call, capture_end, t_end), t_end, timeout)
+                last = self._time_step(action, t_start, t_start + capture, t_start + duration)
+            elif kind == "start":
+                last = self._time_step(*payload)
             else:
-                self._results.put(("ok", value))
+                last = None
+                try:
+                    value = payload(self._interface)
+                except BaseException as err:  # handed to the caller, who re-raises it
+                    self._results.put(("error", err))
+                else:
+                    self._results.put(("ok", value))
 
-    def _time_step(self, action: Any, t_co: float) -> tuple[tuple[Any, ...], Any, Any, Any]:
-        """Send the control now, capture the observation at ``t_co`` (time-step thread)."""
+    def _time_step(self, action: Any, t_start: float, t_co: float, t_end: float) -> tuple[float, float] | None:
+        """Send the control at ``t_start``, capture the observation at ``t_co`` and post it
+        (time-step thread). Returns ``(t_end, capture_end)`` when a next time step may follow."""
         clock, bench = self._clock, self.benchmark
-        if bench:
-            self.bench.start_send_control(clock.now())
-        self._interface.send_control(self.act_prepro_func(action) if self.act_prepro_func else action)
-        if bench:
-            self.bench.end_send_control(clock.now())
-        clock.sleep_until(t_co)
-        if bench:
-            self.bench.start_get_obs(clock.now())
-        obs, rew, terminated, info = self._interface.get_obs_rew_terminated_info()
-        if self.obs_prepro_func:
-            obs = self.obs_prepro_func(obs)
-        obs = tuple(obs)
-        if bench:
-            self.bench.end_get_obs(clock.now())
-        return obs, rew, terminated, info
+        try:
+            clock.sleep_until(t_start)
+            if bench:
+                self.bench.start_send_control(clock.now())
+            self._interface.send_control(self.act_prepro_func(action) if self.act_prepro_func else action)
+            if bench:
+                self.bench.end_send_control(clock.now())
+            clock.sleep_until(t_co)
+            if bench:
+                self.bench.start_get_obs(clock.now())
+            obs, rew, terminated, info = self._interface.get_obs_rew_terminated_info()
+            if self.obs_prepro_func:
+                obs = self.obs_prepro_func(obs)
+            obs = tuple(obs)
+            capture_end = clock.now()
+            if bench:
+                self.bench.end_get_obs(capture_end)
+        except BaseException as err:  # handed to the caller, who re-raises it
+            self._results.put(("error", err))
+            return None
+        self._results.put(("ok", (obs, rew, terminated, info, capture_end)))
+        return None if terminated else (t_end, capture_end)
 
     def _stop_worker(self) -> None:
         if self._thread.is_alive():
@@ -282,31 +320,29 @@ class RealTimeEnv(gymnasium.Env):
         self._t_end = now
         self.time_initialized = True
 
-    def _update_timestamps(self) -> None:
-        """Start a time step: at the end of the previous one when within the allowed lateness,
-        else now (with a warning unless the environment was waiting)."""
-        now = self._clock.now()
-        if now < self._t_end + self.time_step_timeout:
-            self._t_start = self._t_end
-        else:
+    def _set_timestamps(self, decision_time: float) -> None:
+        """Place the next time step, as decided at ``decision_time`` (see :func:`_next_start`),
+        warning when the clock restarts (unless the environment was waiting)."""
+        self._t_start, timed_out = _next_start(decision_time, self._t_end, self.time_step_timeout)
+        if timed_out:
             if not self.is_waiting:
                 warnings.warn(
-                    f"time step timed out: step() or reset() came {1000 * (now - self._t_end):.1f} ms after the "
-                    f"end of the time step (allowed: {1000 * self.time_step_timeout:.1f} ms); the clock restarts "
-                    "from now (make inference faster or raise time_step_timeout_factor)",
+                    f"time step timed out: step() or reset() came {1000 * (decision_time - self._t_end):.1f} ms "
+                    f"after the end of the time step (allowed: {1000 * self.time_step_timeout:.1f} ms); the clock "
+                    "restarts from now (make inference faster or raise time_step_timeout_factor)",
                     TimeStepTimeoutWarning,
                     stacklevel=4,
                 )
             else:
                 self.is_waiting = False
-            self._t_start = now
         self._t_co = self._t_start + self.start_obs_capture
         self._t_end = self._t_start + self.time_step_duration
 
-    def _run_time_step(self, action: Any) -> None:
-        self._update_timestamps()
+    def _start_time_step(self, action: Any) -> None:
+        """Start a time step from the caller's thread (reset, or a step after a join)."""
+        self._set_timestamps(self._clock.now())
         self._in_flight = True
-        self._jobs.put(("step", (action, self._t_co)))
+        self._jobs.put(("start", (action, self._t_start, self._t_co, self._t_end)))
 
     def _join_thread(self) -> None:
         """Wait until the running time step (if any) has captured its observation and ended."""
@@ -314,17 +350,6 @@ class RealTimeEnv(gymnasium.Env):
             self._result = self._results.get()
             self._in_flight = False
             self._clock.sleep_until(self._t_end)
-
-    def _retrieve_obs_rew_terminated_info(self) -> tuple[tuple[Any, ...], Any, Any, Any]:
-        result, self._result = self._result, None
-        if result is None:
-            self.running = False
-            raise StepAfterDoneError("no time step is running: call reset() before step()")
-        status, value = result
-        if status == "error":
-            self.running = False  # the episode cannot go on; reset() starts a new one
-            raise value
-        return value
 
     # gymnasium API -------------------------------------------------------------------------
     def _buffer_copy(self) -> list[Any]:
@@ -375,7 +400,7 @@ class RealTimeEnv(gymnasium.Env):
         obs = tuple(obs)
         if not self.time_initialized:
             self._initialize_time()
-        self._run_time_step(self.act_buf[-1])
+        self._start_time_step(self.act_buf[-1])
         if bench:
             self.bench.end_reset(clock.now())
         return obs, info
@@ -396,21 +421,48 @@ class RealTimeEnv(gymnasium.Env):
             Exception: whatever the interface raised during the time step.
         """
         clock, bench = self._clock, self.benchmark
+        t_call = clock.now()
         if bench:
-            self.bench.start_step(clock.now())
-        self._join_thread()
-        if bench:
-            self.bench.end_step_join(clock.now())
+            self.bench.start_step(t_call)
         self.current_step += 1
         self.act_buf.append(action)  # as in rtgym, even when the episode has ended
-        if not self.running:
-            self._result = None
-            raise StepAfterDoneError("the episode is terminated or truncated: call reset() before step()")
-        obs, rew, terminated, info = self._retrieve_obs_rew_terminated_info()
-        truncated = bool(self.current_step >= self.ep_max_length) if not terminated else False
-        if not (terminated or truncated):
-            self._run_time_step(action)
+        truncating = bool(self.current_step >= self.ep_max_length)
+        chained = self._in_flight and self.running
+        if chained:
+            # Hand the action over before waiting: the time-step thread sends it as soon as the
+            # running time step ends, whatever the delay of this thread's wake-up.
+            self._jobs.put(
+                (
+                    "next",
+                    (action, t_call, truncating, self.time_step_duration, self.start_obs_capture, self.time_step_timeout),
+                )
+            )
+            self._result = self._results.get()
+            self._in_flight = False
         else:
+            self._join_thread()
+        if bench:
+            self.bench.end_step_join(clock.now())
+        result, self._result = self._result, None
+        if not self.running or result is None:
+            self.running = False
+            raise StepAfterDoneError("the episode is terminated or truncated: call reset() before step()")
+        status, value = result
+        if status == "error":
+            self.running = False  # the episode cannot go on; reset() starts a new one
+            raise value
+        obs, rew, terminated, info, capture_end = value
+        truncated = truncating if not terminated else False
+        if not (terminated or truncated):
+            if chained:
+                # the same decision as the time-step thread's (same inputs, same rule)
+                self._set_timestamps(max(t_call, capture_end, self._t_end))
+                self._in_flight = True
+            else:
+                self._start_time_step(action)
+            clock.sleep_until(self._t_start)
+        else:
+            clock.sleep_until(self._t_end)
             self.running = False
             if self.wait_on_done:
                 self.wait()

@@ -1,0 +1,190 @@
+"""Timing precision of the real-time environment: tmrl.realtime against rtgym 0.16.
+
+Runs a 20 Hz environment (an interface that records when each control is sent and returns a
+constant observation at once) for a few hundred steps, with a simulated inference between steps,
+and prints mean, standard deviation and 99th percentile of
+
+* the interval between two step() returns (what the policy sees), and
+* the time-step duration (the interval between two send_control calls: what the device sees),
+
+for both implementations in the same run, and the ratios ours / rtgym (below 1 is better).
+Each implementation runs in its own subprocess: tmrl's with this Python, rtgym's with the
+interpreter of the separate venv where it is installed (``--rtgym-python``), e.g.::
+
+    python3 -m venv /tmp/rtgym-venv && /tmp/rtgym-venv/bin/pip install rtgym==0.16
+    python bench/realtime_jitter.py                      # idle machine
+    python bench/realtime_jitter.py --busy               # a busy process on the other core
+    python bench/realtime_jitter.py --both               # both, one table each
+
+Rounds alternate between the implementations so that a change in the machine's load affects both.
+Figures are noisy on a shared machine: the script prints the load average beside them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+HERE = os.path.abspath(__file__)
+
+
+# child: one implementation --------------------------------------------------------------------
+def child(impl: str, steps: int, warmup: int, inference_ms: float, period: float) -> None:
+    import gymnasium
+    import numpy as np
+    from gymnasium import spaces
+
+    if impl == "rtgym":
+        import rtgym
+
+        base, defaults, env_id = rtgym.RealTimeGymInterface, rtgym.DEFAULT_CONFIG_DICT, "real-time-gym-v1"
+    else:
+        import tmrl.realtime
+
+        base, defaults, env_id = (
+            tmrl.realtime.RealTimeGymInterface,
+            tmrl.realtime.DEFAULT_CONFIG_DICT,
+            "tmrl/real-time-gym-v1",
+        )
+    controls: list[float] = []
+
+    class Recorder(base):  # type: ignore[misc, valid-type]
+        def get_observation_space(self):
+            return spaces.Tuple((spaces.Box(-1.0, 1.0, (1,), np.float32),))
+
+        def get_action_space(self):
+            return spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+        def get_default_action(self):
+            return np.zeros(1, np.float32)
+
+        def send_control(self, control):
+            controls.append(time.perf_counter())
+
+        def reset(self, seed=None, options=None):
+            return [np.zeros(1, np.float32)], {}
+
+        def get_obs_rew_terminated_info(self):
+            return [np.zeros(1, np.float32)], 0.0, False, {}
+
+        def wait(self):
+            pass
+
+    config = dict(defaults)
+    config.update(
+        interface=Recorder,
+        time_step_duration=period,
+        start_obs_capture=period,
+        time_step_timeout_factor=1.0,
+        ep_max_length=np.inf,
+        act_buf_len=1,
+        benchmark=False,
+    )
+    env = gymnasium.make(env_id, config=config, disable_env_checker=True)
+    act = np.zeros(1, np.float32)
+    returns: list[float] = []
+    env.reset()
+    for _ in range(steps + warmup):
+        # simulated inference: Python work holding the GIL, as a policy's pre/post-processing does
+        deadline = time.perf_counter() + inference_ms / 1000.0
+        while time.perf_counter() < deadline:
+            pass
+        env.step(act)
+        returns.append(time.perf_counter())
+    env.close()
+    print(json.dumps({"returns": returns[warmup:], "controls": controls[warmup + 1 :]}))
+
+
+# parent -------------------------------------------------------------------------------------------
+def stats(timestamps: list[float]) -> tuple[float, float, float]:
+    import numpy as np
+
+    d = np.diff(np.asarray(timestamps)) * 1000.0
+    return float(d.mean()), float(d.std()), float(np.percentile(d, 99))
+
+
+def run_child(python: str, impl: str, args: argparse.Namespace, cpus: set[int] | None) -> dict[str, list[float]]:
+    cmd = [python, HERE, "--child", impl, "--steps", str(args.steps), "--warmup", str(args.warmup),
+           "--inference-ms", str(args.inference_ms), "--period", str(args.period)]
+    env = dict(os.environ)
+    repo = os.path.dirname(os.path.dirname(HERE))
+    if impl == "tmrl":
+        env["PYTHONPATH"] = repo + os.pathsep + env.get("PYTHONPATH", "")
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    if cpus:
+        os.sched_setaffinity(proc.pid, cpus)
+    out, err = proc.communicate()
+    if proc.returncode != 0:
+        raise SystemExit(f"{impl} run failed:\n{err}")
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def measure(args: argparse.Namespace, busy: bool) -> None:
+    ncpu = os.cpu_count() or 1
+    hog = None
+    cpus = None
+    if busy:
+        hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        if ncpu >= 2 and hasattr(os, "sched_setaffinity"):
+            os.sched_setaffinity(hog.pid, {ncpu - 1})
+            cpus = set(range(ncpu - 1))
+    try:
+        load_before = os.getloadavg()
+        runs: dict[str, dict[str, list[float]]] = {"tmrl": {"returns": [], "controls": []},
+                                                   "rtgym": {"returns": [], "controls": []}}
+        figures: dict[str, dict[str, list[tuple[float, float, float]]]] = {k: {"returns": [], "controls": []} for k in runs}
+        for _ in range(args.rounds):
+            for impl, python in (("tmrl", sys.executable), ("rtgym", args.rtgym_python)):
+                res = run_child(python, impl, args, cpus)
+                for key in ("returns", "controls"):
+                    figures[impl][key].append(stats(res[key]))
+        load_after = os.getloadavg()
+    finally:
+        if hog is not None:
+            hog.kill()
+            hog.wait()
+
+    def pooled(impl: str, key: str) -> tuple[float, float, float]:
+        rows = figures[impl][key]
+        return tuple(sum(r[i] for r in rows) / len(rows) for i in range(3))  # type: ignore[return-value]
+
+    title = "busy process on the other core" if busy else "no extra load"
+    print(f"\n{1 / args.period:.0f} Hz, {args.steps} steps x {args.rounds} round(s), "
+          f"inference {args.inference_ms} ms, {title}; load average {load_before[0]:.2f} -> {load_after[0]:.2f}"
+          f" ({ncpu} CPUs)")
+    print(f"{'figure (ms)':<34}{'tmrl':>10}{'rtgym':>10}{'ratio':>8}")
+    for key, label in (("returns", "step() return interval"), ("controls", "time-step duration")):
+        ours, theirs = pooled("tmrl", key), pooled("rtgym", key)
+        for i, name in enumerate(("mean", "std", "p99")):
+            ratio = ours[i] / theirs[i] if theirs[i] else float("nan")
+            print(f"{label + ' ' + name:<34}{ours[i]:>10.3f}{theirs[i]:>10.3f}{ratio:>8.3f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--warmup", type=int, default=10)
+    parser.add_argument("--rounds", type=int, default=1, help="alternating runs per implementation")
+    parser.add_argument("--period", type=float, default=0.05, help="time-step duration in seconds")
+    parser.add_argument("--inference-ms", type=float, default=5.0)
+    parser.add_argument("--rtgym-python", default="/tmp/rtgym-venv/bin/python",
+                        help="interpreter of the venv where rtgym==0.16 is installed")
+    parser.add_argument("--busy", action="store_true", help="run a busy process on the other core")
+    parser.add_argument("--both", action="store_true", help="measure without and with the busy process")
+    parser.add_argument("--child", choices=["tmrl", "rtgym"], help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        child(args.child, args.steps, args.warmup, args.inference_ms, args.period)
+        return
+    if not os.path.exists(args.rtgym_python):
+        raise SystemExit(f"{args.rtgym_python} not found: install rtgym==0.16 in a venv and pass --rtgym-python")
+    for busy in ([False, True] if args.both else [args.busy]):
+        measure(args, busy)
+
+
+if __name__ == "__main__":
+    main()
