@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import random
+import shutil
 
 import gymnasium
 import numpy as np
@@ -163,6 +164,20 @@ def test_memory_segments_are_incremental_and_compacted(tmp_path):
     for a, b in zip(training.memory.sample(idx), restored.memory.sample(idx)):
         a, b = (a[0], b[0]) if isinstance(a, tuple) else (a, b)
         assert torch.equal(a, b)
+    # a run resumed from a backup (same memory uid, older history) is written in full
+    backup = tmp_path / "backup"
+    shutil.copytree(path, backup)
+    training.memory.append(Buf(samples(5, start=105)))
+    save_checkpoint(training, path)
+    resumed = load_checkpoint(backup, cls)
+    resumed.memory.append(Buf(samples(20, start=500)))
+    save_checkpoint(resumed, path)
+    segs = json.loads((path / "checkpoint.json").read_text())["memory"]["segments"]
+    assert [(s["start"], s["stop"]) for s in segs] == [(75, 125)]
+    again = load_checkpoint(path, cls)
+    idx = resumed.memory.valid_slots()
+    assert np.array_equal(idx, again.memory.valid_slots())
+    assert torch.equal(resumed.memory.sample(idx)[1], again.memory.sample(idx)[1])
     # a different memory (new run) at the same path is written in full, not appended
     other = trained(cls, n_samples=10)
     save_checkpoint(other, path)

@@ -264,7 +264,7 @@ def _ring_rows(memory: Any, start: int, stop: int) -> dict[str, list[np.ndarray]
     return out
 
 
-def _save_memory(memory: Any, folder: Path, gen: int, old: dict[str, Any] | None) -> dict[str, Any]:
+def _save_memory(memory: Any, folder: Path, gen: int, old: dict[str, Any] | None, old_gen: int | None) -> dict[str, Any]:
     stats = [memory.stat_train_return, memory.stat_test_return, memory.stat_train_steps, memory.stat_test_steps]
     if _is_ring(memory):
         meta = memory.ring_meta()
@@ -272,7 +272,11 @@ def _save_memory(memory: Any, folder: Path, gen: int, old: dict[str, Any] | None
         oldest = total - min(total, cap)
         segments: list[dict[str, Any]] = []
         start = oldest
-        if old is not None and old.get("kind") == "ring":
+        # Segments on disk are reused only if they were written from (or loaded into) this very
+        # memory object at the generation now on disk: a memory resumed from a backup or another
+        # folder has a different history and is written in full.
+        linked = getattr(memory, "_checkpoint_link", None) == (str(folder.resolve()), old_gen)
+        if linked and old is not None and old.get("kind") == "ring":
             m = old["meta"]
             same_run = m["uid"] == meta["uid"] and m["capacity"] == cap and int(m["total"]) <= total
             same_layout = m["leaves"] == meta["leaves"] and m["act"] == meta["act"]
@@ -419,7 +423,9 @@ def save_checkpoint(training: Any, path: str | os.PathLike[str]) -> Path:
     torch.save(state, buf)
     state_record = _write_file(folder, f"state-{gen:06d}.pt", buf.getvalue())
 
-    memory_record = _save_memory(training.memory, folder, gen, old["memory"] if old else None)
+    memory_record = _save_memory(
+        training.memory, folder, gen, old["memory"] if old else None, int(old["generation"]) if old else None
+    )
     header = {
         "format": FORMAT,
         "version": VERSION,
@@ -433,8 +439,17 @@ def save_checkpoint(training: Any, path: str | os.PathLike[str]) -> Path:
         "rng": {"python": _python_rng(), "numpy": _numpy_rng()},
     }
     atomic_write_text(folder / HEADER, json.dumps(header))
+    _link(training.memory, folder, gen)
     _remove_unreferenced(folder, header)
     return folder
+
+
+def _link(memory: Any, folder: Path, generation: int) -> None:
+    """Remember which checkpoint generation this memory matches (enables incremental saves)."""
+    try:
+        memory._checkpoint_link = (str(folder.resolve()), generation)
+    except AttributeError:  # memories with __slots__: always saved in full
+        pass
 
 
 def _referenced(header: dict[str, Any]) -> set[str]:
@@ -499,6 +514,7 @@ def load_checkpoint(path: str | os.PathLike[str], training: Any) -> Any:
             "settings the checkpoint was written with"
         ) from None
     _restore_memory(instance.memory, folder, header["memory"])
+    _link(instance.memory, folder, int(header["generation"]))
     instance.epoch = int(header["epoch"])
     instance.total_updates = int(header["total_updates"])
     instance.total_samples = int(header["total_samples"])
