@@ -50,6 +50,9 @@ _TUPLE, _LIST, _DICT, _ARRAY, _SCALAR = b"t", b"l", b"d", b"a", b"n"
 # dtype kinds that are plain numbers: bool, signed, unsigned, float, complex.
 _NUMERIC_KINDS = frozenset("biufc")
 _LITTLE = sys.byteorder == "little"
+# Caches of dtype headers (encode) and parsed dtype codes (decode); bounded, valid entries only.
+_DTYPE_HEADERS: dict[np.dtype, bytes] = {}
+_DTYPES: dict[bytes, np.dtype] = {}
 
 
 class DecodeError(UserError, ValueError):
@@ -169,27 +172,34 @@ class _Encoder:
         self.put(_BIGINT + _U64.pack(n) + i.to_bytes(n, "little", signed=True))
 
     def dtype_header(self, dt: np.dtype) -> bytes:
-        if dt.kind not in _NUMERIC_KINDS or dt.fields is not None or dt.subdtype is not None:
-            raise TypeError(f"tmrl.wire cannot encode arrays of dtype {dt}: numbers and bools only")
-        code = dt.newbyteorder("<").str.encode("ascii")  # '<f4', '|b1', '|u1'
-        return _U8.pack(len(code)) + code
+        head = _DTYPE_HEADERS.get(dt)
+        if head is None:
+            if dt.kind not in _NUMERIC_KINDS or dt.fields is not None or dt.subdtype is not None:
+                raise TypeError(f"tmrl.wire cannot encode arrays of dtype {dt}: numbers and bools only")
+            code = dt.newbyteorder("<").str.encode("ascii")  # '<f4', '|b1', '|u1'
+            head = _U8.pack(len(code)) + code
+            if len(_DTYPE_HEADERS) < 256:
+                _DTYPE_HEADERS[dt] = head
+        return head
 
     def array(self, arr: np.ndarray) -> None:
         dt = arr.dtype
-        head = _ARRAY + self.dtype_header(dt) + _U8.pack(arr.ndim)
-        if arr.ndim > _MAX_NDIM:
+        ndim = arr.ndim
+        if ndim > _MAX_NDIM:
             raise ValueError(f"arrays with more than {_MAX_NDIM} dimensions cannot be encoded")
-        head += b"".join(_U64.pack(s) for s in arr.shape)
-        little = dt.newbyteorder("<")
-        if dt != little:
-            arr = arr.astype(little)
+        head = _ARRAY + self.dtype_header(dt) + struct.pack(f"<B{ndim}Q", ndim, *arr.shape)
+        if dt.byteorder == ">" or (dt.byteorder == "=" and not _LITTLE):
+            arr = arr.astype(dt.newbyteorder("<"))
+        nbytes = arr.nbytes
+        if nbytes < _ALIGN_MIN:
+            # Small arrays are not padded (decode copies them anyway): padding would cost more
+            # bytes on the wire than the data of a typical observation.
+            self.put(head + b"\x00" + arr.tobytes())
+            return
         arr = np.ascontiguousarray(arr)
-        # Small arrays are not padded (decode copies them anyway): padding would cost more bytes
-        # on the wire than the data of a typical observation.
-        pad = -(self.size + len(head) + 1) % _ALIGN if arr.nbytes >= _ALIGN_MIN else 0
+        pad = -(self.size + len(head) + 1) % _ALIGN
         self.put(head + _U8.pack(pad) + bytes(pad))
-        if arr.nbytes:
-            self.put(memoryview(arr).cast("B"))
+        self.put(memoryview(arr).cast("B"))
 
     def scalar(self, s: np.generic) -> None:
         dt = s.dtype
@@ -366,6 +376,9 @@ class _Decoder:
             raise _corrupt("bad dtype code length")
         end2 = self.need(end, k)
         code = self.mv[end:end2].tobytes()
+        dt = _DTYPES.get(code)
+        if dt is not None:
+            return dt, end2
         if code[:1] not in (b"<", b">", b"|", b"=") or code[1:2] not in (b"b", b"i", b"u", b"f", b"c") or not code[2:].isdigit():
             raise _corrupt(f"bad dtype code {code!r}")
         try:
@@ -374,6 +387,8 @@ class _Decoder:
             raise _corrupt(f"unknown dtype {code!r}") from None
         if dt.kind not in _NUMERIC_KINDS or dt.fields is not None or dt.subdtype is not None:
             raise _corrupt(f"unsupported dtype {dt}")
+        if len(_DTYPES) < 256:  # only valid codes get here: a handful at most
+            _DTYPES[code] = dt
         return dt, end2
 
     def array(self, pos: int, depth: int) -> tuple[Any, int]:
@@ -396,6 +411,10 @@ class _Decoder:
         if nbytes > self.n - pos:
             raise _corrupt(f"array of {nbytes} bytes exceeds the remaining {self.n - pos} bytes")
         end = pos + nbytes
+        if nbytes < _ALIGN_MIN and dt.isnative:
+            # Small arrays: a private writable copy (also covers empty arrays).
+            arr = np.frombuffer(bytearray(self.mv[pos:end]), dtype=dt)
+            return (arr.reshape(shape) if len(shape) != 1 else arr), end
         native = dt.newbyteorder("=")
         if count == 0:
             return np.zeros(shape, dtype=native), end
