@@ -74,12 +74,12 @@ class TinyAgent:
             self.log_alpha.copy_(state["log_alpha"])
 
 
-def training_cls(memory_cls=None, **kwargs):
+def training_cls(memory_cls=None, training_agent_cls=TinyAgent, **kwargs):
     return partial(
         TorchTrainingOffline,
         env_cls=(OBS_SPACE, ACT_SPACE),
         memory_cls=memory_cls or partial(GenericTorchMemory, memory_size=50, batch_size=8),
-        training_agent_cls=TinyAgent,
+        training_agent_cls=training_agent_cls,
         device="cpu",
         **kwargs,
     )
@@ -341,3 +341,20 @@ def test_trainer_default_functions(tmp_path):
     mem = GenericTorchMemory(memory_size=50)
     load_memory(mem, tmp_path / "c")
     assert mem.total == 40
+
+
+def test_round_trip_with_the_real_sac_agent(tmp_path):
+    sac = pytest.importorskip("tmrl.algorithms.sac")
+    cls = training_cls(training_agent_cls=partial(sac.SACAgent))
+    training = cls()
+    training.memory.append(Buf(samples(40)))
+    for _ in range(3):
+        training.agent.train(training.memory.sample())
+    save_checkpoint(training, tmp_path / "c")
+    restored = load_checkpoint(tmp_path / "c", cls)
+    batch = training.memory.sample(training.memory.valid_slots()[:8])
+    torch.manual_seed(1)
+    a = training.agent.train(batch)
+    torch.manual_seed(1)
+    b = restored.agent.train(batch)
+    assert {k: float(v) for k, v in a.items()} == {k: float(v) for k, v in b.items()}

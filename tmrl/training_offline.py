@@ -45,9 +45,9 @@ def _mean_rows(rows: list[dict[str, Any]]) -> dict[str, float]:
                 values.setdefault(key, []).append(value)
     out: dict[str, float] = {}
     for key, vals in values.items():
-        tensors = [v for v in vals if isinstance(v, torch.Tensor)]
+        tensors = [v.detach().float().mean() for v in vals if isinstance(v, torch.Tensor) and v.numel() > 0]
         if tensors:
-            stacked = torch.stack([t.detach().float().reshape(()) for t in tensors if t.numel() == 1])
+            stacked = torch.stack(tensors)
             finite = stacked[torch.isfinite(stacked)]
             out[key] = float(finite.mean().item()) if finite.numel() else math.nan
             continue
@@ -281,7 +281,7 @@ class TrainingOffline:
                 if self.total_updates == 0:
                     _log.info("starting training")
                 t_train = time.perf_counter()
-                train_rows.append(self.agent.train(batch))
+                train_rows.append(self.agent.train(batch) or {})
                 training += time.perf_counter() - t_train
                 self.total_updates += 1
                 if self.total_updates % self.update_model_interval == 0:
