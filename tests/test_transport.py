@@ -450,3 +450,17 @@ def test_a_stalled_worker_does_not_make_the_relay_buffer_every_broadcast(net, ca
     assert grown < 6 * size, f"the relay grew by {grown / 2**20:.0f} MiB for a stalled worker"
     _wait_for(lambda: (stalled._weights or b"\x00")[:1] == bytes([12]), what="the newest weights at the stalled worker")
     assert "it will get the newest broadcast when it catches up" in _log_text(caplog)
+
+
+def test_a_worker_cannot_broadcast_fake_weights(net, caplog):
+    net.relay()
+    victim = net.worker()
+    assert victim.wait_connected(30)
+    s = _raw_connect(net.port)
+    s.sendall(_tlspyo_frame(wire.encode((1, "HELLO", None, ("workers",)))))
+    assert wire.decode(_recv_exact(s, int(_recv_exact(s, HEADER))))[1] == "WELCOME"
+    fake = wire.encode(b"fake weights")
+    s.sendall(_tlspyo_frame(wire.encode((2, "OBJ", {"workers": -1}, ((1, 1), 0, 1, len(fake), fake)))))
+    assert _closed_by_peer(s)
+    _wait_for(lambda: "workers may not send" in _log_text(caplog), what="the refusal log line")
+    assert victim.latest_weights() is None

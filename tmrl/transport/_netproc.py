@@ -156,6 +156,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
     from zope.interface import implementer
 
     max_consumables = cfg["max_consumables"]
+    max_consumable_bytes = cfg["max_consumable_bytes"]
 
     class RelayState(TlspyoServer):
         """tlspyo's relay bookkeeping (clients, groups) with bounded queues and frame stores."""
@@ -177,6 +178,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self.complete: dict[str, list[bytes]] = {}
             self.partial: dict[str, list[Any]] = {}
             self.dropped = 0
+            self.queued_bytes = 0  # bytes of frames in the consumable queues
             self._last_drop_log = -math.inf
             self.connections: set[Any] = set()
             self._refusal_log: dict[tuple[str, str], float] = {}
@@ -244,9 +246,10 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
 
         def add_consumable(self, group: str, frames: list[bytes], copies: int) -> None:
             queue = self.group_info[group]["to_consume"]
+            size = sum(len(f) for f in frames)
             for _ in range(copies):
-                if max_consumables is not None and len(queue) >= max_consumables:
-                    queue.popleft()
+                while queue and (len(queue) >= max_consumables or self.queued_bytes + size > max_consumable_bytes):
+                    self.queued_bytes -= sum(len(f) for f in queue.popleft())
                     self.dropped += 1
                     now = time.monotonic()
                     level = logging.WARNING if now - self._last_drop_log > 5.0 else logging.DEBUG
@@ -255,9 +258,11 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     log_relay.log(
                         level,
                         "the trainer is falling behind: dropped the oldest pending sample batch "
-                        "(%d dropped so far, max_consumables=%d)", self.dropped, max_consumables,
+                        "(%d dropped so far, max_consumables=%d, max_consumable_bytes=%d)",
+                        self.dropped, max_consumables, max_consumable_bytes,
                     )
                 queue.append(frames)
+                self.queued_bytes += size
             self.dispatch(group)
 
         def dispatch(self, group: str) -> None:
@@ -267,7 +272,9 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 while pending[cid] > 0 and queue:
                     pending[cid] -= 1
                     transport = self.to_clients[cid].transport
-                    for out in queue.popleft():
+                    frames = queue.popleft()
+                    self.queued_bytes -= sum(len(f) for f in frames)
+                    for out in frames:
                         transport.write(out)
 
         def shutdown(self) -> None:
@@ -427,6 +434,12 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             if not _valid_chunk(obj, cfg["max_object_bytes"]):
                 self._kill("malformed object frame")
                 return
+            # Workers only send samples to the trainer; the trainer only broadcasts to workers.
+            role = "workers" if "workers" in self._groups else "trainers"
+            allowed = all((g == "trainers" and n > 0) if role == "workers" else (g == "workers" and n < 0) for g, n in dest.items())
+            if not allowed:
+                self._kill(f"{role} may not send to {sorted(dest)} that way")
+                return
             msg_id, idx, count, total, chunk = obj
             key = (self._identifier, msg_id)
             for g, n in dest.items():
@@ -470,7 +483,9 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 elif n < 0:
                     queue = info["to_consume"]
                     while queue:
-                        for out in queue.popleft():
+                        frames = queue.popleft()
+                        self._server.queued_bytes -= sum(len(f) for f in frames)
+                        for out in frames:
                             self.transport.write(out)
 
     class RelayFactory(Factory):

@@ -42,6 +42,7 @@ class RelayServer:
             127.0.0.1).
         max_consumables: pending sample batches kept for the trainer; beyond it the oldest is
             dropped and counted.
+        max_consumable_bytes: the same bound in bytes (all pending batches together).
         max_object_bytes: largest object (sum of its frames) accepted.
         start_timeout: seconds to wait for the relay process to start.
 
@@ -64,6 +65,7 @@ class RelayServer:
         *,
         allow_plain_tcp: bool = False,
         max_consumables: int = 1000,
+        max_consumable_bytes: int = 2**30,
         max_object_bytes: int = DEFAULT_MAX_OBJECT_BYTES,
         start_timeout: float = 60.0,
     ):
@@ -97,6 +99,7 @@ class RelayServer:
             "max_frame_bytes": max_frame_bytes,
             "max_object_bytes": max_object_bytes,
             "max_consumables": max_consumables,
+            "max_consumable_bytes": max_consumable_bytes,
             "interface": interface,
         }
         self._proc = NetProcess(cfg, self._on_message, 1 << 20, name="relay")
