@@ -33,7 +33,8 @@ def tmrl(ctx, *args: str, code: str | None = None) -> subprocess.CompletedProces
         cmd = [sys.executable, "-m", "tmrl", *args]
     else:
         cmd = [sys.executable, "-c", code, *args]
-    return subprocess.run(cmd, capture_output=True, text=True, env=ctx["env"], timeout=120, stdin=subprocess.DEVNULL)
+    return subprocess.run(cmd, capture_output=True, text=True, env=ctx["env"], timeout=120, stdin=subprocess.DEVNULL,
+                          check=False)
 
 
 def one_error_line(result: subprocess.CompletedProcess) -> str:

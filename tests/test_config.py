@@ -472,7 +472,7 @@ def test_set_override_env_merges_with_an_inherited_override(monkeypatch):
 
 def run_python(code: str, env_extra: dict | None = None) -> subprocess.CompletedProcess:
     env = dict(os.environ, **(env_extra or {}))
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120, check=False)
 
 
 def test_config_constants_reads_config_and_creates_nothing(_isolated_data_folder):
@@ -586,7 +586,7 @@ def test_wheel_ships_the_default_config(tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path / "whl"),
          str(src)],
-        capture_output=True, text=True, timeout=300,
+        capture_output=True, text=True, timeout=300, check=False,
     )
     assert out.returncode == 0, out.stderr
     (wheel,) = (tmp_path / "whl").glob("tmrl-*.whl")

@@ -54,7 +54,7 @@ def test_importing_every_module_creates_and_reads_nothing(tmp_path):
     env.pop("TMRL_CONFIG_OVERRIDE", None)
     out = subprocess.run(
         [sys.executable, "-c", IMPORT_ALL, json.dumps(READS_CONFIG)],
-        capture_output=True, text=True, env=env, cwd=cwd, timeout=300,
+        capture_output=True, text=True, env=env, cwd=cwd, timeout=300, check=False,
     )
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout.strip().splitlines()[-1])
@@ -77,7 +77,7 @@ def test_config_constants_creates_nothing_either(tmp_path):
     env.pop("TMRL_CONFIG_OVERRIDE", None)
     out = subprocess.run(
         [sys.executable, "-c", "import tmrl.config.config_constants as c; print(c.TMRL_FOLDER)"],
-        capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120,
+        capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120, check=False,
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == str(data)

@@ -25,7 +25,7 @@ class Agent:
         self.lr, self.gamma = lr, gamma
 
 
-def make_trainer(memory_cls=Memory, agent_cls=partial(Agent, lr=0.5), epochs: int = 10, env=None):
+def make_trainer(memory_cls=Memory, agent_cls=partial(Agent, lr=0.5), epochs: int = 10, env=None):  # noqa: B008
     return memory_cls(), agent_cls(), epochs
 
 

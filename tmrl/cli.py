@@ -44,7 +44,7 @@ from typing import Any
 
 from tmrl.errors import UserError
 
-__all__ = ["main", "build_parser", "HOOKS", "SIM_HOOKS"]
+__all__ = ["HOOKS", "SIM_HOOKS", "build_parser", "main"]
 
 logger = logging.getLogger(__name__)
 
@@ -337,7 +337,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except SystemExit:
         raise
-    except BaseException:
+    except BaseException:  # noqa: BLE001 (anything else is a bug: report it)
         traceback.print_exc()
         print(ISSUES_HINT, file=sys.stderr)
         return 1

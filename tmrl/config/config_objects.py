@@ -30,23 +30,23 @@ from tmrl.errors import UserError
 from tmrl.util import partial
 
 __all__ = [
+    "AGENT",
     "ALG_CONFIG",
     "ALG_NAME",
-    "TRAIN_MODEL",
-    "POLICY",
-    "INT",
     "CONFIG_DICT",
-    "ENV_CLS",
-    "SAMPLE_COMPRESSOR",
-    "OBS_PREPROCESSOR",
-    "SAMPLE_PREPROCESSOR",
-    "MEMORY",
-    "AGENT",
-    "TRAINER",
-    "DEVICE_TRAINING",
     "DEVICE_INFERENCE",
+    "DEVICE_TRAINING",
     "DUMP_RUN_INSTANCE_FN",
+    "ENV_CLS",
+    "INT",
     "LOAD_RUN_INSTANCE_FN",
+    "MEMORY",
+    "OBS_PREPROCESSOR",
+    "POLICY",
+    "SAMPLE_COMPRESSOR",
+    "SAMPLE_PREPROCESSOR",
+    "TRAINER",
+    "TRAIN_MODEL",
     "UPDATER_FN",
 ]
 
@@ -168,23 +168,23 @@ SAMPLE_PREPROCESSOR: Any = None
 
 # --- algorithm -----------------------------------------------------------------------------------
 
-_agent_kwargs: dict[str, Any] = dict(
-    model_cls=TRAIN_MODEL,
-    lr_actor=ALG_CONFIG["LR_ACTOR"],
-    lr_critic=ALG_CONFIG["LR_CRITIC"],
-    lr_entropy=ALG_CONFIG["LR_ENTROPY"],
-    gamma=ALG_CONFIG["GAMMA"],
-    polyak=ALG_CONFIG["POLYAK"],
-    learn_entropy_coef=ALG_CONFIG["LEARN_ENTROPY_COEF"],
-    target_entropy=ALG_CONFIG["TARGET_ENTROPY"],
-    alpha=ALG_CONFIG["ALPHA"],
-    optimizer_actor=ALG_CONFIG["OPTIMIZER_ACTOR"],
-    optimizer_critic=ALG_CONFIG["OPTIMIZER_CRITIC"],
-    betas_actor=list(ALG_CONFIG["BETAS_ACTOR"]),
-    betas_critic=list(ALG_CONFIG["BETAS_CRITIC"]),
-    l2_actor=ALG_CONFIG["L2_ACTOR"],
-    l2_critic=ALG_CONFIG["L2_CRITIC"],
-)
+_agent_kwargs: dict[str, Any] = {
+    "model_cls": TRAIN_MODEL,
+    "lr_actor": ALG_CONFIG["LR_ACTOR"],
+    "lr_critic": ALG_CONFIG["LR_CRITIC"],
+    "lr_entropy": ALG_CONFIG["LR_ENTROPY"],
+    "gamma": ALG_CONFIG["GAMMA"],
+    "polyak": ALG_CONFIG["POLYAK"],
+    "learn_entropy_coef": ALG_CONFIG["LEARN_ENTROPY_COEF"],
+    "target_entropy": ALG_CONFIG["TARGET_ENTROPY"],
+    "alpha": ALG_CONFIG["ALPHA"],
+    "optimizer_actor": ALG_CONFIG["OPTIMIZER_ACTOR"],
+    "optimizer_critic": ALG_CONFIG["OPTIMIZER_CRITIC"],
+    "betas_actor": list(ALG_CONFIG["BETAS_ACTOR"]),
+    "betas_critic": list(ALG_CONFIG["BETAS_CRITIC"]),
+    "l2_actor": ALG_CONFIG["L2_ACTOR"],
+    "l2_critic": ALG_CONFIG["L2_CRITIC"],
+}
 if ALG_NAME == "SAC":
     AGENT = partial(_attr("tmrl.algorithms.sac", "SACAgent"), **_agent_kwargs)
 else:

@@ -32,25 +32,25 @@ from tmrl.config import schema
 from tmrl.config.schema import ConfigError, SchemaViolation
 
 __all__ = [
-    "ConfigError",
     "DATA_ENV",
-    "OVERRIDE_ENV",
     "LAYOUT",
+    "OVERRIDE_ENV",
+    "ConfigError",
     "DataPaths",
     "InstallReport",
-    "data_folder",
+    "apply_override",
     "config_path",
+    "data_folder",
     "data_paths",
+    "deep_merge",
     "default_config",
+    "dumps",
     "ensure_data_folder",
     "install",
     "load_config",
-    "validate",
     "parse_override",
-    "apply_override",
-    "deep_merge",
     "set_override_env",
-    "dumps",
+    "validate",
 ]
 
 logger = logging.getLogger(__name__)

@@ -26,29 +26,29 @@ from typing import Any
 from tmrl.errors import UserError
 
 __all__ = [
-    "ConfigError",
-    "SchemaViolation",
-    "Spec",
-    "Bool",
-    "Int",
-    "Number",
-    "Str",
-    "Choice",
-    "NumberList",
+    "ALGORITHMS",
+    "EXAMPLES",
+    "PASSWORD_PLACEHOLDER",
+    "RTGYM_INTERFACES",
+    "SCHEMA",
     "AnyDict",
     "AnyList",
+    "Bool",
+    "Choice",
+    "ConfigError",
+    "Int",
+    "Number",
+    "NumberList",
+    "SchemaViolation",
     "Section",
-    "SCHEMA",
-    "RTGYM_INTERFACES",
-    "ALGORITHMS",
-    "PASSWORD_PLACEHOLDER",
-    "defaults",
+    "Spec",
+    "Str",
     "check_consistency",
-    "markdown_reference",
     "default_config_json",
-    "EXAMPLES",
+    "defaults",
     "example_json",
     "generated_files",
+    "markdown_reference",
 ]
 
 
@@ -319,7 +319,7 @@ class NumberList(Spec):
     @property
     def expected(self) -> str:
         inner = self.item.expected
-        inner = inner[2:] if inner.startswith("a ") else inner
+        inner = inner.removeprefix("a ")
         return f"a list of {self.length} {inner.replace('number', 'numbers', 1)}"
 
     def _check(self, value: Any, path: str, *, fill: bool) -> Any:
