@@ -145,7 +145,7 @@ def test_memory_segments_are_incremental_and_compacted(tmp_path):
     from safetensors import safe_open
 
     with safe_open(str(path / segs[1]["file"]), framework="numpy") as f:
-        assert {len(f.get_tensor(k)) for k in f.keys()} == {5}
+        assert {len(f.get_tensor(k)) for k in f.keys()} == {5}  # noqa: SIM118
     assert len(list(path.glob("state-*.pt"))) == 1  # the previous state file was removed
     # wrap around: 50 slots hold samples 30..79; the old segment is still partly live, then dead
     training.memory.append(Buf(samples(35, start=45)))

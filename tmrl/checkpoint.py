@@ -46,15 +46,15 @@ from tmrl.errors import UserError
 from tmrl.util import atomic_write_bytes, atomic_write_text
 
 __all__ = [
-    "CheckpointError",
-    "save_checkpoint",
-    "load_checkpoint",
-    "load_memory",
-    "dump_run_instance",
-    "load_run_instance",
-    "make_load_run_instance_fn",
     "FORMAT",
     "VERSION",
+    "CheckpointError",
+    "dump_run_instance",
+    "load_checkpoint",
+    "load_memory",
+    "load_run_instance",
+    "make_load_run_instance_fn",
+    "save_checkpoint",
 ]
 
 logger = logging.getLogger(__name__)
@@ -136,7 +136,7 @@ def _write_segment(folder: Path, name: str, arrays: dict[str, list[np.ndarray]],
                 size += len(chunk)
             for parts in arrays.values():
                 for part in parts:
-                    view = memoryview(np.ascontiguousarray(part)).cast("B")
+                    view = np.ascontiguousarray(part).reshape(-1).view(np.uint8).data
                     f.write(view)
                     crc = zlib.crc32(view, crc)
                     size += view.nbytes
@@ -339,12 +339,12 @@ def _restore_memory(memory: Any, folder: Path, saved: dict[str, Any]) -> None:
             expected_start = stop
             try:
                 with safe_open(str(path), framework="numpy") as f:
-                    for name in f.keys():
+                    for name in f.keys():  # noqa: SIM118 (safe_open is not a dict)
                         arr = f.get_tensor(name)
                         if len(arr) != stop - start:
                             raise ValueError(f"{name} has {len(arr)} rows for samples {start}..{stop}")
                         loaded.setdefault(name, []).append(arr[skip:])
-            except Exception as err:  # safetensors raises its own error types
+            except Exception as err:  # noqa: BLE001 (safetensors raises its own error types)
                 raise CheckpointError(
                     f"checkpoint file {path} is corrupt ({_one_line(err)}); restore the folder from a "
                     "backup or delete it"
@@ -504,7 +504,7 @@ def load_checkpoint(path: str | os.PathLike[str], training: Any) -> Any:
     state_path = _check_file(folder, header["state"])
     try:
         state = torch.load(state_path, map_location="cpu", weights_only=True)
-    except Exception as err:  # torch raises several types for bad files
+    except Exception as err:  # noqa: BLE001 (torch raises several types for bad files)
         raise CheckpointError(f"checkpoint file {state_path} is corrupt ({_one_line(err)})") from None
     try:
         instance.agent.load_state_dict(state["agent"])

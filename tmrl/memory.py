@@ -30,14 +30,14 @@ import torch
 from tmrl.errors import UserError
 
 __all__ = [
-    "Memory",
-    "TorchMemory",
+    "CRCMismatchError",
     "GenericTorchMemory",
+    "Memory",
     "RealTimeTorchMemory",
+    "TorchMemory",
+    "check_transition",
     "collate_torch",
     "to_torch",
-    "check_transition",
-    "CRCMismatchError",
 ]
 
 logger = logging.getLogger(__name__)
@@ -896,7 +896,7 @@ class GenericTorchMemory(TorchMemory):
         """
         slots = self._check_slots([item])
         prev_obs, act, rew, new_obs, terminated, truncated = self.gather(slots)
-        first = lambda a: a[0]  # noqa: E731
+        first = lambda a: a[0]
         info = self._infos[int(slots[0])] if self._infos is not None else {}
         return (
             _tree_map(first, prev_obs),

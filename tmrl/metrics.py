@@ -20,7 +20,7 @@ from typing import Any
 
 from tmrl.errors import UserError
 
-__all__ = ["MetricsLogger", "STANDARD_COLUMNS", "format_row"]
+__all__ = ["STANDARD_COLUMNS", "MetricsLogger", "format_row"]
 
 logger = logging.getLogger(__name__)
 
@@ -189,9 +189,10 @@ class MetricsLogger:
             self._write_csv(row)
         step = int(row.get("total_updates", self._rows))
         numeric = {k: v for k, v in ((k, _scalar(v)) for k, v in row.items()) if v is not None}
-        if self._tb_cls is not None:
+        run_folder = self.run_folder
+        if self._tb_cls is not None and run_folder is not None:
             if self._tb_writer is None:
-                self._tb_writer = self._tb_cls(log_dir=str(self.run_folder / "tensorboard"))
+                self._tb_writer = self._tb_cls(log_dir=str(run_folder / "tensorboard"))
             for key, value in numeric.items():
                 self._tb_writer.add_scalar(key, value, global_step=step)
             self._tb_writer.flush()

@@ -25,7 +25,7 @@ import torch
 from tmrl.errors import UserError
 from tmrl.metrics import MetricsLogger
 
-__all__ = ["TrainingOffline", "TorchTrainingOffline"]
+__all__ = ["TorchTrainingOffline", "TrainingOffline"]
 
 logger = logging.getLogger(__name__)
 _log = logger  # run_epoch's `logger` argument shadows the module logger inside it
