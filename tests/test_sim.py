@@ -360,3 +360,28 @@ def test_fast_env_and_realtime_config_from_a_config():
     assert parts["memory_cls"].__name__ == "LidarProgressMemory"
     with pytest.raises(UserError, match="RTGYM_INTERFACE"):
         fast_env(sim_config("TM20FULL"))
+
+
+def test_trajectory_picture_and_learning_curve():
+    from tmrl.sim.render import draw_trajectory, line_chart
+
+    env = SimEnv("SIMLIDAR", track="oval", img_hist_len=1)
+    env.reset()
+    path = [env.race.car.state.position]
+    for _ in range(200):
+        env.step(follow_centre_line(env.race))
+        path.append(env.race.car.state.position)
+    tmap = track_map(env.race.track)
+    img = draw_trajectory(tmap, np.array(path), max_size=300)
+    assert img.shape[2] == 3 and max(img.shape[:2]) <= 300
+    red = (img[:, :, 0] == 230) & (img[:, :, 1] == 40)
+    assert red.sum() > 50  # the path is drawn
+    px = tmap.to_topdown_pixels(np.array(path[-1:]), 300)[0]
+    assert red[max(px[0] - 2, 0):px[0] + 3, max(px[1] - 2, 0):px[1] + 3].any()  # where the car ended
+    chart = line_chart(np.arange(10), np.array([0, 1, 3, 2, 5, 4, 8, 7, 9, 12.0]), 200, 100)
+    assert chart.shape == (100, 200, 3)
+    blue = (chart[:, :, 2] == 200) & (chart[:, :, 0] == 30)
+    # the curve rises: its highest pixel is on the right, its lowest on the left
+    rows, cols = np.nonzero(blue)
+    assert cols[np.argmin(rows)] > 150 and cols[np.argmax(rows)] < 50
+    assert encode_png(chart)[:4] == b"\x89PNG"

@@ -23,7 +23,18 @@ import numpy as np
 from tmrl.sim.track import BORDER_WIDTH, Track
 from tmrl.util import atomic_write_bytes
 
-__all__ = ["TrackMap", "Camera", "track_map", "write_png", "encode_png", "ROAD", "BORDER", "GROUND"]
+__all__ = [
+    "TrackMap",
+    "Camera",
+    "track_map",
+    "write_png",
+    "encode_png",
+    "draw_trajectory",
+    "line_chart",
+    "ROAD",
+    "BORDER",
+    "GROUND",
+]
 
 ROAD = 170
 BORDER = 0
@@ -178,6 +189,57 @@ class Camera:
         if self.car_mask is not None:
             img[self.car_mask] = CAR
         return img
+
+
+def _polyline(img: np.ndarray, rows: np.ndarray, cols: np.ndarray, colour: tuple[int, int, int], width: int = 1) -> None:
+    """Draw straight segments between consecutive ``(row, col)`` points on an RGB image."""
+    h, w = img.shape[:2]
+    for r0, c0, r1, c1 in zip(rows[:-1], cols[:-1], rows[1:], cols[1:]):
+        n = int(max(abs(r1 - r0), abs(c1 - c0))) + 1
+        rr = np.rint(np.linspace(r0, r1, n)).astype(np.int64)
+        cc = np.rint(np.linspace(c0, c1, n)).astype(np.int64)
+        for dr in range(-(width // 2), width - width // 2):
+            for dc in range(-(width // 2), width - width // 2):
+                ok = (rr + dr >= 0) & (rr + dr < h) & (cc + dc >= 0) & (cc + dc < w)
+                img[rr[ok] + dr, cc[ok] + dc] = colour
+
+
+def draw_trajectory(tmap: TrackMap, xy: np.ndarray, max_size: int = 800,
+                    colour: tuple[int, int, int] = (230, 40, 40)) -> np.ndarray:
+    """Top-down RGB picture of the track with the path ``xy`` (``(N, 2)`` world positions) drawn
+    over it, for example the best lap of a run."""
+    img = np.repeat(tmap.topdown(max_size)[:, :, None], 3, axis=2).copy()
+    if len(xy) >= 2:
+        px = tmap.to_topdown_pixels(np.asarray(xy, dtype=np.float64), max_size)
+        _polyline(img, px[:, 0], px[:, 1], colour, width=2)
+    return img
+
+
+def line_chart(x: np.ndarray, y: np.ndarray, width: int = 640, height: int = 360,
+               colour: tuple[int, int, int] = (30, 90, 200)) -> np.ndarray:
+    """A plain RGB line chart of ``y`` against ``x`` (a learning curve) without any plotting
+    library: white background, grey axes and a light grid at the zero line and the extremes."""
+    img = np.full((height, width, 3), 255, dtype=np.uint8)
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    m = 30  # margin in pixels
+    img[height - m, m:width - m] = 120
+    img[m:height - m, m] = 120
+    if len(x) == 0:
+        return img
+    x0, x1 = float(x.min()), float(x.max())
+    y0, y1 = min(0.0, float(y.min())), max(0.0, float(y.max()))
+    x1 = x1 if x1 > x0 else x0 + 1.0
+    y1 = y1 if y1 > y0 else y0 + 1.0
+    cols = m + (x - x0) / (x1 - x0) * (width - 2 * m - 1)
+    rows = (height - m) - (y - y0) / (y1 - y0) * (height - 2 * m - 1)
+    zero = int(round((height - m) - (0.0 - y0) / (y1 - y0) * (height - 2 * m - 1)))
+    img[zero, m:width - m] = 200
+    if len(x) == 1:
+        _polyline(img, np.array([rows[0], rows[0]]), np.array([cols[0], cols[0]]), colour, width=3)
+    else:
+        _polyline(img, rows, cols, colour, width=2)
+    return img
 
 
 def encode_png(img: np.ndarray) -> bytes:
