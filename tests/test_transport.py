@@ -464,3 +464,18 @@ def test_a_worker_cannot_broadcast_fake_weights(net, caplog):
     assert _closed_by_peer(s)
     _wait_for(lambda: "workers may not send" in _log_text(caplog), what="the refusal log line")
     assert victim.latest_weights() is None
+
+
+def test_a_killed_trainer_is_replaced_and_gets_the_backlog(net):
+    import signal
+
+    net.relay()
+    first = net.trainer()
+    worker = net.worker()
+    assert first.wait_connected(30) and worker.wait_connected(30)
+    os.kill(first.pid, signal.SIGKILL)  # the trainer's machine process dies without goodbye
+    _wait_for(lambda: not first.connected, what="the dead trainer")
+    worker.send_samples("kept at the relay")
+    second = net.trainer()
+    assert second.wait_connected(30)
+    assert _receive(second, 1) == ["kept at the relay"]

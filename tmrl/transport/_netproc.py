@@ -61,6 +61,21 @@ def _parse_length(raw: bytes) -> int | None:
     return int(digits)
 
 
+def _keepalive(transport: Any) -> None:
+    """Detect a peer whose machine vanished (no FIN, no RST) within about a minute."""
+    import socket
+
+    try:
+        sock = transport.getHandle()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+        if hasattr(socket, "TCP_KEEPIDLE"):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPIDLE, 30)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPINTVL, 10)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT, 3)
+    except (AttributeError, OSError):
+        pass  # not a TCP socket (tests with fake transports) or an OS without these options
+
+
 def _frame(header_size: int, env: bytes, password: bytes = b"") -> bytes:
     head = str(len(env)).encode("ascii")
     return head.ljust(header_size, b" ") + password + env
@@ -312,6 +327,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
 
         def connectionMade(self) -> None:
             self._server.connections.add(self)
+            _keepalive(self.transport)
             self.transport.registerProducer(self, True)
             self.transport.write(_frame(self._header_size, wire.encode((0, "HELLO", None))))
 
@@ -734,6 +750,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self._client.writable.set()
 
         def connectionMade(self) -> None:
+            _keepalive(self.transport)
             self.transport.registerProducer(self, True)
 
         def connectionLost(self, reason: Any = None) -> None:
