@@ -165,3 +165,36 @@ def test_missing_vgamepad_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "vgamepad", None)  # import raises ImportError
     with pytest.raises(ControlUnavailable, match=r"tmrl\[trackmania\]"):
         control.make_vgamepad()
+
+
+def test_sendinput_structures_have_the_windows_sizes():
+    import ctypes
+
+    keybd, inp = control._sendinput_structs()
+    wide = ctypes.sizeof(ctypes.c_void_p) == 8
+    assert ctypes.sizeof(inp) == (40 if wide else 28)
+    assert ctypes.sizeof(keybd) == (24 if wide else 16)
+
+
+def test_sendinput_keyboard_sends_scan_codes_with_extended_flags():
+    import ctypes
+
+    sent = []
+    kb = object.__new__(control._SendInputKeyboard)
+    kb._ctypes = ctypes
+    kb._KEYBDINPUT, kb._INPUT = control._sendinput_structs()
+
+    def fake_send(n, ref, size):
+        struct_ = ref._obj
+        sent.append((n, struct_.type, struct_.u.ki.wScan, struct_.u.ki.dwFlags, size))
+        return 1
+
+    kb._send = fake_send
+    kb.press("w")
+    kb.release("Delete")
+    assert sent == [
+        (1, 1, 0x11, 0x0008, ctypes.sizeof(kb._INPUT)),
+        (1, 1, 0x53, 0x0008 | 0x0002 | 0x0001, ctypes.sizeof(kb._INPUT)),
+    ]
+    with pytest.raises(ControlUnavailable, match="unknown key"):
+        kb.press("F13")

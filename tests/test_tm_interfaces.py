@@ -88,7 +88,7 @@ def xvfb():
     pytest.importorskip("mss", reason="mss is not installed")
     r, w = os.pipe()
     proc = subprocess.Popen(
-        ["Xvfb", "-displayfd", str(w), "-screen", "0", "640x480x24", "-nolisten", "tcp"],
+        ["Xvfb", "-displayfd", str(w), "-screen", "0", "640x480x24", "-nolisten", "tcp", "-noreset"],
         pass_fds=(w,),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -227,6 +227,13 @@ def test_tm20full_end_to_end(xvfb, monkeypatch, plugin, client):
             np.testing.assert_array_equal(obs[3][-1], expected)
             assert env.observation_space.contains(obs)
             assert ("press_button", BUTTON_B) in pad.calls  # respawned at reset
+            # the shared driving pipeline accepts these observations: only the newest uint8 image travels
+            from tmrl.driving.compressors import compress_full_sample
+            from tmrl.driving.preprocessors import preprocess_full_obs
+
+            pre = preprocess_full_obs(obs)
+            sample = compress_full_sample(None, pre, 0.0, False, False, {})
+            np.testing.assert_array_equal(sample[1][3], expected)
             action = np.array([0.8, 0.0, -0.25], dtype=np.float32)
             steps = drive(env, plugin, [1.0, 2.0, 3.0], action)
             for _obs, rew, term, trunc, _ in steps:

@@ -245,3 +245,16 @@ def test_record_reward_tool_against_a_plugin(tmp_path):
     np.testing.assert_allclose(traj[0], [0.0, 7.0, 1.0])
     assert np.linalg.norm(traj[-1] - [20.0, 7.0, 1.0]) < 0.1 + 1e-9
     assert np.allclose(np.linalg.norm(np.diff(traj, axis=0), axis=1), 0.1)
+
+
+def test_use_keyboard_without_a_terminal_is_a_user_error(monkeypatch, port_factory, tmp_path):
+    import builtins
+
+    from tmrl.tm.tools import record_reward as record_tool
+
+    def no_stdin(prompt=""):
+        raise EOFError
+
+    monkeypatch.setattr(builtins, "input", no_stdin)
+    with pytest.raises(UserError, match="no terminal input"):
+        record_tool({"RUN_NAME": "r"}, use_keyboard=True, path=tmp_path / "r.npy", port=port_factory())

@@ -202,20 +202,39 @@ class _XdotoolBackend:
 class _Win32Backend:
     """Windows through user32 (ctypes): client rectangle and client-to-screen translation."""
 
+    SWP_NOZORDER, SWP_NOACTIVATE = 0x0004, 0x0010
+
     def __init__(self) -> None:
         import ctypes
         from ctypes import wintypes
 
         self.ct, self.wt = ctypes, wintypes
-        self.user32 = ctypes.windll.user32  # type: ignore[attr-defined]
+        u = self.user32 = ctypes.windll.user32  # type: ignore[attr-defined]
+        # Explicit prototypes: window handles are pointers, not C ints, on 64-bit Windows.
+        u.FindWindowW.argtypes = [wintypes.LPCWSTR, wintypes.LPCWSTR]
+        u.FindWindowW.restype = wintypes.HWND
+        u.GetClientRect.argtypes = [wintypes.HWND, ctypes.POINTER(wintypes.RECT)]
+        u.GetClientRect.restype = wintypes.BOOL
+        u.ClientToScreen.argtypes = [wintypes.HWND, ctypes.POINTER(wintypes.POINT)]
+        u.ClientToScreen.restype = wintypes.BOOL
+        u.GetWindowLongW.argtypes = [wintypes.HWND, ctypes.c_int]
+        u.GetWindowLongW.restype = wintypes.LONG
+        u.AdjustWindowRectEx.argtypes = [
+            ctypes.POINTER(wintypes.RECT),
+            wintypes.DWORD,
+            wintypes.BOOL,
+            wintypes.DWORD,
+        ]
+        u.AdjustWindowRectEx.restype = wintypes.BOOL
+        u.SetWindowPos.argtypes = [wintypes.HWND, wintypes.HWND] + [ctypes.c_int] * 4 + [wintypes.UINT]
+        u.SetWindowPos.restype = wintypes.BOOL
         try:  # physical pixels, as mss captures them
             ctypes.windll.shcore.SetProcessDpiAwareness(2)  # type: ignore[attr-defined]
-        except Exception:
+        except Exception:  # older Windows, or already set by mss: either way nothing to do
             pass
 
     def find(self, title: str) -> Any:
-        hwnd = self.user32.FindWindowW(None, title)
-        return hwnd or None
+        return self.user32.FindWindowW(None, title) or None
 
     def geometry(self, handle: Any) -> Geometry:
         rect = self.wt.RECT()
@@ -226,20 +245,21 @@ class _Win32Backend:
         return Geometry(pt.x, pt.y, rect.right - rect.left, rect.bottom - rect.top)
 
     def move_resize(self, handle: Any, x: int, y: int, width: int, height: int) -> None:
-        # Outer size = client size + borders and title bar, as the window's own styles define them.
+        # The outer size is the client size plus the borders and title bar that the window's own
+        # styles define; (x, y) is the outer top-left corner, so the title bar stays reachable.
         rect = self.wt.RECT(0, 0, width, height)
-        style = self.user32.GetWindowLongW(handle, -16)
-        exstyle = self.user32.GetWindowLongW(handle, -20)
-        self.user32.AdjustWindowRectEx(self.ct.byref(rect), style, False, exstyle)
+        style = self.user32.GetWindowLongW(handle, -16)  # GWL_STYLE
+        exstyle = self.user32.GetWindowLongW(handle, -20)  # GWL_EXSTYLE
+        self.user32.AdjustWindowRectEx(self.ct.byref(rect), style & 0xFFFFFFFF, False, exstyle & 0xFFFFFFFF)
         self.user32.SetWindowPos(
             handle,
             None,
-            x + rect.left,
-            y + rect.top,
+            x,
+            y,
             rect.right - rect.left,
             rect.bottom - rect.top,
-            0x0004 | 0x0010,
-        )  # NOZORDER | NOACTIVATE
+            self.SWP_NOZORDER | self.SWP_NOACTIVATE,
+        )
 
 
 def _default_backend(display_name: str | None) -> _WindowBackend:
@@ -307,8 +327,9 @@ class WindowCapture:
         return self.backend.geometry(self.handle)
 
     def move_and_resize(self, x: int = 0, y: int = 0, settle: float = 2.0) -> Geometry:
-        """Move the client area's top-left corner to ``(x, y)`` and resize it to ``width x height``,
-        then wait (up to ``settle`` seconds) for the window system to apply it.
+        """Move the window's top-left corner (its frame, where the system draws one) to ``(x, y)``
+        and resize its client area to ``width x height``, then wait (up to ``settle`` seconds) for
+        the window system to apply it. The capture follows the client area wherever it ends up.
 
         Raises:
             WindowSizeError: the window did not take the requested size (message: what to change).

@@ -337,58 +337,86 @@ class _XdotoolKeyboard:
         subprocess.run(["xdotool", "keyup", key], check=False)
 
 
-class _SendInputKeyboard:
-    """Windows keyboard through user32.SendInput with scan codes (no pywin32)."""
+def _sendinput_structs() -> tuple[type, type]:
+    """``(KEYBDINPUT, INPUT)`` of user32 with fixed-size fields (``wintypes`` sizes are wrong off
+    Windows, and explicit sizes keep ``sizeof(INPUT)`` right on 32- and 64-bit Windows)."""
+    import ctypes
 
+    class KEYBDINPUT(ctypes.Structure):
+        _fields_ = [
+            ("wVk", ctypes.c_uint16),
+            ("wScan", ctypes.c_uint16),
+            ("dwFlags", ctypes.c_uint32),
+            ("time", ctypes.c_uint32),
+            ("dwExtraInfo", ctypes.c_size_t),
+        ]
+
+    class MOUSEINPUT(ctypes.Structure):
+        _fields_ = [
+            ("dx", ctypes.c_int32),
+            ("dy", ctypes.c_int32),
+            ("mouseData", ctypes.c_uint32),
+            ("dwFlags", ctypes.c_uint32),
+            ("time", ctypes.c_uint32),
+            ("dwExtraInfo", ctypes.c_size_t),
+        ]
+
+    class HARDWAREINPUT(ctypes.Structure):
+        _fields_ = [("uMsg", ctypes.c_uint32), ("wParamL", ctypes.c_uint16), ("wParamH", ctypes.c_uint16)]
+
+    class _INPUTUNION(ctypes.Union):
+        _fields_ = [("ki", KEYBDINPUT), ("mi", MOUSEINPUT), ("hi", HARDWAREINPUT)]
+
+    class INPUT(ctypes.Structure):
+        _fields_ = [("type", ctypes.c_uint32), ("u", _INPUTUNION)]
+
+    return KEYBDINPUT, INPUT
+
+
+class _SendInputKeyboard:
+    """Windows keyboard through user32.SendInput with hardware scan codes (no pywin32)."""
+
+    # Set-1 scan codes; the arrows and Delete are "extended" keys (E0 prefix).
     SCAN = {
         "w": 0x11,
         "a": 0x1E,
         "s": 0x1F,
         "d": 0x20,
-        "delete": 0xD3,
         "r": 0x13,
-        "up": 0xC8,
-        "down": 0xD0,
-        "left": 0xCB,
-        "right": 0xCD,
         "enter": 0x1C,
         "backspace": 0x0E,
+        "delete": 0x53,
+        "up": 0x48,
+        "down": 0x50,
+        "left": 0x4B,
+        "right": 0x4D,
     }
-    EXTENDED = {"delete", "up", "down", "left", "right"}
+    EXTENDED = frozenset({"delete", "up", "down", "left", "right"})
+    KEYEVENTF_EXTENDEDKEY, KEYEVENTF_KEYUP, KEYEVENTF_SCANCODE = 0x0001, 0x0002, 0x0008
 
     def __init__(self) -> None:
         import ctypes
-        from ctypes import wintypes
 
-        class KEYBDINPUT(ctypes.Structure):
-            _fields_ = [
-                ("wVk", wintypes.WORD),
-                ("wScan", wintypes.WORD),
-                ("dwFlags", wintypes.DWORD),
-                ("time", wintypes.DWORD),
-                ("dwExtraInfo", ctypes.c_size_t),
-            ]
-
-        class _U(ctypes.Union):
-            # MOUSEINPUT is the largest member; padding keeps sizeof(INPUT) right.
-            _fields_ = [("ki", KEYBDINPUT), ("pad", ctypes.c_byte * 32)]
-
-        class INPUT(ctypes.Structure):
-            _fields_ = [("type", wintypes.DWORD), ("u", _U)]
-
-        self._ctypes, self._KEYBDINPUT, self._INPUT = ctypes, KEYBDINPUT, INPUT
+        self._ctypes = ctypes
+        self._KEYBDINPUT, self._INPUT = _sendinput_structs()
         self._send = ctypes.windll.user32.SendInput  # type: ignore[attr-defined]
+        self._send.argtypes = [ctypes.c_uint, ctypes.c_void_p, ctypes.c_int]
+        self._send.restype = ctypes.c_uint
 
     def _emit(self, key: str, up: bool) -> None:
         name = key.lower()
         if name not in self.SCAN:
             raise ControlUnavailable(f"unknown key {key!r}: use one of {sorted(self.SCAN)}")
-        flags = 0x0008 | (0x0002 if up else 0) | (0x0001 if name in self.EXTENDED else 0)
-        inp = self._INPUT(type=1)
-        inp.u.ki = self._KEYBDINPUT(
-            0, self.SCAN[name] & 0x7F if name in self.EXTENDED else self.SCAN[name], flags, 0, 0
-        )
-        self._send(1, self._ctypes.byref(inp), self._ctypes.sizeof(inp))
+        flags = self.KEYEVENTF_SCANCODE | (self.KEYEVENTF_KEYUP if up else 0)
+        if name in self.EXTENDED:
+            flags |= self.KEYEVENTF_EXTENDEDKEY
+        inp = self._INPUT(type=1)  # INPUT_KEYBOARD
+        inp.u.ki = self._KEYBDINPUT(0, self.SCAN[name], flags, 0, 0)
+        if self._send(1, self._ctypes.byref(inp), self._ctypes.sizeof(inp)) != 1:
+            raise ControlUnavailable(
+                "Windows refused the key press (SendInput): run tmrl with the same rights as the game "
+                "(not one elevated and the other not)"
+            )
 
     def press(self, key: str) -> None:
         self._emit(key, up=False)

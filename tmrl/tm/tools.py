@@ -25,6 +25,7 @@ from typing import Any, Callable, Mapping, TextIO
 
 import numpy as np
 
+from tmrl.errors import UserError
 from tmrl.util import atomic_write_bytes
 
 __all__ = ["benchmark", "benchmark_capture", "check_environment", "doctor", "record_reward", "write_png"]
@@ -83,7 +84,13 @@ def record_reward(
     if use_keyboard and wait_start is None:
 
         def wait_start() -> None:
-            input("Respawn at the start line, then press Enter here and drive to the finish... ")
+            try:
+                input("Respawn at the start line, then press Enter here and drive to the finish... ")
+            except EOFError:
+                raise UserError(
+                    "--use-keyboard waits for Enter but this process has no terminal input: "
+                    "run it in a terminal, or leave out --use-keyboard (recording then starts at once)"
+                ) from None
     else:
         print("Recording: drive from the start line to the finish (Ctrl+C aborts).", file=out, flush=True)
     with OpenPlanetClient(host, port) as client:
