@@ -376,7 +376,7 @@ def load_config(path: str | os.PathLike[str] | None = None,
             unknown key, wrong type, value out of range; one line each.
     """
     explicit = path is not None
-    file = Path(path) if explicit else config_path()
+    file = Path(path) if path is not None else config_path()
     source = _source_name(file)
     if file.is_file():
         try:
