@@ -435,3 +435,45 @@ def test_check_environment_saves_what_the_policy_sees(xvfb, monkeypatch, tmp_pat
     assert img.shape == (H, W, 3)
     assert ((img == (255, 0, 0)).all(axis=-1)).sum() > 100  # the rays are drawn
     assert "reward" in out.getvalue()
+
+
+def test_benchmark_prints_the_real_time_report(xvfb, monkeypatch):
+    import io
+
+    from tmrl.config.loader import load_config
+    from tmrl.tm.tools import benchmark
+
+    monkeypatch.setenv("DISPLAY", xvfb)
+    d, win = paint_window(xvfb, lidar_image())
+    stream = StreamingPlugin(x=1.0)
+    out = io.StringIO()
+    try:
+        cfg = load_config(
+            overrides={
+                "ENV": {
+                    "RTGYM_INTERFACE": "TM20LIDAR",
+                    "WINDOW_WIDTH": W,
+                    "WINDOW_HEIGHT": H,
+                    "SLEEP_TIME_AT_RESET": 0.0,
+                }
+            }
+        )
+        pad = RecordingPad()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            code = benchmark(
+                cfg,
+                steps=5,
+                out=out,
+                trajectory=TRAJ,
+                openplanet_port=stream.port,
+                control=GamepadControl(backend=pad, sleep=lambda s: None),
+            )
+    finally:
+        stream.close()
+        win.destroy()
+        d.close()
+    assert code == 0
+    text = out.getvalue()
+    assert "time_step_duration" in text and "get_obs_duration" in text
+    assert ("left_joystick_float", 0.0, 0.0) in pad.calls  # the default action was applied
