@@ -846,12 +846,15 @@ class GenericTorchMemory(TorchMemory):
         """
         if self._act is None:
             raise UserError("the memory holds no action yet: every stored action is None")
+        n = len(slots)
         prev_slots = self._prev[slots] % self.memory_size
+        # One gather for both observations halves the per-leaf overhead; the halves are views.
+        both = self.build_obs(np.concatenate([prev_slots, slots]))
         return (
-            self.build_obs(prev_slots),
+            _tree_map(lambda a: a[:n], both),
             self._act[slots],
             self._rew[slots],
-            self.build_obs(slots),
+            _tree_map(lambda a: a[n:], both),
             self._terminated[slots],
             self._truncated[slots],
         )
