@@ -258,3 +258,13 @@ def test_use_keyboard_without_a_terminal_is_a_user_error(monkeypatch, port_facto
     monkeypatch.setattr(builtins, "input", no_stdin)
     with pytest.raises(UserError, match="no terminal input"):
         record_tool({"RUN_NAME": "r"}, use_keyboard=True, path=tmp_path / "r.npy", port=port_factory())
+
+
+def test_record_ignores_a_stale_finish_flag_and_zero_glitches(tmp_path):
+    stale = [(0.0, 0.0, 5.0, 0.0, 0.0, 0, 0, 0, 1.0, 1, 1000)] * 3  # pop-up of the previous race
+    glitch = [(0.0, 3.0, 0.0, 0.0, 0.0, 0, 1, 0, 0.0, 1, 1000)]  # (0, 0, 0): map still loading
+    frames = stale + drive([0.0, 1.0, 2.0])[:3] + glitch + drive(list(np.arange(3, 21) * 1.0))
+    path = record_reward(ScriptedTelemetry(frames), tmp_path / "r.npy")
+    traj = load_reward(path)
+    assert len(traj) == 201 and traj[:, 0].max() == pytest.approx(20.0)
+    assert np.all(traj[:, 1] == 10.0)  # no point pulled toward the origin

@@ -490,6 +490,7 @@ def record_reward(
         wait_start()
     positions: list[tuple[float, float, float]] = []
     finished = False
+    armed = False  # a finish flag still up from the previous race must not end this recording
     last_distance: float | None = None
     t0 = time.monotonic()
     try:
@@ -501,9 +502,15 @@ def record_reward(
                 positions.clear()
             last_distance = distance
             if bool(data[8]):
-                finished = True
-                break
-            positions.append((float(data[2]), float(data[3]), float(data[4])))
+                if armed:
+                    finished = True
+                    break
+                continue
+            armed = True
+            pos = (float(data[2]), float(data[3]), float(data[4]))
+            if pos == (0.0, 0.0, 0.0):  # the plugin sends zeros while a map loads: not a position
+                continue
+            positions.append(pos)
             if stop_requested is not None and stop_requested():
                 break
             if max_duration is not None and time.monotonic() - t0 > max_duration:
