@@ -265,7 +265,8 @@ def _ring_rows(memory: Any, start: int, stop: int) -> dict[str, list[np.ndarray]
 
 
 def _save_memory(memory: Any, folder: Path, gen: int, old: dict[str, Any] | None, old_gen: int | None) -> dict[str, Any]:
-    stats = [memory.stat_train_return, memory.stat_test_return, memory.stat_train_steps, memory.stat_test_steps]
+    stats = [float(memory.stat_train_return), float(memory.stat_test_return),
+             int(memory.stat_train_steps), int(memory.stat_test_steps)]
     if _is_ring(memory):
         meta = memory.ring_meta()
         total, cap = int(meta["total"]), int(meta["capacity"])

@@ -940,7 +940,8 @@ class GenericTorchMemory(TorchMemory):
             "act": None if self._act is None else [str(self._act.dtype), list(self._act.shape[1:])],
             "streams": [[k, v[0], v[1]] for k, v in self._streams.items()],
             "rng": self.rng.bit_generator.state,
-            "stats": [self.stat_train_return, self.stat_test_return, self.stat_train_steps, self.stat_test_steps],
+            "stats": [float(self.stat_train_return), float(self.stat_test_return),
+                      int(self.stat_train_steps), int(self.stat_test_steps)],
         }
 
     def restore_ring(self, meta: dict[str, Any], rows: Callable[[str], tuple[int, np.ndarray]]) -> None:
