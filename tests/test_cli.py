@@ -204,7 +204,8 @@ FAKE_HOOKS = textwrap.dedent(
         raise RuntimeError("boom")
 
     def run_trainer(cfg, wandb=False):
-        _report(lr=cfg["ALG"]["LR_ACTOR"], wandb=wandb, folder=os.path.isdir(os.environ["TMRL_DATA"]))
+        _report(lr=cfg["ALG"]["LR_ACTOR"], wandb=wandb, folder=os.path.isdir(os.environ["TMRL_DATA"]),
+                password=cfg["PASSWORD"])
         return 0
 
     def run_worker(cfg, mode):
@@ -217,7 +218,8 @@ FAKE_HOOKS = textwrap.dedent(
         print("HOOK " + json.dumps({"benchmark": cfg["ENV"]["RTGYM_CONFIG"]["benchmark"]}))
 
     def main(argv):
-        print("HOOK " + json.dumps({"argv": argv, "override": os.environ.get("TMRL_CONFIG_OVERRIDE")}))
+        print("HOOK " + json.dumps({"argv": argv, "override": os.environ.get("TMRL_CONFIG_OVERRIDE"),
+                                    "data": os.environ.get("TMRL_DATA")}))
         return 0
     """
 )
@@ -242,7 +244,8 @@ def test_trainer_gets_cfg_with_override_and_children_inherit_it(hooked):
     assert seen["lr"] == 0.25 and seen["wandb"] is True
     assert seen["child_alg"]["LR_ACTOR"] == 0.25  # a child process sees the override
     assert seen["folder"] is True  # commands that need the data folder create it
-    assert (hooked["data"] / "config" / "config.json").is_file()
+    written = json.loads((hooked["data"] / "config" / "config.json").read_text())
+    assert seen["password"] == written["PASSWORD"] != schema.PASSWORD_PLACEHOLDER
 
 
 def test_config_error_stops_a_role_before_it_starts(hooked):
@@ -342,3 +345,18 @@ def test_cli_reference_documents_every_option():
         for option in action.option_strings:
             if option not in ("-h", "--help"):
                 assert f"`{option}" in doc, option
+
+
+def test_relative_tmrl_data_is_made_absolute_for_children(hooked, tmp_path):
+    env = dict(hooked["env"], TMRL_DATA="rel_data")
+    out = subprocess.run([sys.executable, "-c", RUN_WITH_HOOKS, "--demo"], capture_output=True, text=True, env=env,
+                         cwd=tmp_path, timeout=120, check=False)
+    assert out.returncode == 0, out.stderr
+    assert hook_output(out)["data"] == str(tmp_path / "rel_data")
+
+
+def test_placeholder_password_is_warned_about(hooked):
+    write_config(hooked, {"PASSWORD": schema.PASSWORD_PLACEHOLDER})
+    out = tmrl(hooked, "--worker", code=RUN_WITH_HOOKS)
+    assert out.returncode == 0, out.stderr
+    assert "public placeholder" in out.stderr

@@ -37,11 +37,13 @@ import argparse
 import importlib
 import json
 import logging
+import os
 import sys
 import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from tmrl.config.schema import PASSWORD_PLACEHOLDER
 from tmrl.errors import UserError
 
 __all__ = ["HOOKS", "SIM_HOOKS", "build_parser", "main"]
@@ -248,6 +250,9 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
 
         print(f"tmrl {tmrl.__version__}")
         return 0
+    if os.environ.get(loader.DATA_ENV, "").strip():
+        # Child processes may run elsewhere: hand them the folder as an absolute path.
+        os.environ[loader.DATA_ENV] = str(loader.data_folder())
     for text in args.config:
         loader.set_override_env(text, source="--config")
     if command == "install":
@@ -270,7 +275,11 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
         loader.set_override_env({"ENV": {"RTGYM_CONFIG": {"benchmark": True}}}, source="--benchmark")
     cfg = loader.load_config()  # a configuration mistake is reported before anything is created
     hook = _resolve_hook(command, flag, cfg["ENV"]["RTGYM_INTERFACE"])
-    loader.ensure_data_folder()
+    if loader.install().created_config:
+        cfg = loader.load_config()  # read again: config.json was just written with a fresh PASSWORD
+    if cfg["PASSWORD"] == PASSWORD_PLACEHOLDER and command in ("server", "trainer", "worker", "expert"):
+        logger.warning("PASSWORD is the public placeholder %r: anyone who can reach the server can join; put a "
+                       "random one in %s (the same on every machine)", PASSWORD_PLACEHOLDER, loader.config_path())
     if command == "trainer":
         result = hook(cfg, wandb=args.wandb)
     elif command in ("worker", "expert", "test"):
