@@ -107,9 +107,23 @@ def stats(timestamps: list[float]) -> tuple[float, float, float]:
     return float(d.mean()), float(d.std()), float(np.percentile(d, 99))
 
 
-def run_child(python: str, impl: str, args: argparse.Namespace, cpus: set[int] | None) -> dict[str, list[float]]:
-    cmd = [python, HERE, "--child", impl, "--steps", str(args.steps), "--warmup", str(args.warmup),
-           "--inference-ms", str(args.inference_ms), "--period", str(args.period)]
+def run_child(
+    python: str, impl: str, args: argparse.Namespace, cpus: set[int] | None
+) -> dict[str, list[float]]:
+    cmd = [
+        python,
+        HERE,
+        "--child",
+        impl,
+        "--steps",
+        str(args.steps),
+        "--warmup",
+        str(args.warmup),
+        "--inference-ms",
+        str(args.inference_ms),
+        "--period",
+        str(args.period),
+    ]
     env = dict(os.environ)
     repo = os.path.dirname(os.path.dirname(HERE))
     if impl == "tmrl":
@@ -134,9 +148,13 @@ def measure(args: argparse.Namespace, busy: bool) -> None:
             cpus = set(range(ncpu - 1))
     try:
         load_before = os.getloadavg()
-        runs: dict[str, dict[str, list[float]]] = {"tmrl": {"returns": [], "controls": []},
-                                                   "rtgym": {"returns": [], "controls": []}}
-        figures: dict[str, dict[str, list[tuple[float, float, float]]]] = {k: {"returns": [], "controls": []} for k in runs}
+        runs: dict[str, dict[str, list[float]]] = {
+            "tmrl": {"returns": [], "controls": []},
+            "rtgym": {"returns": [], "controls": []},
+        }
+        figures: dict[str, dict[str, list[tuple[float, float, float]]]] = {
+            k: {"returns": [], "controls": []} for k in runs
+        }
         for _ in range(args.rounds):
             for impl, python in (("tmrl", sys.executable), ("rtgym", args.rtgym_python)):
                 res = run_child(python, impl, args, cpus)
@@ -153,9 +171,11 @@ def measure(args: argparse.Namespace, busy: bool) -> None:
         return tuple(sum(r[i] for r in rows) / len(rows) for i in range(3))  # type: ignore[return-value]
 
     title = "busy process on the other core" if busy else "no extra load"
-    print(f"\n{1 / args.period:.0f} Hz, {args.steps} steps x {args.rounds} round(s), "
-          f"inference {args.inference_ms} ms, {title}; load average {load_before[0]:.2f} -> {load_after[0]:.2f}"
-          f" ({ncpu} CPUs)")
+    print(
+        f"\n{1 / args.period:.0f} Hz, {args.steps} steps x {args.rounds} round(s), "
+        f"inference {args.inference_ms} ms, {title}; load average {load_before[0]:.2f} -> {load_after[0]:.2f}"
+        f" ({ncpu} CPUs)"
+    )
     print(f"{'figure (ms)':<34}{'tmrl':>10}{'rtgym':>10}{'ratio':>8}")
     for key, label in (("returns", "step() return interval"), ("controls", "time-step duration")):
         ours, theirs = pooled("tmrl", key), pooled("rtgym", key)
@@ -165,14 +185,19 @@ def measure(args: argparse.Namespace, busy: bool) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=10)
     parser.add_argument("--rounds", type=int, default=1, help="alternating runs per implementation")
     parser.add_argument("--period", type=float, default=0.05, help="time-step duration in seconds")
     parser.add_argument("--inference-ms", type=float, default=5.0)
-    parser.add_argument("--rtgym-python", default="/tmp/rtgym-venv/bin/python",
-                        help="interpreter of the venv where rtgym==0.16 is installed")
+    parser.add_argument(
+        "--rtgym-python",
+        default="/tmp/rtgym-venv/bin/python",
+        help="interpreter of the venv where rtgym==0.16 is installed",
+    )
     parser.add_argument("--busy", action="store_true", help="run a busy process on the other core")
     parser.add_argument("--both", action="store_true", help="measure without and with the busy process")
     parser.add_argument("--child", choices=["tmrl", "rtgym"], help=argparse.SUPPRESS)
@@ -181,8 +206,10 @@ def main() -> None:
         child(args.child, args.steps, args.warmup, args.inference_ms, args.period)
         return
     if not os.path.exists(args.rtgym_python):
-        raise SystemExit(f"{args.rtgym_python} not found: install rtgym==0.16 in a venv and pass --rtgym-python")
-    for busy in ([False, True] if args.both else [args.busy]):
+        raise SystemExit(
+            f"{args.rtgym_python} not found: install rtgym==0.16 in a venv and pass --rtgym-python"
+        )
+    for busy in [False, True] if args.both else [args.busy]:
         measure(args, busy)
 
 

@@ -26,7 +26,9 @@ def controller(obs: tuple) -> np.ndarray:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--episodes", type=int, default=3)
     parser.add_argument("--fast", action="store_true", help="10x shorter time steps and delays")
     parser.add_argument("--ts", action="store_true", help="use real-time-gym-ts-v1 (one interface thread)")

@@ -36,7 +36,7 @@ def test_pendulum_default_and_no_default_action():
         obs, _ = env.reset(seed=0)
         assert obs.shape == (3,)
         assert getattr(env, "default_action", None) is None
-        obs, rew, terminated, truncated, _ = env.step(np.zeros(1, np.float32))
+        obs, *_ = env.step(np.zeros(1, np.float32))
         assert env.observation_space.contains(obs)
     finally:
         env.close()
@@ -64,7 +64,9 @@ def test_negative_scale_keeps_bounds_ordered():
 
 
 def test_float64_to_float32_nested():
-    space = spaces.Tuple((spaces.Box(-1, 1, (2,), np.float64), spaces.Dict({"a": spaces.Box(-1, 1, (3,), np.float64)})))
+    space = spaces.Tuple(
+        (spaces.Box(-1, 1, (2,), np.float64), spaces.Dict({"a": spaces.Box(-1, 1, (3,), np.float64)}))
+    )
     obs = (np.zeros(2, np.float64), {"a": np.ones(3, np.float64)})
     env = Float64ToFloat32(_Dummy(space, obs))
     o, _ = env.reset()
@@ -102,7 +104,7 @@ def test_real_time_env_through_wrapper(env_id):
         done = False
         steps = 0
         while not done:
-            obs, rew, terminated, truncated, _ = env.step(env.action_space.sample())
+            obs, _, terminated, truncated, _ = env.step(env.action_space.sample())
             done = terminated or truncated
             steps += 1
             assert env.observation_space.contains(obs)

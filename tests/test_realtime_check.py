@@ -181,8 +181,11 @@ def test_capture_start_plus_duration_beyond_timeout():
     class Slowish(Good):
         capture = 0.04
 
-    only(check(Slowish, time_step_duration=0.05, start_obs_capture=0.05, time_step_timeout_factor=0.5),
-         "start_obs_capture + capture", "time out")
+    only(
+        check(Slowish, time_step_duration=0.05, start_obs_capture=0.05, time_step_timeout_factor=0.5),
+        "start_obs_capture + capture",
+        "time out",
+    )
 
 
 def test_slow_control_makes_steps_time_out():

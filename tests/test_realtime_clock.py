@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import queue
 import threading
 
 import pytest
@@ -46,5 +47,5 @@ def test_perf_counter_clock_sleeps_until_deadline():
     ch = clock.channel()
     ch.put("x")
     assert ch.get(timeout=1) == "x"
-    with pytest.raises(Exception):
+    with pytest.raises(queue.Empty):
         ch.get(timeout=0.001)

@@ -90,8 +90,14 @@ def make_env():
         clock = clock or FakeClock()
         log = []
         kwargs = {"clock": clock, "log": log, **overrides.pop("iface", {})}
-        cfg = dict(DEFAULT_CONFIG_DICT, interface=Scripted, interface_kwargs=kwargs, time_step_duration=T,
-                   start_obs_capture=C, ep_max_length=1000)
+        cfg = dict(
+            DEFAULT_CONFIG_DICT,
+            interface=Scripted,
+            interface_kwargs=kwargs,
+            time_step_duration=T,
+            start_obs_capture=C,
+            ep_max_length=1000,
+        )
         cfg.update(overrides)
         env = gymnasium.make(env_id, config=cfg, clock=clock, disable_env_checker=True)
         envs.append(env)
@@ -112,7 +118,9 @@ def test_ids_registered_with_tmrl_names():
 def test_observation_space_is_interface_tuple_plus_action_buffer(make_env, env_id):
     env, _, _ = make_env(env_id, act_buf_len=3)
     box = spaces.Box(-1.0, 1.0, (1,), np.float32)
-    assert env.observation_space == spaces.Tuple((spaces.Box(-np.inf, np.inf, (1,), np.float32), box, box, box))
+    assert env.observation_space == spaces.Tuple(
+        (spaces.Box(-np.inf, np.inf, (1,), np.float32), box, box, box)
+    )
     assert env.action_space == box
     env2, _, _ = make_env(env_id, act_in_obs=False)
     assert len(env2.observation_space.spaces) == 1
@@ -127,7 +135,7 @@ def test_cadence_capture_time_and_overlap(make_env, env_id):
     returns = []
     for i in range(1, 5):
         clock.sleep(0.01)  # inference, overlapping the running time step
-        obs, rew, terminated, truncated, info = env.step(a(i / 10))
+        obs, rew, _, _, info = env.step(a(i / 10))
         returns.append(round(clock.now(), 9))
         assert obs[0][0] == i and rew == i and info == {"k": i}  # observed during the step that ended
     # step() returns exactly when the next time step starts, on the nominal grid
@@ -190,7 +198,7 @@ def test_slow_capture_delays_step_but_not_the_grid(make_env, env_id):
 
 @pytest.mark.parametrize("env_id", IDS)
 def test_truncation_at_ep_max_length_and_step_after_done(make_env, env_id):
-    env, clock, log = make_env(env_id, ep_max_length=3)
+    env, _, log = make_env(env_id, ep_max_length=3)
     env.reset()
     flags = [env.step(a(0.0))[2:4] for _ in range(3)]
     assert flags == [(False, False), (False, False), (False, True)]
@@ -251,7 +259,7 @@ def test_no_warning_after_wait_and_thread_ownership(make_env, env_id):
 
 @pytest.mark.parametrize("env_id", IDS)
 def test_action_buffer_oldest_first_and_reset_act_buf(make_env, env_id):
-    env, _, log = make_env(env_id, act_buf_len=3, reset_act_buf=True)
+    env, _, _ = make_env(env_id, act_buf_len=3, reset_act_buf=True)
     obs, _ = env.reset()
     assert [float(x[0]) for x in obs[1:]] == [-1.0, -1.0, -1.0]
     env.step(a(0.1))
@@ -265,8 +273,9 @@ def test_action_buffer_oldest_first_and_reset_act_buf(make_env, env_id):
 @pytest.mark.parametrize("env_id", IDS)
 @pytest.mark.parametrize("last_act_on_reset", [False, True])
 def test_buffer_kept_across_episodes_without_reset_act_buf(make_env, env_id, last_act_on_reset):
-    env, _, log = make_env(env_id, act_buf_len=3, reset_act_buf=False, ep_max_length=3,
-                           last_act_on_reset=last_act_on_reset)
+    env, _, log = make_env(
+        env_id, act_buf_len=3, reset_act_buf=False, ep_max_length=3, last_act_on_reset=last_act_on_reset
+    )
     env.reset()
     for x in (0.1, 0.2, 0.3):
         env.step(a(x))  # the last one ends the episode: 0.3 is never applied
@@ -288,7 +297,7 @@ def test_set_default_action_applies_at_next_reset(make_env, env_id):
 
 @pytest.mark.parametrize("env_id", IDS)
 def test_set_time_step_duration_and_capture(make_env, env_id):
-    env, clock, log = make_env(env_id)
+    env, _, log = make_env(env_id)
     env.reset()
     env.step(a(0.1))  # 0.05
     env.unwrapped.set_time_step_duration(0.1)
@@ -308,8 +317,14 @@ def test_polyak_benchmarks_are_exact_in_virtual_time(make_env, env_id):
         clock.sleep(0.01)
         env.step(a(0.0))
     b = env.unwrapped.benchmarks()
-    assert set(b) == {"time_step_duration", "step_duration", "join_duration", "inference_duration",
-                      "send_control_duration", "get_obs_duration"}
+    assert set(b) == {
+        "time_step_duration",
+        "step_duration",
+        "join_duration",
+        "inference_duration",
+        "send_control_duration",
+        "get_obs_duration",
+    }
     assert b["time_step_duration"] == pytest.approx((T, 0.0))
     assert b["inference_duration"] == pytest.approx((0.01, 0.0))
     assert b["get_obs_duration"] == pytest.approx((0.002, 0.0))
@@ -318,7 +333,7 @@ def test_polyak_benchmarks_are_exact_in_virtual_time(make_env, env_id):
 
 @pytest.mark.parametrize("env_id", IDS)
 def test_trace_benchmark_and_disabled_benchmark(make_env, env_id):
-    env, clock, _ = make_env(env_id, benchmark=True, benchmark_type="trace")
+    env, _, _ = make_env(env_id, benchmark=True, benchmark_type="trace")
     env.reset()
     for _ in range(4):
         env.step(a(0.0))
@@ -375,7 +390,11 @@ def test_close_stops_every_thread_and_closes_interface(env_id):
 def test_ts_interface_constructor_error_leaves_no_thread():
     before = set(threading.enumerate())
     clock = FakeClock()
-    cfg = dict(DEFAULT_CONFIG_DICT, interface=Scripted, interface_kwargs={"clock": clock, "log": [], "fail_init": True})
+    cfg = dict(
+        DEFAULT_CONFIG_DICT,
+        interface=Scripted,
+        interface_kwargs={"clock": clock, "log": [], "fail_init": True},
+    )
     with pytest.raises(ValueError, match="no device"):
         rt.RealTimeEnvTS(cfg, clock=clock)
     with pytest.raises(ValueError, match="no device"):
@@ -416,8 +435,13 @@ def test_default_config_is_never_mutated():
 
 def test_prepro_hooks_as_in_rtgym():
     clock, log = FakeClock(), []
-    cfg = dict(DEFAULT_CONFIG_DICT, interface=Scripted, interface_kwargs={"clock": clock, "log": log},
-               act_prepro_func=lambda act: act * 2, obs_prepro_func=lambda obs: [o + 100 for o in obs])
+    cfg = dict(
+        DEFAULT_CONFIG_DICT,
+        interface=Scripted,
+        interface_kwargs={"clock": clock, "log": log},
+        act_prepro_func=lambda act: act * 2,
+        obs_prepro_func=lambda obs: [o + 100 for o in obs],
+    )
     env = rt.RealTimeEnv(cfg, clock=clock)
     try:
         obs, _ = env.reset()
@@ -439,6 +463,8 @@ def test_import_registers_ids_and_touches_nothing(tmp_path):
         "assert 'real-time-gym-v1' in gymnasium.registry\n"
         "print(sorted(os.listdir('.')))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True
+    )
     assert out.stdout.strip() == "[]"
     assert not (tmp_path / "TmrlData").exists()

@@ -17,7 +17,7 @@ from gymnasium import spaces
 import tmrl.realtime  # noqa: F401  (registers the real-time ids)
 from tmrl.errors import UserError
 
-__all__ = ["GenericGymEnv", "ScaleObservation", "Float64ToFloat32", "to_float32"]
+__all__ = ["Float64ToFloat32", "GenericGymEnv", "ScaleObservation", "to_float32"]
 
 
 def _map_space(space: spaces.Space, box_fn: Any) -> spaces.Space:
@@ -127,7 +127,7 @@ class GenericGymEnv(gymnasium.Wrapper):
 
     def __init__(
         self,
-        id: str = "Pendulum-v1",  # noqa: A002  (the original's parameter name)
+        id: str = "Pendulum-v1",
         gym_kwargs: Mapping[str, Any] | None = None,
         obs_scale: float = 0.0,
         to_float32: bool = False,
@@ -152,4 +152,6 @@ class GenericGymEnv(gymnasium.Wrapper):
         try:
             return self.env.get_wrapper_attr("default_action")
         except AttributeError:
-            raise AttributeError(f"environment {self.env.spec.id if self.env.spec else self.env!r} has no default_action") from None
+            raise AttributeError(
+                f"environment {self.env.spec.id if self.env.spec else self.env!r} has no default_action"
+            ) from None

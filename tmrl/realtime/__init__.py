@@ -32,24 +32,24 @@ from tmrl.realtime.env import (
 from tmrl.realtime.interface import CONFIG_KEYS, DEFAULT_CONFIG_DICT, RealTimeGymInterface
 
 __all__ = [
-    "RealTimeGymInterface",
-    "DEFAULT_CONFIG_DICT",
     "CONFIG_KEYS",
+    "DEFAULT_CONFIG_DICT",
+    "ENV_IDS",
+    "BenchmarkDisabledError",
+    "Clock",
+    "DroneInterface",
+    "DummyRCDrone",
+    "FakeClock",
+    "PerfCounterClock",
+    "PolyakBenchmark",
     "RealTimeEnv",
     "RealTimeEnvTS",
-    "TimeStepTimeoutWarning",
+    "RealTimeGymInterface",
     "StepAfterDoneError",
-    "BenchmarkDisabledError",
-    "PolyakBenchmark",
+    "TimeStepTimeoutWarning",
     "TraceBenchmark",
-    "Clock",
-    "PerfCounterClock",
-    "FakeClock",
-    "DummyRCDrone",
-    "DroneInterface",
-    "drone_config",
     "check_realtime_interface",
-    "ENV_IDS",
+    "drone_config",
 ]
 
 #: Gymnasium id -> entry point registered by this package.

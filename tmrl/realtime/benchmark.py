@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["PolyakBenchmark", "TraceBenchmark", "make_benchmark", "DURATION_KEYS"]
+__all__ = ["DURATION_KEYS", "PolyakBenchmark", "TraceBenchmark", "make_benchmark"]
 
 DURATION_KEYS = (
     "time_step_duration",

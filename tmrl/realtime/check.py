@@ -52,7 +52,7 @@ def _mismatch(space: spaces.Space, x: Any) -> str | None:
     try:
         if space.contains(x):
             return None
-    except Exception:  # a malformed value can make contains() itself fail
+    except Exception:  # noqa: BLE001, S110  (a malformed value can make contains() itself fail)
         pass
     if isinstance(space, spaces.Box):
         if not isinstance(x, np.ndarray):
@@ -119,11 +119,13 @@ def check_realtime_interface(
         config = dict(DEFAULT_CONFIG_DICT, interface=config_or_interface)
     else:
         instance = config_or_interface
-        config = dict(DEFAULT_CONFIG_DICT, interface=lambda: _Borrowed(instance), interface_args=(), interface_kwargs={})
+        config = dict(
+            DEFAULT_CONFIG_DICT, interface=lambda: _Borrowed(instance), interface_args=(), interface_kwargs={}
+        )
         owned = False
     try:
         problems += _check(config, config_or_interface if not owned else None, n_steps, clock)
-    except Exception as err:  # the check itself must not crash on a broken interface
+    except Exception as err:  # noqa: BLE001  (the check must not crash on a broken interface)
         problems.append(f"the check stopped on an unexpected {type(err).__name__}: {err}")
     for p in problems:
         logger.warning("real-time interface check: %s", p)
@@ -154,7 +156,7 @@ def _check(config: dict[str, Any], instance: Any, n_steps: int, clock: Clock) ->
     if owned:
         try:
             instance = cfg["interface"](*cfg["interface_args"], **cfg["interface_kwargs"])
-        except Exception as err:
+        except Exception as err:  # noqa: BLE001  (reported, whatever it is)
             return problems + [f"building the interface raised {type(err).__name__}: {err}"]
     try:
         problems += _check_instance(instance, cfg, clock)
@@ -170,8 +172,10 @@ def _call(instance: Any, name: str, problems: list[str], *args: Any, **kwargs: A
     try:
         return True, getattr(instance, name)(*args, **kwargs)
     except NotImplementedError:
-        problems.append(f"{name}() is not implemented (it raises NotImplementedError): override it in your interface")
-    except Exception as err:
+        problems.append(
+            f"{name}() is not implemented (it raises NotImplementedError): override it in your interface"
+        )
+    except Exception as err:  # noqa: BLE001  (reported, whatever it is)
         problems.append(f"{name}() raised {type(err).__name__}: {err}")
     return False, None
 
@@ -224,7 +228,8 @@ def _check_instance(instance: Any, cfg: dict[str, Any], clock: Clock) -> list[st
     what = "get_obs_rew_terminated_info()"
     _check_obs(what, obs, obs_space, problems)
     if isinstance(rew, (bool, np.bool_)) or not (
-        isinstance(rew, numbers.Real) or (isinstance(rew, np.ndarray) and rew.shape == () and rew.dtype.kind in "fiu")
+        isinstance(rew, numbers.Real)
+        or (isinstance(rew, np.ndarray) and rew.shape == () and rew.dtype.kind in "fiu")
     ):
         problems.append(f"{what} returned a reward of type {type(rew).__name__}: return a float")
     if not isinstance(terminated, (bool, np.bool_)):
@@ -260,7 +265,9 @@ def _run_env(cfg: dict[str, Any], n_steps: int, clock: Clock) -> list[str]:
             for _ in range(n_steps):
                 obs, _, terminated, truncated, _ = env.step(env.default_action)
                 if not env.observation_space.contains(obs):
-                    problems.append(f"step {env.current_step}: the observation is not in the observation space")
+                    problems.append(
+                        f"step {env.current_step}: the observation is not in the observation space"
+                    )
                     break
                 if terminated or truncated:
                     env.reset()
@@ -270,7 +277,7 @@ def _run_env(cfg: dict[str, Any], n_steps: int, clock: Clock) -> list[str]:
                 f"{len(late)} of {n_steps} time steps timed out with an idle policy: the interface's calls are "
                 "too slow for time_step_duration"
             )
-    except Exception as err:
+    except Exception as err:  # noqa: BLE001  (reported, whatever it is)
         problems.append(f"running the environment raised {type(err).__name__}: {err}")
     finally:
         if env is not None:

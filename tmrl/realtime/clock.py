@@ -21,7 +21,7 @@ import threading
 import time
 from typing import Any, Generic, Protocol, TypeVar
 
-__all__ = ["Clock", "Channel", "PerfCounterClock", "FakeClock"]
+__all__ = ["Channel", "Clock", "FakeClock", "PerfCounterClock"]
 
 T = TypeVar("T")
 

@@ -26,7 +26,7 @@ from gymnasium import spaces
 from tmrl.errors import UserError
 from tmrl.realtime.interface import CONFIG_KEYS, DEFAULT_CONFIG_DICT, RealTimeGymInterface
 
-__all__ = ["DummyRCDrone", "DroneInterface", "drone_config"]
+__all__ = ["DroneInterface", "DummyRCDrone", "drone_config"]
 
 
 class DummyRCDrone:
@@ -64,7 +64,9 @@ class DummyRCDrone:
                 "use 0 <= communication_delay_min <= communication_delay_max"
             )
         if control_sleep <= 0:
-            raise UserError(f"DummyRCDrone control_sleep is {control_sleep}: use a positive period in seconds")
+            raise UserError(
+                f"DummyRCDrone control_sleep is {control_sleep}: use a positive period in seconds"
+            )
         self.mass = mass
         self.friction = friction
         self.communication_delay_min = float(communication_delay_min)
@@ -119,10 +121,10 @@ class DummyRCDrone:
         if self._thread is not threading.current_thread():
             self._thread.join()
 
-    def __enter__(self) -> DummyRCDrone:
+    def __enter__(self) -> DummyRCDrone:  # noqa: PYI034
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def _post(self, kind: str, payload: tuple[float, float]) -> None:

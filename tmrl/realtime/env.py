@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import threading
 import warnings
 from collections import deque
@@ -44,7 +45,13 @@ from tmrl.realtime.benchmark import PolyakBenchmark, make_benchmark
 from tmrl.realtime.clock import Clock, PerfCounterClock
 from tmrl.realtime.interface import CONFIG_KEYS, DEFAULT_CONFIG_DICT
 
-__all__ = ["RealTimeEnv", "RealTimeEnvTS", "TimeStepTimeoutWarning", "StepAfterDoneError", "BenchmarkDisabledError"]
+__all__ = [
+    "BenchmarkDisabledError",
+    "RealTimeEnv",
+    "RealTimeEnvTS",
+    "StepAfterDoneError",
+    "TimeStepTimeoutWarning",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -93,7 +100,9 @@ def _read_config(config: Mapping[str, Any]) -> dict[str, Any]:
         logger.warning("real-time config: ignoring unknown keys %s", unknown)
     cfg = {**DEFAULT_CONFIG_DICT, **config}
     if not callable(cfg["interface"]):
-        raise UserError('the real-time config has no interface: set config["interface"] to your interface class')
+        raise UserError(
+            'the real-time config has no interface: set config["interface"] to your interface class'
+        )
 
     def number(key: str, low: float, allow_low: bool = True) -> float:
         try:
@@ -110,7 +119,11 @@ def _read_config(config: Mapping[str, Any]) -> dict[str, Any]:
     number("time_step_timeout_factor", 0.0)
     number("ep_max_length", 0.0, allow_low=False)
     number("benchmark_polyak", 0.0, allow_low=False)
-    if not isinstance(cfg["act_buf_len"], int) or cfg["act_buf_len"] < 1:
+    if (
+        not isinstance(cfg["act_buf_len"], numbers.Integral)
+        or isinstance(cfg["act_buf_len"], bool)
+        or cfg["act_buf_len"] < 1
+    ):
         raise UserError(
             f"real-time config: act_buf_len is {cfg['act_buf_len']!r}; set it to an integer >= 1 "
             "(set act_in_obs to False to leave actions out of observations)"
@@ -142,7 +155,7 @@ class RealTimeEnv(gymnasium.Env):
         Exception: whatever the interface's constructor or space getters raise.
     """
 
-    metadata = {"render_modes": ["human"]}
+    metadata = {"render_modes": ["human"]}  # noqa: RUF012  (declared by gymnasium.Env)
     #: Whether every interface call (except render) runs on the time-step thread.
     _INTERFACE_ON_WORKER = False
 
@@ -190,7 +203,10 @@ class RealTimeEnv(gymnasium.Env):
         self._jobs = self._clock.channel()
         self._results = self._clock.channel()
         self._thread = threading.Thread(
-            target=self._worker_loop, args=(self._clock.now(),), name=f"tmrl-{type(self).__name__}", daemon=True
+            target=self._worker_loop,
+            args=(self._clock.now(),),
+            name=f"tmrl-{type(self).__name__}",
+            daemon=True,
         )
         if self._INTERFACE_ON_WORKER:
             self._thread.start()
@@ -272,12 +288,14 @@ class RealTimeEnv(gymnasium.Env):
                 last = None
                 try:
                     value = payload(self._interface)
-                except BaseException as err:  # handed to the caller, who re-raises it
+                except BaseException as err:  # noqa: BLE001  (handed to the caller, who re-raises it)
                     self._results.put(("error", err))
                 else:
                     self._results.put(("ok", value))
 
-    def _time_step(self, action: Any, t_start: float, t_co: float, t_end: float) -> tuple[float, float] | None:
+    def _time_step(
+        self, action: Any, t_start: float, t_co: float, t_end: float
+    ) -> tuple[float, float] | None:
         """Send the control at ``t_start``, capture the observation at ``t_co`` and post it
         (time-step thread). Returns ``(t_end, capture_end)`` when a next time step may follow."""
         clock, bench = self._clock, self.benchmark
@@ -298,7 +316,7 @@ class RealTimeEnv(gymnasium.Env):
             capture_end = clock.now()
             if bench:
                 self.bench.end_get_obs(capture_end)
-        except BaseException as err:  # handed to the caller, who re-raises it
+        except BaseException as err:  # noqa: BLE001  (handed to the caller, who re-raises it)
             self._results.put(("error", err))
             return None
         self._results.put(("ok", (obs, rew, terminated, info, capture_end)))
@@ -434,7 +452,14 @@ class RealTimeEnv(gymnasium.Env):
             self._jobs.put(
                 (
                     "next",
-                    (action, t_call, truncating, self.time_step_duration, self.start_obs_capture, self.time_step_timeout),
+                    (
+                        action,
+                        t_call,
+                        truncating,
+                        self.time_step_duration,
+                        self.start_obs_capture,
+                        self.time_step_timeout,
+                    ),
                 )
             )
             self._result = self._results.get()
@@ -509,7 +534,9 @@ class RealTimeEnv(gymnasium.Env):
         """Change the action applied at the next reset (and used to fill the buffer)."""
         self.default_action = default_action
 
-    def set_time_step_duration(self, time_step_duration: float, time_step_timeout_factor: float | None = None) -> None:
+    def set_time_step_duration(
+        self, time_step_duration: float, time_step_timeout_factor: float | None = None
+    ) -> None:
         """Change the time-step duration (and optionally the timeout factor) from the next time step on."""
         self._join_thread()
         if time_step_timeout_factor is not None:

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 
-__all__ = ["RealTimeGymInterface", "DEFAULT_CONFIG_DICT", "CONFIG_KEYS"]
+__all__ = ["CONFIG_KEYS", "DEFAULT_CONFIG_DICT", "RealTimeGymInterface"]
 
 
 class RealTimeGymInterface:
