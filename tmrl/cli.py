@@ -264,6 +264,8 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
     flag = _flag(command)
     if command == "demo":
         hook = _resolve_hook(command, flag)
+        loader.load_config()  # a configuration mistake is reported before anything is created
+        loader.ensure_data_folder()  # before the demo starts its processes, which all read it
         return int(hook(list(extra)) or 0)
     if command == "doctor":
         # The doctor reports on the data folder; it must not create it.
@@ -275,8 +277,10 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
         loader.set_override_env({"ENV": {"RTGYM_CONFIG": {"benchmark": True}}}, source="--benchmark")
     cfg = loader.load_config()  # a configuration mistake is reported before anything is created
     hook = _resolve_hook(command, flag, cfg["ENV"]["RTGYM_INTERFACE"])
-    if loader.install().created_config:
-        cfg = loader.load_config()  # read again: config.json was just written with a fresh PASSWORD
+    loader.ensure_data_folder()
+    # Read again: config.json may just have been written (by us or by a process started beside us,
+    # e.g. by the demo) with a fresh PASSWORD.
+    cfg = loader.load_config()
     if cfg["PASSWORD"] == PASSWORD_PLACEHOLDER and command in ("server", "trainer", "worker", "expert"):
         logger.warning("PASSWORD is the public placeholder %r: anyone who can reach the server can join; put a "
                        "random one in %s (the same on every machine)", PASSWORD_PLACEHOLDER, loader.config_path())
