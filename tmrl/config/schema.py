@@ -524,7 +524,9 @@ _REWARD = Section(
 
 _ENV = Section(
     {
-        "RTGYM_INTERFACE": Choice("TM20FULL", "environment: " + ", ".join(RTGYM_INTERFACES), RTGYM_INTERFACES),
+        "RTGYM_INTERFACE": Choice("TM20FULL", "environment: TrackMania 2020 (TM20*), the simulated track (SIM*; "
+                                              "FULL: images, LIDAR, LIDARPROGRESS), GYM_ID (GYM), the drone (DRONE)",
+                                  RTGYM_INTERFACES),
         "WINDOW_WIDTH": Int(256, "the game window is resized to this width (pixels)", min=1),
         "WINDOW_HEIGHT": Int(128, "the game window is resized to this height (pixels)", min=1),
         "IMG_WIDTH": Int(64, "width of the images fed to the model", min=1),
