@@ -524,8 +524,10 @@ _REWARD = Section(
 
 _ENV = Section(
     {
-        "RTGYM_INTERFACE": Choice("TM20FULL", "environment: TrackMania 2020 (TM20*), the simulated track (SIM*; "
-                                              "FULL: images, LIDAR, LIDARPROGRESS), GYM_ID (GYM), the drone (DRONE)",
+        "RTGYM_INTERFACE": Choice("TM20FULL", "environment: TrackMania 2020 (TM20*) or the simulated track (SIM*) "
+                                              "with images (FULL), lidar (LIDAR) or lidar and progress "
+                                              "(LIDARPROGRESS); a Gymnasium env (GYM, see GYM_ID); the real-time "
+                                              "drone (DRONE)",
                                   RTGYM_INTERFACES),
         "WINDOW_WIDTH": Int(256, "the game window is resized to this width (pixels)", min=1),
         "WINDOW_HEIGHT": Int(128, "the game window is resized to this height (pixels)", min=1),
