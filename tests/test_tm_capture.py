@@ -255,3 +255,19 @@ def test_generic_pipeline_does_not_import_tmrl_tm():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == "False"
+
+
+def test_xdotool_fallback_reads_the_same_geometry(xvfb, monkeypatch):
+    from tmrl.tm.capture import _XdotoolBackend
+
+    if not (shutil.which("xdotool") and shutil.which("xwininfo")):
+        pytest.skip("xdotool/xwininfo not installed (apt-get install xdotool x11-utils)")
+    monkeypatch.setenv("DISPLAY", xvfb)
+    win = PaintedWindow(xvfb, known_image(), x=7, y=19, frame_at=(50, 40))
+    try:
+        with WindowCapture("Trackmania", W, H, backend=_XdotoolBackend()) as cap:
+            geo = cap.geometry()
+            assert (geo.left, geo.top, geo.width, geo.height) == (57, 59, W, H)
+            np.testing.assert_array_equal(cap.screenshot()[..., 2::-1], known_image())
+    finally:
+        win.close()
