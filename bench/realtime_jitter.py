@@ -15,6 +15,7 @@ interpreter of the separate venv where it is installed (``--rtgym-python``), e.g
     python bench/realtime_jitter.py                      # idle machine
     python bench/realtime_jitter.py --busy               # a busy process on the other core
     python bench/realtime_jitter.py --both               # both, one table each
+    python bench/realtime_jitter.py --semantics          # same episodes as rtgym? (no timing)
 
 Rounds alternate between the implementations so that a change in the machine's load affects both.
 Figures are noisy on a shared machine: the script prints the load average beside them.
@@ -97,6 +98,118 @@ def child(impl: str, steps: int, warmup: int, inference_ms: float, period: float
         returns.append(time.perf_counter())
     env.close()
     print(json.dumps({"returns": returns[warmup:], "controls": controls[warmup + 1 :]}))
+
+
+def child_semantics(impl: str) -> None:
+    """Print, as JSON, what each configuration of the episode rules produces (no timing)."""
+    import itertools
+
+    import gymnasium
+    import numpy as np
+    from gymnasium import spaces
+
+    if impl == "rtgym":
+        import rtgym
+
+        base, defaults, env_id = rtgym.RealTimeGymInterface, rtgym.DEFAULT_CONFIG_DICT, "real-time-gym{}-v1"
+    else:
+        import tmrl.realtime
+
+        base, defaults = tmrl.realtime.RealTimeGymInterface, tmrl.realtime.DEFAULT_CONFIG_DICT
+        env_id = "tmrl/real-time-gym{}-v1"
+    log: list[list] = []
+
+    class Counter(base):  # type: ignore[misc, valid-type]
+        """Observation k is the k-th capture of the episode; terminates every 7th capture."""
+
+        def __init__(self):
+            self.k, self.total = 0, 0
+
+        def get_observation_space(self):
+            return spaces.Tuple((spaces.Box(-1e9, 1e9, (1,), np.float32),))
+
+        def get_action_space(self):
+            return spaces.Box(-1e3, 1e3, (1,), np.float32)
+
+        def get_default_action(self):
+            return np.full(1, -1.0, np.float32)
+
+        def send_control(self, control):
+            log.append(["send", float(control[0])])
+
+        def reset(self, seed=None, options=None):
+            log.append(["reset"])
+            self.k = 0
+            return [np.full(1, 100.0 + self.total, np.float32)], {}
+
+        def get_obs_rew_terminated_info(self):
+            self.k += 1
+            self.total += 1
+            return [np.full(1, float(self.k), np.float32)], float(self.k), self.total % 7 == 0, {}
+
+        def wait(self):
+            log.append(["wait"])
+
+    out = []
+    for rab, laor, wod, ts in itertools.product([True, False], [True, False], [True, False], ["", "-ts"]):
+        log.clear()
+        config = dict(defaults)
+        config.update(
+            interface=Counter,
+            time_step_duration=0.01,
+            start_obs_capture=0.005,
+            ep_max_length=4,
+            act_buf_len=3,
+            reset_act_buf=rab,
+            last_act_on_reset=laor,
+            wait_on_done=wod,
+        )
+        env = gymnasium.make(env_id.format(ts), config=config, disable_env_checker=True)
+        rec: list = []
+        x = 0.0
+        for _ in range(3):
+            obs, _ = env.reset()
+            rec.append(["reset", [float(v[0]) for v in obs]])
+            done = False
+            while not done:
+                x += 1
+                obs, rew, terminated, truncated, _ = env.step(np.full(1, x, np.float32))
+                rec.append(["step", [float(v[0]) for v in obs], rew, bool(terminated), bool(truncated)])
+                done = terminated or truncated
+            try:
+                env.step(np.full(1, 99.0, np.float32))
+                rec.append("no error after done")
+            except RuntimeError:
+                rec.append("RuntimeError after done")
+        env.unwrapped.stop()
+        time.sleep(0.05)  # rtgym sends the reset's control from a thread it does not join
+        out.append({"config": [rab, laor, wod, ts], "steps": rec, "interface_calls": list(log)})
+        env.close()
+    print(json.dumps(out))
+
+
+def compare_semantics(args: argparse.Namespace) -> None:
+    results = {}
+    for impl, python in (("tmrl", sys.executable), ("rtgym", args.rtgym_python)):
+        env = dict(os.environ)
+        if impl == "tmrl":
+            env["PYTHONPATH"] = (
+                os.path.dirname(os.path.dirname(HERE)) + os.pathsep + env.get("PYTHONPATH", "")
+            )
+        out = subprocess.run(
+            [python, HERE, "--child-semantics", impl], capture_output=True, text=True, env=env, check=True
+        )
+        results[impl] = json.loads(out.stdout.strip().splitlines()[-1])
+    same = 0
+    for ours, theirs in zip(results["tmrl"], results["rtgym"]):
+        if ours == theirs:
+            same += 1
+        else:
+            print("differs for reset_act_buf, last_act_on_reset, wait_on_done, variant =", ours["config"])
+    print(
+        f"episode rules: {same} of {len(results['tmrl'])} configurations give the same observations, rewards, "
+        "flags, errors and interface calls as rtgym"
+    )
 
 
 # parent -------------------------------------------------------------------------------------------
@@ -200,15 +313,27 @@ def main() -> None:
     )
     parser.add_argument("--busy", action="store_true", help="run a busy process on the other core")
     parser.add_argument("--both", action="store_true", help="measure without and with the busy process")
+    parser.add_argument(
+        "--semantics",
+        action="store_true",
+        help="instead of timing, compare episode rules with rtgym on 16 configurations",
+    )
     parser.add_argument("--child", choices=["tmrl", "rtgym"], help=argparse.SUPPRESS)
+    parser.add_argument("--child-semantics", choices=["tmrl", "rtgym"], help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         child(args.child, args.steps, args.warmup, args.inference_ms, args.period)
+        return
+    if args.child_semantics:
+        child_semantics(args.child_semantics)
         return
     if not os.path.exists(args.rtgym_python):
         raise SystemExit(
             f"{args.rtgym_python} not found: install rtgym==0.16 in a venv and pass --rtgym-python"
         )
+    if args.semantics:
+        compare_semantics(args)
+        return
     for busy in [False, True] if args.both else [args.busy]:
         measure(args, busy)
 
