@@ -358,3 +358,29 @@ def test_round_trip_with_the_real_sac_agent(tmp_path):
     torch.manual_seed(1)
     b = restored.agent.train(batch)
     assert {k: float(v) for k, v in a.items()} == {k: float(v) for k, v in b.items()}
+
+
+def test_dataset_into_a_bigger_or_smaller_memory(tmp_path):
+    cls = training_cls(memory_cls=partial(RealTimeTorchMemory, act_buf_len=2, memory_size=50, batch_size=8))
+    training = cls()
+    training.memory.append(Buf(samples(105, first_act=np.zeros(2, np.float32))))
+    save_checkpoint(training, tmp_path / "c")
+    saved = training.memory
+    bigger = RealTimeTorchMemory(act_buf_len=2, memory_size=200, batch_size=64, dataset_path=str(tmp_path / "c"))
+    # the same transitions as the saved memory: none reaches back before the oldest saved sample
+    assert sorted(saved._count[saved.valid_slots()]) == sorted(bigger._count[bigger.valid_slots()])
+    for _ in range(20):
+        for slot in bigger.sample_indices():
+            counter = int(bigger._count[slot])
+            tr = bigger.get_transition(slot)
+            want = saved.get_transition(counter % 50)
+            for x, y in zip(tr[0] + tr[3], want[0] + want[3]):
+                assert np.array_equal(x, y)
+    # saving the bigger memory keeps only what it holds, and it loads back the same
+    holder = cls()
+    holder.memory = bigger
+    save_checkpoint(holder, tmp_path / "d")
+    again = RealTimeTorchMemory(act_buf_len=2, memory_size=200, dataset_path=str(tmp_path / "d"))
+    assert np.array_equal(again.valid_slots(), bigger.valid_slots())
+    smaller = RealTimeTorchMemory(act_buf_len=2, memory_size=20, dataset_path=str(tmp_path / "c"))
+    assert smaller.size == 20 and smaller.total == 105 and len(smaller) > 0

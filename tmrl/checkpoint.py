@@ -270,7 +270,7 @@ def _save_memory(memory: Any, folder: Path, gen: int, old: dict[str, Any] | None
     if _is_ring(memory):
         meta = memory.ring_meta()
         total, cap = int(meta["total"]), int(meta["capacity"])
-        oldest = total - min(total, cap)
+        oldest = int(meta["oldest"])
         segments: list[dict[str, Any]] = []
         start = oldest
         # Segments on disk are reused only if they were written from (or loaded into) this very
@@ -320,7 +320,7 @@ def _restore_memory(memory: Any, folder: Path, saved: dict[str, Any]) -> None:
         if meta.get("class") != type(memory).__qualname__:
             logger.warning("checkpoint memory was a %s, loading it into a %s", meta.get("class"), type(memory).__qualname__)
         total = int(meta["total"])
-        oldest = total - min(total, int(meta["capacity"]))
+        oldest = int(meta.get("oldest", total - min(total, int(meta["capacity"]))))
         loaded: dict[str, list[np.ndarray]] = {}
         from safetensors import safe_open
 

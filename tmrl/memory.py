@@ -580,6 +580,8 @@ class GenericTorchMemory(TorchMemory):
         # per source id: (absolute counter of its last sample, whether that sample ended an episode)
         self._streams: dict[int, tuple[int, bool]] = {}
         self._valid: np.ndarray | None = None
+        # Counters below this were never stored here (a restore into a bigger memory).
+        self._floor = 0
         if dataset_path:
             if Path(dataset_path).exists():
                 from tmrl.checkpoint import load_memory
@@ -740,7 +742,8 @@ class GenericTorchMemory(TorchMemory):
     # --- validity and histories ----------------------------------------------------------------
 
     def _oldest(self) -> int:
-        return self.total - self.size
+        """Absolute counter of the oldest sample held."""
+        return max(self.total - self.size, self._floor)
 
     def valid_slots(self) -> np.ndarray:
         """Slots ``j`` whose transition is valid (``prev[j]`` is set and still in the memory), in
@@ -939,6 +942,7 @@ class GenericTorchMemory(TorchMemory):
             "leaves": [[str(a.dtype), list(a.shape[1:])] for a in self._obs],
             "act": None if self._act is None else [str(self._act.dtype), list(self._act.shape[1:])],
             "streams": [[k, v[0], v[1]] for k, v in self._streams.items()],
+            "oldest": self._oldest(),
             "rng": self.rng.bit_generator.state,
             "stats": [float(self.stat_train_return), float(self.stat_test_return),
                       int(self.stat_train_steps), int(self.stat_test_steps)],
@@ -968,18 +972,20 @@ class GenericTorchMemory(TorchMemory):
         if self._infos is not None:
             self._infos = [None] * self.memory_size
         total = int(meta["total"])
-        oldest = total - min(total, self.memory_size)
+        saved_oldest = int(meta.get("oldest", total - min(total, int(meta["capacity"]))))
+        floor = max(saved_oldest, total - min(total, self.memory_size))
         for name, buf in self.ring_arrays().items():
             first, arr = rows(name)
             if first + len(arr) != total:
                 raise ValueError(f"memory array {name} ends at sample {first + len(arr)}, expected {total}")
-            if first > oldest:
-                raise ValueError(f"memory array {name} starts at sample {first}, expected {oldest} or earlier")
+            if first > saved_oldest:
+                raise ValueError(f"memory array {name} starts at sample {first}, expected {saved_oldest} or earlier")
             if arr.shape[1:] != buf.shape[1:]:
                 raise ValueError(f"memory array {name} has rows of shape {arr.shape[1:]}, expected {buf.shape[1:]}")
-            keep = max(0, len(arr) - self.memory_size)
-            self._ring_write(buf, first + keep, arr[keep:])
+            skip = floor - first
+            self._ring_write(buf, floor, arr[skip:])
         self.total = total
+        self._floor = floor
         self.uid = meta["uid"]
         self._streams = {int(k): (int(last), bool(done)) for k, last, done in meta["streams"]}
         if meta.get("rng") is not None:
