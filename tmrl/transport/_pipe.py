@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import struct
 import threading
+from typing import BinaryIO
 
 HEADER = struct.Struct("<BQ")
 
@@ -19,12 +20,22 @@ CONFIG, SEND, CREDIT, STOP = 1, 2, 3, 4
 READY, OBJ, STATUS, LOG, CLOSED = 10, 11, 12, 13, 14
 
 
+def enlarge(fd: int) -> None:
+    """Give a pipe a 1 MiB buffer (Linux) so that big objects cross in fewer context switches."""
+    try:
+        import fcntl
+
+        fcntl.fcntl(fd, getattr(fcntl, "F_SETPIPE_SZ", 1031), 1 << 20)
+    except (ImportError, OSError):
+        pass  # another OS, or a system limit below 1 MiB: the default size still works
+
+
 class PipeClosed(Exception):
     """The other end of the pipe is gone."""
 
 
-def read_exact(fd: int, n: int) -> bytearray:
-    """Read exactly ``n`` bytes from ``fd`` into a new bytearray.
+def read_exact(f: BinaryIO, n: int) -> bytearray:
+    """Read exactly ``n`` bytes from the raw (unbuffered) file ``f`` into a new bytearray.
 
     Raises:
         PipeClosed: end of file before ``n`` bytes.
@@ -32,25 +43,29 @@ def read_exact(fd: int, n: int) -> bytearray:
     buf = bytearray(n)
     view = memoryview(buf)
     got = 0
-    while got < n:
-        k = os.readv(fd, [view[got:]])
-        if k == 0:
-            raise PipeClosed()
-        got += k
-    view.release()
+    try:
+        while got < n:
+            k = f.readinto(view[got:])  # portable (Windows too) and without an extra copy
+            if not k:
+                raise PipeClosed()
+            got += k
+    except (OSError, ValueError) as e:  # ValueError: the file was closed under us
+        raise PipeClosed(str(e)) from None
+    finally:
+        view.release()
     return buf
 
 
-def read_message(fd: int, max_len: int) -> tuple[int, bytearray]:
-    """Read one message; its payload must be at most ``max_len`` bytes.
+def read_message(f: BinaryIO, max_len: int) -> tuple[int, bytearray]:
+    """Read one message from the raw file ``f``; its payload must be at most ``max_len`` bytes.
 
     Raises:
         PipeClosed: the writer closed the pipe, or announced a payload above ``max_len``.
     """
-    kind, length = HEADER.unpack(read_exact(fd, HEADER.size))
+    kind, length = HEADER.unpack(read_exact(f, HEADER.size))
     if length > max_len:
         raise PipeClosed(f"pipe message of {length} bytes exceeds {max_len}")
-    return kind, read_exact(fd, length) if length else bytearray()
+    return kind, read_exact(f, length) if length else bytearray()
 
 
 class PipeWriter:

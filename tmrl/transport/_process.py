@@ -67,6 +67,8 @@ class NetProcess:
             bufsize=0,
             close_fds=True,
         )
+        _pipe.enlarge(self.proc.stdin.fileno())
+        _pipe.enlarge(self.proc.stdout.fileno())
         self._writer = _pipe.PipeWriter(self.proc.stdin.fileno())
         self._reader = threading.Thread(target=self._read_loop, name=f"tmrl-{name}-reader", daemon=True)
         self._reader.start()
@@ -144,10 +146,10 @@ class NetProcess:
         _LIVE.discard(self)
 
     def _read_loop(self) -> None:
-        fd = self.proc.stdout.fileno()
+        f = self.proc.stdout  # a raw FileIO (bufsize=0)
         try:
             while True:
-                kind, payload = _pipe.read_message(fd, self._max)
+                kind, payload = _pipe.read_message(f, self._max)
                 if kind == _pipe.LOG:
                     self._log(payload)
                 elif kind == _pipe.READY:
