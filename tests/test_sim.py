@@ -385,3 +385,41 @@ def test_trajectory_picture_and_learning_curve():
     rows, cols = np.nonzero(blue)
     assert cols[np.argmin(rows)] > 150 and cols[np.argmax(rows)] < 50
     assert encode_png(chart)[:4] == b"\x89PNG"
+
+
+# -- the demo ---------------------------------------------------------------------------------
+
+
+def _png_size(path) -> tuple[int, int]:
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR"
+    w, h = struct.unpack(">II", data[16:24])
+    idat_len = struct.unpack(">I", data[33:37])[0]
+    zlib.decompress(data[41:41 + idat_len])  # the pixel data is a valid zlib stream
+    return w, h
+
+
+@pytest.mark.timeout(240)
+def test_demo_runs_end_to_end_with_a_tiny_budget(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "demo"
+    proc = subprocess.run(
+        [sys.executable, "-m", "tmrl", "--demo", "--minutes", "0.4", "--start-training", "100",
+         "--track", "oval", "--out", str(out)],
+        capture_output=True, text=True, timeout=220, env=dict(os.environ, OMP_NUM_THREADS="1"),
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "updates/s" in proc.stdout and "samples/s" in proc.stdout
+    assert "tmrl demo finished" in proc.stdout
+    w, h = _png_size(out / "learning_curve.png")
+    assert (w, h) == (640, 360)
+    w, h = _png_size(out / "best_lap.png")
+    assert w > 100 and h > 100
+    from safetensors.torch import load_file
+
+    weights = load_file(str(out / "weights.safetensors"))
+    assert any(k.startswith("net.") for k in weights)
+    assert (out / "logs" / "trainer.log").exists()

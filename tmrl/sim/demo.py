@@ -1,0 +1,394 @@
+"""``python -m tmrl --demo``: watch the whole distributed pipeline learn to drive, no game needed.
+
+The demo starts a server, a trainer and a worker as three processes on localhost, the worker
+driving the built-in simulator (lidar observations, fast mode, the default track unless told
+otherwise). While it trains it shows a live status line: elapsed time, episodes, last and best
+return, laps completed, updates/s and samples/s. It stops at the end of its budget (time or
+environment steps) or on Ctrl-C, then writes to its output folder the trained weights, a
+learning-curve PNG and a top-down PNG of the best lap (or of the farthest run when no lap was
+completed), and prints a summary with the time to the first completed lap and the best lap time.
+
+The roles talk over plain TCP on 127.0.0.1 with a random password (nothing leaves the machine);
+each role runs ``python -m tmrl.sim.demo --role ...`` and reports through small JSON status files
+written atomically in the run folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import math
+import os
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from tmrl.errors import UserError
+from tmrl.util import atomic_write_bytes, atomic_write_text
+
+__all__ = ["main", "DEMO_SETTINGS"]
+
+#: Training settings of the demo (SAC with a small replay memory, a fast update rhythm).
+DEMO_SETTINGS: dict[str, Any] = dict(
+    img_hist_len=4, act_buf_len=2, ep_max_length=1000, batch_size=256, memory_size=200_000,
+    lr=1e-3, gamma=0.99, polyak=0.995, alpha=0.2, steps_per_round=200, rounds=10,
+    update_model_interval=20, update_buffer_interval=20, max_training_steps_per_env_step=1.0,
+    start_training=1000, worker_steps_per_update=60,
+)
+# update_model_interval: a model every 20 updates keeps the worker moving smoothly (it waits for a
+# model after each `worker_steps_per_update` steps).
+
+_INTERFACES = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
+
+
+# ------------------------------------------------------------------------------------------------
+# inside the role processes
+
+
+def _parts(interface: str) -> dict[str, Any]:
+    from tmrl.sim.interfaces import pipeline_parts
+
+    return pipeline_parts(interface)
+
+
+def _make_env(interface: str, track: str) -> Any:
+    from tmrl.sim.interfaces import SimEnv
+
+    s = DEMO_SETTINGS
+    return SimEnv(interface, track=track, img_hist_len=s["img_hist_len"], act_buf_len=s["act_buf_len"],
+                  ep_max_length=s["ep_max_length"])
+
+
+def _stats_env(interface: str, track: str, workdir: Path) -> Any:
+    """The worker's environment, wrapped to publish episode statistics and the best lap's path."""
+    import gymnasium
+
+    env = _make_env(interface, track)
+
+    class Stats(gymnasium.Wrapper):
+        def __init__(self, inner: Any) -> None:
+            super().__init__(inner)
+            self.t0 = time.monotonic()
+            self.steps = 0
+            self.returns: list[float] = []
+            self.episode_return = 0.0
+            self.path: list[tuple[float, float]] = []
+            self.laps = 0
+            self.best_lap: float | None = None
+            self.first_lap_s: float | None = None
+            self.best_progress = -1.0
+            self.last_write = 0.0
+
+        def reset(self, **kwargs: Any) -> Any:
+            out = self.env.reset(**kwargs)
+            self.episode_return = 0.0
+            self.path = [tuple(self.env.unwrapped.race.car.state.position)]
+            return out
+
+        def step(self, action: Any) -> Any:
+            obs, rew, terminated, truncated, info = self.env.step(action)
+            race = self.env.unwrapped.race
+            self.steps += 1
+            self.episode_return += rew
+            self.path.append(tuple(race.car.state.position))
+            if terminated or truncated:
+                self._episode_end(race, info)
+            now = time.monotonic()
+            if now - self.last_write > 0.5 or terminated or truncated:
+                self._write(now)
+            return obs, rew, terminated, truncated, info
+
+        def _episode_end(self, race: Any, info: dict) -> None:
+            self.returns.append(float(self.episode_return))
+            lap = info.get("lap_time") if info.get("lap_completed") else None
+            better = False
+            if lap is not None:
+                self.laps += 1
+                if self.first_lap_s is None:
+                    self.first_lap_s = time.monotonic() - self.t0
+                better = self.best_lap is None or lap < self.best_lap
+                self.best_lap = lap if better else self.best_lap
+            elif self.best_lap is None and race.progress > self.best_progress:
+                better = True  # no lap yet: keep the farthest run
+            if better:
+                self.best_progress = max(self.best_progress, race.progress)
+                buf = io.BytesIO()
+                np.save(buf, np.asarray(self.path, dtype=np.float64), allow_pickle=False)
+                atomic_write_bytes(workdir / "best_path.npy", buf.getvalue())
+
+        def _write(self, now: float) -> None:
+            self.last_write = now
+            status = {"steps": self.steps, "episodes": len(self.returns), "returns": self.returns[-2000:],
+                      "laps": self.laps, "best_lap": self.best_lap, "first_lap_s": self.first_lap_s}
+            atomic_write_text(workdir / "worker.json", json.dumps(status))
+
+    return Stats(env)
+
+
+def _training_cls(interface: str, workdir: Path) -> Any:
+    from tmrl.algorithms.sac import SACAgent
+    from tmrl.training_offline import TorchTrainingOffline
+    from tmrl.util import partial
+
+    class CountingSAC(SACAgent):
+        """SAC that publishes its number of updates (for the demo's status line)."""
+
+        updates = 0
+        last_write = 0.0
+
+        def train(self, batch: tuple) -> dict[str, Any]:
+            out = super().train(batch)
+            CountingSAC.updates += 1
+            now = time.monotonic()
+            if now - CountingSAC.last_write > 0.5:
+                CountingSAC.last_write = now
+                atomic_write_text(workdir / "trainer.json", json.dumps({"updates": CountingSAC.updates}))
+            return out
+
+    s = DEMO_SETTINGS
+    parts = _parts(interface)
+    env = _make_env(interface, "oval")  # only its spaces are used
+    spaces = (env.observation_space, env.action_space)
+    return partial(
+        TorchTrainingOffline,
+        env_cls=spaces,
+        memory_cls=partial(parts["memory_cls"], hist_len=s["img_hist_len"], act_buf_len=s["act_buf_len"],
+                           memory_size=s["memory_size"], batch_size=s["batch_size"]),
+        training_agent_cls=partial(CountingSAC, model_cls=parts["model_cls"], gamma=s["gamma"], polyak=s["polyak"],
+                                   alpha=s["alpha"], lr_actor=s["lr"], lr_critic=s["lr"], lr_entropy=s["lr"],
+                                   learn_entropy_coef=True, target_entropy=None),
+        epochs=100_000, rounds=s["rounds"], steps=s["steps_per_round"],
+        update_buffer_interval=s["update_buffer_interval"], update_model_interval=s["update_model_interval"],
+        max_training_steps_per_env_step=s["max_training_steps_per_env_step"],
+        start_training=s["start_training"], device="cpu",
+    )
+
+
+def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, password: str) -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    from tmrl.networking import RolloutWorker, Server, Trainer
+
+    common = dict(password=password, security=None)
+    if role == "server":
+        server = Server(port=port, **common)
+        try:
+            while True:
+                time.sleep(1.0)
+        finally:
+            server.stop()
+    elif role == "trainer":
+        Trainer(training_cls=_training_cls(interface, workdir), server_ip="127.0.0.1", server_port=port,
+                model_path=str(workdir / "weights.tmod"), checkpoint_path=None, **common).run()
+    elif role == "worker":
+        parts = _parts(interface)
+        actor_cls = parts["model_cls"](*_spaces(interface)).actor.__class__
+        worker = RolloutWorker(
+            env_cls=lambda: _stats_env(interface, track, workdir), actor_module_cls=actor_cls,
+            sample_compressor=parts["sample_compressor"], obs_preprocessor=parts["obs_preprocessor"],
+            server_ip="127.0.0.1", server_port=port, max_samples_per_episode=DEMO_SETTINGS["ep_max_length"],
+            model_path=str(workdir / "weights_worker.tmod"), model_history=0, **common)
+        worker.run_synchronous(initial_steps=DEMO_SETTINGS["start_training"],
+                               max_steps_per_update=DEMO_SETTINGS["worker_steps_per_update"], end_episodes=False)
+
+
+def _spaces(interface: str) -> tuple[Any, Any]:
+    env = _make_env(interface, "oval")
+    return env.observation_space, env.action_space
+
+
+# ------------------------------------------------------------------------------------------------
+# the parent process
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait_listening(port: int, timeout: float, proc: subprocess.Popen) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError("the demo server exited at start; see server.log in the run folder")
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                return
+        except OSError:
+            time.sleep(0.1)
+    raise RuntimeError(f"the demo server did not listen on port {port} within {timeout:.0f} s")
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _status_line(elapsed: float, worker: dict[str, Any], trainer: dict[str, Any]) -> str:
+    returns = worker.get("returns") or []
+    last = f"{returns[-1]:7.1f}" if returns else "      -"
+    best = f"{max(returns):7.1f}" if returns else "      -"
+    steps, updates = worker.get("steps", 0), trainer.get("updates", 0)
+    lap = worker.get("best_lap")
+    return (f"{elapsed:6.0f} s | episodes {worker.get('episodes', 0):4d} | return last {last} best {best} | "
+            f"laps {worker.get('laps', 0):3d}{f' (best {lap:.1f} s)' if lap else ''} | "
+            f"{updates / max(elapsed, 1e-9):6.1f} updates/s | {steps / max(elapsed, 1e-9):6.1f} samples/s")
+
+
+def _finish(workdir: Path, out: Path, track: str, worker: dict[str, Any]) -> dict[str, Path]:
+    from tmrl.sim.render import draw_trajectory, line_chart, track_map, write_png
+    from tmrl.sim.track import make_track
+
+    out.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    weights = workdir / "weights.tmod"
+    if weights.exists():
+        paths["weights"] = out / "weights.safetensors"
+        atomic_write_bytes(paths["weights"], weights.read_bytes())
+    returns = np.asarray(worker.get("returns") or [], dtype=np.float64)
+    paths["curve"] = out / "learning_curve.png"
+    write_png(paths["curve"], line_chart(np.arange(1, len(returns) + 1), returns))
+    path = np.zeros((0, 2))
+    try:
+        path = np.load(workdir / "best_path.npy", allow_pickle=False)
+    except (OSError, ValueError):
+        pass
+    paths["lap"] = out / "best_lap.png"
+    write_png(paths["lap"], draw_trajectory(track_map(make_track(track)), path))
+    return paths
+
+
+def _parse(argv: Sequence[str]) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m tmrl --demo", description=__doc__.splitlines()[0])
+    p.add_argument("--interface", default="SIMLIDAR", choices=_INTERFACES, help="observations (default SIMLIDAR)")
+    p.add_argument("--track", default="classic", help="track name (oval, classic, technical) or integer seed")
+    p.add_argument("--minutes", type=float, default=15.0, help="time budget in minutes (default 15)")
+    p.add_argument("--steps", type=int, default=0, help="stop after this many environment steps (0: no limit)")
+    p.add_argument("--out", default="tmrl_demo", help="output folder (default ./tmrl_demo)")
+    p.add_argument("--start-training", type=int, default=DEMO_SETTINGS["start_training"],
+                   help="environment steps collected before training starts (default 1000)")
+    p.add_argument("--role", choices=("server", "trainer", "worker"), help=argparse.SUPPRESS)
+    p.add_argument("--workdir", help=argparse.SUPPRESS)
+    p.add_argument("--port", type=int, help=argparse.SUPPRESS)
+    return p.parse_args(list(argv))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the demo (or, with the hidden ``--role``, one of its processes). Returns the exit code.
+
+    Raises:
+        UserError: an unknown track.
+    """
+    args = _parse(sys.argv[1:] if argv is None else argv)
+    if args.role:
+        DEMO_SETTINGS["start_training"] = max(1, int(args.start_training))
+        _run_role(args.role, args.interface, args.track, Path(args.workdir), args.port,
+                  os.environ.get("TMRL_DEMO_PASSWORD", ""))
+        return 0
+    from tmrl.sim.track import make_track
+
+    make_track(args.track)  # a bad name fails here, in one line
+    out = Path(args.out).resolve()
+    workdir = Path(tempfile.mkdtemp(prefix="tmrl-demo-"))
+    port = _free_port()
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1", TMRL_DEMO_PASSWORD=secrets.token_hex(16))
+    env.setdefault("TMRL_DATA", str(workdir / "TmrlData"))
+    procs: list[subprocess.Popen] = []
+    logs = []
+
+    def start(role: str) -> subprocess.Popen:
+        log = open(workdir / f"{role}.log", "wb")
+        logs.append(log)
+        cmd = [sys.executable, "-m", "tmrl.sim.demo", "--role", role, "--interface", args.interface,
+               "--track", str(args.track), "--workdir", str(workdir), "--port", str(port),
+               "--start-training", str(args.start_training)]
+        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=log, start_new_session=True)
+        procs.append(proc)
+        return proc
+
+    budget = args.minutes * 60.0
+    tty = sys.stdout.isatty()
+    print(f"tmrl demo: {args.interface} on track {args.track}, budget {args.minutes:g} min"
+          f"{f' or {args.steps} steps' if args.steps else ''}; Ctrl-C stops early. Run folder: {workdir}")
+    t0 = time.monotonic()
+    interrupted = False
+    worker: dict[str, Any] = {}
+    try:
+        server = start("server")
+        _wait_listening(port, 60.0, server)
+        start("trainer")
+        start("worker")
+        last_print = 0.0
+        while True:
+            time.sleep(0.5)
+            elapsed = time.monotonic() - t0
+            worker = _read_json(workdir / "worker.json") or worker
+            trainer = _read_json(workdir / "trainer.json")
+            line = _status_line(elapsed, worker, trainer)
+            if tty:
+                print("\r" + line, end="", flush=True)
+            elif elapsed - last_print >= 10.0:
+                print(line, flush=True)
+                last_print = elapsed
+            dead = [p for p in procs if p.poll() is not None]
+            if dead:
+                raise RuntimeError(f"a demo process exited early (code {dead[0].returncode}); see the logs in {workdir}")
+            if elapsed >= budget or (args.steps and worker.get("steps", 0) >= args.steps):
+                break
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                try:
+                    os.killpg(p.pid, signal.SIGINT)
+                except ProcessLookupError:
+                    pass
+        for p in reversed(procs):
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+        for log in logs:
+            log.close()
+    if tty:
+        print()
+    worker = _read_json(workdir / "worker.json") or worker
+    paths = _finish(workdir, out, args.track, worker)
+    returns = worker.get("returns") or []
+    first, best = worker.get("first_lap_s"), worker.get("best_lap")
+    print(f"tmrl demo {'stopped (Ctrl-C)' if interrupted else 'finished'} after {time.monotonic() - t0:.0f} s: "
+          f"{worker.get('episodes', 0)} episodes, {worker.get('steps', 0)} steps, best return "
+          f"{max(returns) if returns else float('nan'):.1f}, laps completed {worker.get('laps', 0)}")
+    print(f"  first completed lap after {first:.0f} s of training" if first is not None else "  no lap completed yet: "
+          "give it more time (--minutes)")
+    if best is not None:
+        print(f"  best lap time {best:.2f} s (simulated)")
+    for name, path in paths.items():
+        print(f"  {name}: {path}")
+    # The role logs stay with the outputs: they are where to look when something went wrong.
+    (out / "logs").mkdir(exist_ok=True)
+    for role in ("server", "trainer", "worker"):
+        if (workdir / f"{role}.log").exists():
+            shutil.copyfile(workdir / f"{role}.log", out / "logs" / f"{role}.log")
+    shutil.rmtree(workdir, ignore_errors=True)
+    return 130 if interrupted else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
