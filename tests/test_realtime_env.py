@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import subprocess
 import sys
 import threading
@@ -385,6 +386,21 @@ def test_close_stops_every_thread_and_closes_interface(env_id):
     assert times(log, "close") and len([e for e in log if e[0] == "close"]) == 1
     with pytest.raises(UserError, match="closed"):
         env.unwrapped.reset()
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_env_dropped_without_close_stops_its_thread(env_id):
+    clock = FakeClock()
+    cfg = dict(DEFAULT_CONFIG_DICT, interface=Scripted, interface_kwargs={"clock": clock, "log": []})
+    env = gymnasium.make(env_id, config=cfg, clock=clock)
+    env.reset()
+    env.step(a(0.0))
+    thread = env.unwrapped._thread
+    assert thread.is_alive()
+    del env
+    gc.collect()
+    thread.join(timeout=30)
+    assert not thread.is_alive()
 
 
 def test_ts_interface_constructor_error_leaves_no_thread():

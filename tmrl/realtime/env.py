@@ -133,6 +133,97 @@ def _read_config(config: Mapping[str, Any]) -> dict[str, Any]:
     return cfg
 
 
+class _TimeStepRunner:
+    """What the time-step thread runs: jobs from the caller, results back, in order.
+
+    Args:
+        clock: the environment's clock.
+        bench: the benchmark to feed, or None.
+        act_prepro_func: applied to an action before ``send_control`` (rtgym's hook), or None.
+        obs_prepro_func: applied to a captured observation (rtgym's hook), or None.
+    """
+
+    def __init__(
+        self,
+        clock: Clock,
+        bench: PolyakBenchmark | None,
+        act_prepro_func: Callable[[Any], Any] | None,
+        obs_prepro_func: Callable[[Any], Any] | None,
+    ) -> None:
+        self.clock = clock
+        self.bench = bench
+        self.act_prepro_func = act_prepro_func
+        self.obs_prepro_func = obs_prepro_func
+        self.interface: Any = None
+        self.jobs = clock.channel()
+        self.results = clock.channel()
+
+    def loop(self, t0: float) -> None:
+        """The time-step thread: runs jobs in order until told to stop.
+
+        Jobs: ``("start", (action, t_start, t_co, t_end))`` runs a time step with timestamps
+        decided by the caller; ``("next", (action, t_call, truncating, T, c, timeout))`` chains a
+        time step to the one just captured, deciding its start with the same rule as the caller
+        (:func:`_next_start`), so the control goes out right at the end of the previous time step
+        without waiting for the caller to wake up; ``("call", fn)`` runs ``fn(interface)``.
+        """
+        clock, jobs, results = self.clock, self.jobs, self.results
+        clock.sleep_until(t0)
+        # (t_end, capture_end) of the last time step when it may be chained, else None
+        last: tuple[float, float] | None = None
+        while True:
+            kind, payload = jobs.get()
+            if kind == "stop":
+                results.put(("ok", None))
+                return
+            if kind == "next":
+                action, t_call, truncating, duration, capture, timeout = payload
+                if last is None or truncating:
+                    continue  # the episode ended: no time step starts
+                t_end, capture_end = last
+                t_start, _ = _next_start(max(t_call, capture_end, t_end), t_end, timeout)
+                last = self.time_step(action, t_start, t_start + capture, t_start + duration)
+            elif kind == "start":
+                last = self.time_step(*payload)
+            else:
+                last = None
+                try:
+                    value = payload(self.interface)
+                except BaseException as err:  # noqa: BLE001  (handed to the caller, who re-raises it)
+                    results.put(("error", err))
+                else:
+                    results.put(("ok", value))
+                value = None
+            payload = None  # a finished job may hold the environment (a bound method): let it go
+
+    def time_step(self, action: Any, t_start: float, t_co: float, t_end: float) -> tuple[float, float] | None:
+        """Send the control at ``t_start``, capture the observation at ``t_co`` and post it
+        (time-step thread). Returns ``(t_end, capture_end)`` when a next time step may follow."""
+        clock, bench = self.clock, self.bench
+        try:
+            clock.sleep_until(t_start)
+            if bench is not None:
+                bench.start_send_control(clock.now())
+            self.interface.send_control(self.act_prepro_func(action) if self.act_prepro_func else action)
+            if bench is not None:
+                bench.end_send_control(clock.now())
+            clock.sleep_until(t_co)
+            if bench is not None:
+                bench.start_get_obs(clock.now())
+            obs, rew, terminated, info = self.interface.get_obs_rew_terminated_info()
+            if self.obs_prepro_func:
+                obs = self.obs_prepro_func(obs)
+            obs = tuple(obs)
+            capture_end = clock.now()
+            if bench is not None:
+                bench.end_get_obs(capture_end)
+        except BaseException as err:  # noqa: BLE001  (handed to the caller, who re-raises it)
+            self.results.put(("error", err))
+            return None
+        self.results.put(("ok", (obs, rew, terminated, info, capture_end)))
+        return None if terminated else (t_end, capture_end)
+
+
 class RealTimeEnv(gymnasium.Env):
     """A Gymnasium environment stepping a :class:`~tmrl.realtime.RealTimeGymInterface` in real time.
 
@@ -200,10 +291,15 @@ class RealTimeEnv(gymnasium.Env):
         self._closed = False
         self._interface: Any = None
 
-        self._jobs = self._clock.channel()
-        self._results = self._clock.channel()
+        # The time-step thread runs a _TimeStepRunner, which holds no reference to the
+        # environment: an environment dropped without close() is collected, and __del__ stops it.
+        self._runner = _TimeStepRunner(
+            self._clock, self.bench if self.benchmark else None, self.act_prepro_func, self.obs_prepro_func
+        )
+        self._jobs = self._runner.jobs
+        self._results = self._runner.results
         self._thread = threading.Thread(
-            target=self._worker_loop,
+            target=self._runner.loop,
             args=(self._clock.now(),),
             name=f"tmrl-{type(self).__name__}",
             daemon=True,
@@ -225,6 +321,7 @@ class RealTimeEnv(gymnasium.Env):
         """Build the interface and read its spaces (on the thread that will own it)."""
         interface = self.interface_cls(*self.interface_args, **self.interface_kwargs)
         self._interface = interface
+        self._runner.interface = interface
         self.default_action = interface.get_default_action()
         self.interface_action_space = interface.get_action_space()
         self.interface_observation_space = interface.get_observation_space()
@@ -256,71 +353,6 @@ class RealTimeEnv(gymnasium.Env):
         if status == "error":
             raise value
         return value
-
-    def _worker_loop(self, t0: float) -> None:
-        """The time-step thread: runs jobs in order until told to stop.
-
-        Jobs: ``("start", (action, t_start, t_co, t_end))`` runs a time step with timestamps
-        decided by the caller; ``("next", (action, t_call, truncating, T, c, timeout))`` chains a
-        time step to the one just captured, deciding its start with the same rule as the caller
-        (:func:`_next_start`), so the control goes out right at the end of the previous time step
-        without waiting for the caller to wake up; ``("call", fn)`` runs ``fn(interface)``.
-        """
-        clock = self._clock
-        clock.sleep_until(t0)
-        # (t_end, capture_end) of the last time step when it may be chained, else None
-        last: tuple[float, float] | None = None
-        while True:
-            kind, payload = self._jobs.get()
-            if kind == "stop":
-                self._results.put(("ok", None))
-                return
-            if kind == "next":
-                action, t_call, truncating, duration, capture, timeout = payload
-                if last is None or truncating:
-                    continue  # the episode ended: no time step starts
-                t_end, capture_end = last
-                t_start, _ = _next_start(max(t_call, capture_end, t_end), t_end, timeout)
-                last = self._time_step(action, t_start, t_start + capture, t_start + duration)
-            elif kind == "start":
-                last = self._time_step(*payload)
-            else:
-                last = None
-                try:
-                    value = payload(self._interface)
-                except BaseException as err:  # noqa: BLE001  (handed to the caller, who re-raises it)
-                    self._results.put(("error", err))
-                else:
-                    self._results.put(("ok", value))
-
-    def _time_step(
-        self, action: Any, t_start: float, t_co: float, t_end: float
-    ) -> tuple[float, float] | None:
-        """Send the control at ``t_start``, capture the observation at ``t_co`` and post it
-        (time-step thread). Returns ``(t_end, capture_end)`` when a next time step may follow."""
-        clock, bench = self._clock, self.benchmark
-        try:
-            clock.sleep_until(t_start)
-            if bench:
-                self.bench.start_send_control(clock.now())
-            self._interface.send_control(self.act_prepro_func(action) if self.act_prepro_func else action)
-            if bench:
-                self.bench.end_send_control(clock.now())
-            clock.sleep_until(t_co)
-            if bench:
-                self.bench.start_get_obs(clock.now())
-            obs, rew, terminated, info = self._interface.get_obs_rew_terminated_info()
-            if self.obs_prepro_func:
-                obs = self.obs_prepro_func(obs)
-            obs = tuple(obs)
-            capture_end = clock.now()
-            if bench:
-                self.bench.end_get_obs(capture_end)
-        except BaseException as err:  # noqa: BLE001  (handed to the caller, who re-raises it)
-            self._results.put(("error", err))
-            return None
-        self._results.put(("ok", (obs, rew, terminated, info, capture_end)))
-        return None if terminated else (t_end, capture_end)
 
     def _stop_worker(self) -> None:
         if self._thread.is_alive():
@@ -553,6 +585,13 @@ class RealTimeEnv(gymnasium.Env):
         """Change the episode length limit, from the next step on."""
         self._join_thread()
         self.ep_max_length = ep_max_length
+
+    def __del__(self) -> None:
+        # Dropped without close(): stop the time-step thread (without waiting, as this may run
+        # in the garbage collector). The interface is not closed: call close() for that.
+        if not getattr(self, "_closed", True) and getattr(self, "_thread", None) is not None:
+            self._closed = True
+            self._jobs.put(("stop", None))
 
     def close(self) -> None:
         """Wait for the running time step, close the interface (when it has ``close()``) and stop
