@@ -173,10 +173,11 @@ class OpenPlanetClient:
             except OSError as err:
                 attempts += 1
                 self._last_error = f"{type(err).__name__}: {err}"
-                if attempts == 1 or attempts % 20 == 0:
-                    logger.info(
-                        "no OpenPlanet plugin at %s:%d yet (%s)", self.host, self.port, self._last_error
-                    )
+                # Quiet for the first seconds (the game may be starting), then a reminder now and then.
+                level = logging.INFO if attempts % 20 == 0 else logging.DEBUG
+                logger.log(
+                    level, "no OpenPlanet plugin at %s:%d yet (%s)", self.host, self.port, self._last_error
+                )
                 self._stop.wait(self.retry_interval)
                 continue
             attempts = 0
