@@ -87,6 +87,11 @@ def test_to_float32_leaves():
     assert out[7][0].dtype == np.float32
 
 
+def test_real_time_id_without_config_is_a_user_error():
+    with pytest.raises(UserError, match="interface"):
+        GenericGymEnv("real-time-gym-v1")
+
+
 def test_unknown_id_is_a_user_error():
     with pytest.raises(UserError, match="Pendulum-v1"):
         GenericGymEnv("NoSuchEnv-v7")

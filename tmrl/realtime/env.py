@@ -43,7 +43,7 @@ from gymnasium import spaces
 from tmrl.errors import UserError
 from tmrl.realtime.benchmark import PolyakBenchmark, make_benchmark
 from tmrl.realtime.clock import Clock, PerfCounterClock
-from tmrl.realtime.interface import CONFIG_KEYS, DEFAULT_CONFIG_DICT
+from tmrl.realtime.interface import CONFIG_KEYS, DEFAULT_CONFIG_DICT, RealTimeGymInterface
 
 __all__ = [
     "BenchmarkDisabledError",
@@ -99,9 +99,10 @@ def _read_config(config: Mapping[str, Any]) -> dict[str, Any]:
     if unknown:
         logger.warning("real-time config: ignoring unknown keys %s", unknown)
     cfg = {**DEFAULT_CONFIG_DICT, **config}
-    if not callable(cfg["interface"]):
+    if not callable(cfg["interface"]) or cfg["interface"] is RealTimeGymInterface:
         raise UserError(
-            'the real-time config has no interface: set config["interface"] to your interface class'
+            'the real-time config has no interface: set config["interface"] to your interface class '
+            "(e.g. dict(tmrl.realtime.DEFAULT_CONFIG_DICT, interface=MyInterface))"
         )
 
     def number(key: str, low: float, allow_low: bool = True) -> float:
