@@ -83,8 +83,9 @@ class _PlainBuffer:
 def _build(side: str, algo: str, variant: str = ""):
     obs_space, act_space = _spaces()
     if side == "tmrl":
-        from tmrl.custom.custom_algorithms import REDQSACAgent, SpinupSacAgent
         from tmrl.custom.custom_memories import GenericTorchMemory
+
+        from tmrl.custom.custom_algorithms import REDQSACAgent, SpinupSacAgent
 
         memory = GenericTorchMemory(memory_size=1e6, batch_size=BATCH, nb_steps=1, device="cpu")
         cls = SpinupSacAgent if algo == "sac" else REDQSACAgent
@@ -100,8 +101,12 @@ def _build(side: str, algo: str, variant: str = ""):
         cls = SACAgent if algo == "sac" else REDQSACAgent
         model = MLPActorCritic if algo == "sac" else REDQMLPActorCritic
         critic_dtype = "bfloat16" if variant == "bf16" else None
-        agent = cls(observation_space=obs_space, action_space=act_space, device="cpu",
-                    model_cls=partial(model, critic_dtype=critic_dtype))
+        agent = cls(
+            observation_space=obs_space,
+            action_space=act_space,
+            device="cpu",
+            model_cls=partial(model, critic_dtype=critic_dtype),
+        )
         memory_name = "tmrl.memory.GenericTorchMemory"
     memory.append(_PlainBuffer(_samples()))
     return memory, agent, memory_name
@@ -167,7 +172,13 @@ class _Worker:
             args += ["--threads", str(threads)]
         self.side = side
         self.proc = subprocess.Popen(
-            args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env, cwd=cwd
+            args,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+            env=env,
+            cwd=cwd,
         )
 
     def run(self, algo: str, mode: str, seconds: float, variant: str = "") -> dict[str, Any]:
@@ -177,7 +188,7 @@ class _Worker:
         self.proc.stdin.flush()
         for line in self.proc.stdout:
             if line.startswith(RESULT):
-                return json.loads(line[len(RESULT):])
+                return json.loads(line[len(RESULT) :])
         raise RuntimeError(f"{self.side} worker exited (code {self.proc.wait()})")
 
     def close(self) -> None:
@@ -192,7 +203,9 @@ def main() -> None:
     parser.add_argument("--worker", choices=["ours", "tmrl"], help=argparse.SUPPRESS)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--seconds", type=float, default=4.0, help="per measurement")
-    parser.add_argument("--threads", type=int, default=None, help="torch threads on both sides (default: torch's)")
+    parser.add_argument(
+        "--threads", type=int, default=None, help="torch threads on both sides (default: torch's)"
+    )
     parser.add_argument("--algos", default="sac,redq")
     parser.add_argument("--anchor-python", default="/tmp/tmrl-anchor/venv/bin/python")
     parser.add_argument("--anchor-home", default="/tmp/tmrl-anchor/home")
@@ -210,7 +223,9 @@ def main() -> None:
     sides = {"ours": _Worker("ours", sys.executable, env_ours, str(repo), args.threads)}
     if not args.no_anchor:
         if not Path(args.anchor_python).exists():
-            sys.exit(f"no tmrl 0.7.1 at {args.anchor_python}: run shared/anchors/setup-tmrl-0.7.1.sh or pass --no-anchor")
+            sys.exit(
+                f"no tmrl 0.7.1 at {args.anchor_python}: run shared/anchors/setup-tmrl-0.7.1.sh or pass --no-anchor"
+            )
         # Outside the repository, so that `import tmrl` finds the installed 0.7.1.
         sides["tmrl"] = _Worker("tmrl", args.anchor_python, env_tmrl, "/tmp", args.threads)
 
@@ -220,8 +235,10 @@ def main() -> None:
     if args.bf16:
         runs.append(("ours-bf16", "ours", "bf16"))
     results: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
-    print(f"batch {BATCH}, MLP 256x256, {N_SAMPLES} Pendulum-shaped samples in memory; "
-          f"{args.rounds} rounds of {args.seconds:.0f} s per measurement, interleaved")
+    print(
+        f"batch {BATCH}, MLP 256x256, {N_SAMPLES} Pendulum-shaped samples in memory; "
+        f"{args.rounds} rounds of {args.seconds:.0f} s per measurement, interleaved"
+    )
     try:
         for rnd in range(args.rounds):
             print(f"round {rnd + 1}: load average {os.getloadavg()[0]:.2f}", flush=True)
@@ -232,9 +249,11 @@ def main() -> None:
                         res = sides[worker].run(algo, mode, args.seconds, variant)
                         results.setdefault((side, algo, mode), []).append(res)
                         share = f", sampling {100 * res['sample_share']:.1f}%" if mode == "full" else ""
-                        print(f"  {side:9s} {algo:5s} {mode:6s} {res['updates_per_s']:7.1f} updates/s"
-                              f" ({res['cpu_per_update_ms']:.1f} ms CPU/update, {res['threads']} threads{share})",
-                              flush=True)
+                        print(
+                            f"  {side:9s} {algo:5s} {mode:6s} {res['updates_per_s']:7.1f} updates/s"
+                            f" ({res['cpu_per_update_ms']:.1f} ms CPU/update, {res['threads']} threads{share})",
+                            flush=True,
+                        )
     finally:
         for w in sides.values():
             w.close()

@@ -62,12 +62,38 @@ def policy_error(agent) -> float:
 @pytest.mark.parametrize(
     "make",
     [
-        lambda: SACAgent(OBS, ACT, "cpu", model_cls=partial(MLPActorCritic, hidden_sizes=(64, 64)),
-                         lr_actor=3e-3, lr_critic=3e-3, lr_entropy=3e-3, alpha=0.05),
-        lambda: REDQSACAgent(OBS, ACT, "cpu", model_cls=partial(REDQMLPActorCritic, hidden_sizes=(64, 64)),
-                             lr_actor=3e-3, lr_critic=3e-3, lr_entropy=3e-3, alpha=0.05, n=5),
-        lambda: REDQSACAgent(OBS, ACT, "cpu", lr_actor=3e-3, lr_critic=3e-3, lr_entropy=3e-3, alpha=0.05, n=5,
-                             model_cls=partial(REDQMLPActorCritic, hidden_sizes=(64, 64), critic_dtype="bfloat16")),
+        lambda: SACAgent(
+            OBS,
+            ACT,
+            "cpu",
+            model_cls=partial(MLPActorCritic, hidden_sizes=(64, 64)),
+            lr_actor=3e-3,
+            lr_critic=3e-3,
+            lr_entropy=3e-3,
+            alpha=0.05,
+        ),
+        lambda: REDQSACAgent(
+            OBS,
+            ACT,
+            "cpu",
+            model_cls=partial(REDQMLPActorCritic, hidden_sizes=(64, 64)),
+            lr_actor=3e-3,
+            lr_critic=3e-3,
+            lr_entropy=3e-3,
+            alpha=0.05,
+            n=5,
+        ),
+        lambda: REDQSACAgent(
+            OBS,
+            ACT,
+            "cpu",
+            lr_actor=3e-3,
+            lr_critic=3e-3,
+            lr_entropy=3e-3,
+            alpha=0.05,
+            n=5,
+            model_cls=partial(REDQMLPActorCritic, hidden_sizes=(64, 64), critic_dtype="bfloat16"),
+        ),
     ],
     ids=["sac", "redq", "redq-bf16"],
 )
@@ -118,8 +144,16 @@ def _reference_sac_step(agent_before: SACAgent, batch: tuple, lr: float) -> dict
 def test_one_update_matches_the_textbook_sac_step():
     torch.manual_seed(0)
     lr = 0.05
-    agent = SACAgent(OBS3, ACT2, "cpu", model_cls=partial(MLPActorCritic, hidden_sizes=SMALL),
-                     optimizer_actor="sgd", optimizer_critic="sgd", lr_actor=lr, lr_critic=lr)
+    agent = SACAgent(
+        OBS3,
+        ACT2,
+        "cpu",
+        model_cls=partial(MLPActorCritic, hidden_sizes=SMALL),
+        optimizer_actor="sgd",
+        optimizer_critic="sgd",
+        lr_actor=lr,
+        lr_critic=lr,
+    )
     agent.alpha_optimizer = torch.optim.SGD([agent.log_alpha], lr=lr)
     batch = random_batch(torch.Generator().manual_seed(2))
     reference = copy.deepcopy(agent)
@@ -131,8 +165,9 @@ def test_one_update_matches_the_textbook_sac_step():
         torch.testing.assert_close(p.detach(), expected[name], rtol=1e-5, atol=1e-6, msg=name)
     torch.testing.assert_close(agent.log_alpha.detach(), expected["log_alpha"])
     # Targets moved by Polyak averaging toward the *updated* online weights.
-    for (name, p), pt, p0 in zip(agent.model.named_parameters(), agent.model_target.parameters(),
-                                 reference.model_target.parameters()):
+    for (name, p), pt, p0 in zip(
+        agent.model.named_parameters(), agent.model_target.parameters(), reference.model_target.parameters()
+    ):
         torch.testing.assert_close(pt, agent.polyak * p0 + (1 - agent.polyak) * p.detach(), msg=name)
 
 
@@ -140,8 +175,16 @@ def test_one_update_matches_the_textbook_sac_step():
 def test_bootstraps_on_terminated_never_on_truncated(cls):
     torch.manual_seed(0)
     kwargs = {"n": 3} if cls is REDQSACAgent else {}
-    agent = cls(OBS3, ACT2, "cpu", model_cls=partial(REDQMLPActorCritic, hidden_sizes=SMALL)
-                if cls is REDQSACAgent else partial(MLPActorCritic, hidden_sizes=SMALL), gamma=0.9, **kwargs)
+    agent = cls(
+        OBS3,
+        ACT2,
+        "cpu",
+        model_cls=partial(REDQMLPActorCritic, hidden_sizes=SMALL)
+        if cls is REDQSACAgent
+        else partial(MLPActorCritic, hidden_sizes=SMALL),
+        gamma=0.9,
+        **kwargs,
+    )
     o, a, r, o2, _, _ = random_batch(torch.Generator().manual_seed(3))
     ones, zeros = torch.ones_like(r), torch.zeros_like(r)
     with torch.no_grad():
@@ -212,7 +255,9 @@ def test_state_dict_from_another_configuration_is_refused():
     with pytest.raises(UserError, match="same algorithm and model settings") as err:
         b.load_state_dict(a.state_dict())
     assert "\n" not in str(err.value)
-    c = SACAgent(OBS3, ACT2, "cpu", model_cls=partial(MLPActorCritic, hidden_sizes=SMALL), learn_entropy_coef=False)
+    c = SACAgent(
+        OBS3, ACT2, "cpu", model_cls=partial(MLPActorCritic, hidden_sizes=SMALL), learn_entropy_coef=False
+    )
     with pytest.raises(UserError):
         c.load_state_dict(a.state_dict())
 
@@ -234,8 +279,14 @@ def test_get_actor_shares_parameters_without_copying():
 
 
 def test_fixed_entropy_coefficient_is_sac_v1():
-    agent = SACAgent(OBS3, ACT2, "cpu", model_cls=partial(MLPActorCritic, hidden_sizes=SMALL),
-                     alpha=0.3, learn_entropy_coef=False)
+    agent = SACAgent(
+        OBS3,
+        ACT2,
+        "cpu",
+        model_cls=partial(MLPActorCritic, hidden_sizes=SMALL),
+        alpha=0.3,
+        learn_entropy_coef=False,
+    )
     gen = torch.Generator().manual_seed(7)
     for _ in range(3):
         metrics = agent.train(random_batch(gen))
@@ -246,9 +297,20 @@ def test_fixed_entropy_coefficient_is_sac_v1():
 
 
 def test_optimizer_settings_are_really_applied():
-    agent = SACAgent(OBS3, ACT2, "cpu", model_cls=partial(MLPActorCritic, hidden_sizes=SMALL),
-                     optimizer_actor="AdamW", optimizer_critic="adam", betas_actor=[0.997, 0.998],
-                     betas_critic=(0.5, 0.6), l2_actor=0.01, l2_critic=0.02, lr_actor=1e-4, lr_critic=2e-4)
+    agent = SACAgent(
+        OBS3,
+        ACT2,
+        "cpu",
+        model_cls=partial(MLPActorCritic, hidden_sizes=SMALL),
+        optimizer_actor="AdamW",
+        optimizer_critic="adam",
+        betas_actor=[0.997, 0.998],
+        betas_critic=(0.5, 0.6),
+        l2_actor=0.01,
+        l2_critic=0.02,
+        lr_actor=1e-4,
+        lr_critic=2e-4,
+    )
     assert isinstance(agent.pi_optimizer, torch.optim.AdamW)
     assert isinstance(agent.q_optimizer, torch.optim.Adam)
     pg, qg = agent.pi_optimizer.param_groups[0], agent.q_optimizer.param_groups[0]
@@ -256,9 +318,18 @@ def test_optimizer_settings_are_really_applied():
     assert pg["weight_decay"] == 0.01 and qg["weight_decay"] == 0.02
     assert pg["lr"] == 1e-4 and qg["lr"] == 2e-4
     assert pg["fused"] or pg["foreach"]
-    sgd = SACAgent(OBS3, ACT2, "cpu", model_cls=partial(MLPActorCritic, hidden_sizes=SMALL),
-                   optimizer_critic="sgd", l2_critic=0.1)
-    assert isinstance(sgd.q_optimizer, torch.optim.SGD) and sgd.q_optimizer.param_groups[0]["weight_decay"] == 0.1
+    sgd = SACAgent(
+        OBS3,
+        ACT2,
+        "cpu",
+        model_cls=partial(MLPActorCritic, hidden_sizes=SMALL),
+        optimizer_critic="sgd",
+        l2_critic=0.1,
+    )
+    assert (
+        isinstance(sgd.q_optimizer, torch.optim.SGD)
+        and sgd.q_optimizer.param_groups[0]["weight_decay"] == 0.1
+    )
     with pytest.raises(UserError, match="'adam', 'adamw', 'sgd'"):
         SACAgent(OBS3, ACT2, "cpu", optimizer_actor="rmsprop")
     with pytest.raises(UserError, match="two numbers"):
@@ -266,7 +337,9 @@ def test_optimizer_settings_are_really_applied():
 
 
 def test_redq_n_reaches_the_model_and_is_checked():
-    agent = REDQSACAgent(OBS3, ACT2, "cpu", model_cls=partial(REDQMLPActorCritic, hidden_sizes=SMALL), n=4, m=3)
+    agent = REDQSACAgent(
+        OBS3, ACT2, "cpu", model_cls=partial(REDQMLPActorCritic, hidden_sizes=SMALL), n=4, m=3
+    )
     assert len(agent.model.qs) == 4 and agent.model.qs.weights[0].shape[0] == 4
 
     class FixedThree(REDQMLPActorCritic):
@@ -281,8 +354,15 @@ def test_redq_n_reaches_the_model_and_is_checked():
 
 def test_redq_learned_entropy_with_several_critic_updates_per_policy_update():
     torch.manual_seed(0)
-    agent = REDQSACAgent(OBS3, ACT2, "cpu", model_cls=partial(REDQMLPActorCritic, hidden_sizes=SMALL),
-                         n=3, learn_entropy_coef=True, q_updates_per_policy_update=3)
+    agent = REDQSACAgent(
+        OBS3,
+        ACT2,
+        "cpu",
+        model_cls=partial(REDQMLPActorCritic, hidden_sizes=SMALL),
+        n=3,
+        learn_entropy_coef=True,
+        q_updates_per_policy_update=3,
+    )
     gen = torch.Generator().manual_seed(8)
     actor_changes, alpha_changes = [], []
     for _ in range(6):
@@ -290,7 +370,9 @@ def test_redq_learned_entropy_with_several_critic_updates_per_policy_update():
         alpha0 = agent.log_alpha.detach().clone()
         critic0 = agent.model.qs.weights[1].detach().clone()
         agent.train(random_batch(gen))
-        actor_changes.append(not all(torch.equal(a, b) for a, b in zip(actor0, agent.model.actor.parameters())))
+        actor_changes.append(
+            not all(torch.equal(a, b) for a, b in zip(actor0, agent.model.actor.parameters()))
+        )
         alpha_changes.append(not torch.equal(alpha0, agent.log_alpha))
         assert not torch.equal(critic0, agent.model.qs.weights[1])  # critics learn every step
     assert actor_changes == [False, False, True, False, False, True]
@@ -314,7 +396,9 @@ def test_ensemble_matches_independent_mlps():
     out = ens(o, a)
     assert out.shape == (3, 5)
     torch.testing.assert_close(out, torch.stack(expected))
-    torch.testing.assert_close(ens(o, a, members=torch.tensor([2, 0])), torch.stack([expected[2], expected[0]]))
+    torch.testing.assert_close(
+        ens(o, a, members=torch.tensor([2, 0])), torch.stack([expected[2], expected[0]])
+    )
     torch.testing.assert_close(ens[1](o, a), expected[1])
     assert [q.index for q in ens] == [0, 1, 2]
     model = MLPActorCritic(OBS3, ACT2, hidden_sizes=(8, 8))
@@ -382,7 +466,9 @@ def test_bfloat16_critics_keep_float32_parameters_and_close_values():
     assert out.dtype == torch.float32
     torch.testing.assert_close(out, ref, rtol=0.05, atol=0.02)
     out.sum().backward()
-    assert all(p.dtype == torch.float32 and p.grad is not None and p.grad.dtype == torch.float32
-               for p in low.parameters())
+    assert all(
+        p.dtype == torch.float32 and p.grad is not None and p.grad.dtype == torch.float32
+        for p in low.parameters()
+    )
     with pytest.raises(UserError, match="bfloat16"):
         EnsembleQFunction(OBS3, ACT2, compute_dtype="float16")

@@ -17,7 +17,9 @@ def test_copy_shared_shares_parameter_and_buffer_memory():
     net = _net()
     twin = copy_shared(net)
     assert twin is not net
-    for (name, a), (name_b, b) in zip(net.state_dict(keep_vars=True).items(), twin.state_dict(keep_vars=True).items()):
+    for (name, a), (name_b, b) in zip(
+        net.state_dict(keep_vars=True).items(), twin.state_dict(keep_vars=True).items()
+    ):
         assert name == name_b
         assert a is not b
         assert a.untyped_storage().data_ptr() == b.untyped_storage().data_ptr(), name

@@ -79,7 +79,7 @@ class ActorModule(ABC):
             "data-only format (for example JSON or safetensors), or subclass TorchActorModule"
         )
 
-    def load(self, path: str | os.PathLike[str], device: Any) -> "ActorModule":
+    def load(self, path: str | os.PathLike[str], device: Any) -> ActorModule:
         """Load weights written by :meth:`save` and return the loaded actor (usually ``self``).
 
         Raises:
@@ -90,7 +90,7 @@ class ActorModule(ABC):
             "data-only format (for example JSON or safetensors), or subclass TorchActorModule"
         )
 
-    def to_device(self, device: Any) -> "ActorModule":
+    def to_device(self, device: Any) -> ActorModule:
         """Move whatever needs moving to ``device`` and return the actor; a no-op here."""
         return self
 
@@ -121,7 +121,8 @@ def collate_one(obs: Any, device: torch.device | str | None = None) -> Any:
     if isinstance(obs, (tuple, list)):
         return type(obs)(collate_one(o, device) for o in obs)
     if isinstance(obs, Mapping):
-        return type(obs)((k, collate_one(v, device)) for k, v in obs.items())
+        mapping_cls: Any = type(obs)
+        return mapping_cls((k, collate_one(v, device)) for k, v in obs.items())
     raise UserError(
         f"observation element of type {type(obs).__name__} cannot be fed to a TorchActorModule: "
         "make the obs_preprocessor return arrays, numbers, or tuples/dicts of them"
@@ -160,7 +161,7 @@ class TorchActorModule(ActorModule, torch.nn.Module):
         tensors = {k: v.detach().to("cpu", copy=True).contiguous() for k, v in self.state_dict().items()}
         atomic_write_bytes(path, save(tensors))
 
-    def load(self, path: str | os.PathLike[str], device: Any) -> "TorchActorModule":
+    def load(self, path: str | os.PathLike[str], device: Any) -> TorchActorModule:
         """Load weights written by :meth:`save` into this module, move it to ``device``.
 
         Returns:
@@ -193,13 +194,13 @@ class TorchActorModule(ActorModule, torch.nn.Module):
         self.to_device(device)
         return self
 
-    def to(self, *args: Any, **kwargs: Any) -> "TorchActorModule":
+    def to(self, *args: Any, **kwargs: Any) -> TorchActorModule:
         """``torch.nn.Module.to`` that also records the new device in ``self.device``."""
         device, _, _, _ = torch._C._nn._parse_to(*args, **kwargs)
         if device is not None:
             self.device = device
         return super().to(*args, **kwargs)
 
-    def to_device(self, device: Any) -> "TorchActorModule":
+    def to_device(self, device: Any) -> TorchActorModule:
         """Move the module to ``device`` and return it."""
         return self.to(device)

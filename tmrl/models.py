@@ -10,9 +10,10 @@ a Python loop over ``n`` separate networks.
 
 from __future__ import annotations
 
+import itertools
 import math
-from collections.abc import Mapping, Sequence
-from typing import Any, Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -23,16 +24,16 @@ from tmrl.actor import TorchActorModule
 from tmrl.errors import UserError
 
 __all__ = [
-    "LOG_STD_MIN",
     "LOG_STD_MAX",
+    "LOG_STD_MIN",
+    "EnsembleQFunction",
+    "MLPActorCritic",
+    "QMember",
+    "REDQMLPActorCritic",
+    "SquashedGaussianMLPActor",
+    "flatten_obs",
     "mlp",
     "space_dim",
-    "flatten_obs",
-    "SquashedGaussianMLPActor",
-    "EnsembleQFunction",
-    "QMember",
-    "MLPActorCritic",
-    "REDQMLPActorCritic",
 ]
 
 LOG_STD_MIN = -20.0
@@ -41,7 +42,11 @@ _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 _LOG_2 = math.log(2.0)
 
 
-def mlp(sizes: Sequence[int], activation: Callable[[], nn.Module], output_activation: Callable[[], nn.Module] = nn.Identity) -> nn.Sequential:
+def mlp(
+    sizes: Sequence[int],
+    activation: Callable[[], nn.Module],
+    output_activation: Callable[[], nn.Module] = nn.Identity,
+) -> nn.Sequential:
     """A stack of ``nn.Linear`` layers of the given sizes, ``activation`` between them and
     ``output_activation`` after the last one."""
     layers: list[nn.Module] = []
@@ -131,6 +136,9 @@ class SquashedGaussianMLPActor(TorchActorModule):
         device: where :meth:`act_` collates observations.
     """
 
+    act_scale: torch.Tensor
+    act_offset: torch.Tensor
+
     def __init__(
         self,
         observation_space: Any,
@@ -151,7 +159,9 @@ class SquashedGaussianMLPActor(TorchActorModule):
         self.register_buffer("act_offset", torch.from_numpy((high + low) / 2.0), persistent=False)
         self.act_limit = float(high[0])  # the original's scalar bound, kept for compatibility
 
-    def forward(self, obs: Any, test: bool = False, with_logprob: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def forward(
+        self, obs: Any, test: bool = False, with_logprob: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Sample (or, with ``test``, take the mean of) the squashed Gaussian policy.
 
         Args:
@@ -227,7 +237,7 @@ class EnsembleQFunction(nn.Module):
         sizes = [space_dim(observation_space) + int(np.prod(action_space.shape)), *hidden_sizes, 1]
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
-        for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
+        for fan_in, fan_out in itertools.pairwise(sizes):
             bound = 1.0 / math.sqrt(fan_in)
             self.weights.append(nn.Parameter(torch.empty(self.n, fan_in, fan_out).uniform_(-bound, bound)))
             self.biases.append(nn.Parameter(torch.empty(self.n, 1, fan_out).uniform_(-bound, bound)))
@@ -281,12 +291,12 @@ class EnsembleQFunction(nn.Module):
     def __len__(self) -> int:
         return self.n
 
-    def __getitem__(self, i: int) -> "QMember":
+    def __getitem__(self, i: int) -> QMember:
         if not -self.n <= i < self.n:
             raise IndexError(f"Q function {i} out of range for an ensemble of {self.n}")
         return QMember(self, i % self.n)
 
-    def __iter__(self) -> Iterator["QMember"]:  # type: ignore[override]
+    def __iter__(self) -> Iterator[QMember]:  # type: ignore[override]
         return (QMember(self, i) for i in range(self.n))
 
 
@@ -376,4 +386,6 @@ class REDQMLPActorCritic(MLPActorCritic):
         n: int = 10,
         critic_dtype: str | torch.dtype | None = None,
     ) -> None:
-        super().__init__(observation_space, action_space, hidden_sizes, activation, n=n, critic_dtype=critic_dtype)
+        super().__init__(
+            observation_space, action_space, hidden_sizes, activation, n=n, critic_dtype=critic_dtype
+        )

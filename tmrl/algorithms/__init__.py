@@ -10,7 +10,7 @@ from tmrl.algorithms.redq import REDQSACAgent
 from tmrl.algorithms.sac import SACAgent, SpinupSacAgent
 from tmrl.errors import UserError
 
-__all__ = ["SACAgent", "SpinupSacAgent", "REDQSACAgent", "ALGORITHMS", "agent_class"]
+__all__ = ["ALGORITHMS", "REDQSACAgent", "SACAgent", "SpinupSacAgent", "agent_class"]
 
 #: Values of ``ALG.ALGORITHM`` and the agents they select.
 ALGORITHMS: dict[str, type] = {"SAC": SACAgent, "REDQSAC": REDQSACAgent}

@@ -8,7 +8,8 @@ critics are one :class:`~tmrl.models.EnsembleQFunction`, evaluated by batched ma
 
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 
@@ -115,7 +116,7 @@ class REDQSACAgent(SACAgent):
         alpha = self._entropy_coef()  # defined on every update, learned or not
 
         with torch.no_grad():
-            a2, logp_a2 = self.model.actor(o2)
+            a2, logp_a2 = self.actor(o2)
             # Global torch RNG, so that torch.manual_seed makes runs reproducible.
             subset = torch.randperm(self.n)[: self.m]
             q_targ = self.critics_target(o2, a2, members=subset).min(0).values
@@ -128,7 +129,7 @@ class REDQSACAgent(SACAgent):
 
         logp_pi = None
         if update_policy:
-            pi, logp_pi = self.model.actor(o)
+            pi, logp_pi = self.actor(o)
             # Mean over all n critics, weights detached: this loss moves the actor only.
             q_pi = self.critics(o, pi, detach_params=True).mean(0)
             loss_actor = (alpha * logp_pi - q_pi).mean()

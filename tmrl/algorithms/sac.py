@@ -17,7 +17,8 @@ import copy
 import inspect
 import logging
 import math
-from typing import Any, Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -29,7 +30,7 @@ from tmrl.models import EnsembleQFunction, MLPActorCritic
 from tmrl.training import TrainingAgent
 from tmrl.util import cached_property
 
-__all__ = ["SACAgent", "SpinupSacAgent", "make_optimizer", "CriticSet"]
+__all__ = ["CriticSet", "SACAgent", "SpinupSacAgent", "make_optimizer"]
 
 logger = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ _OPTIMIZERS: dict[str, Callable[..., torch.optim.Optimizer]] = {
 
 def make_optimizer(
     name: str,
-    params: Iterable[torch.nn.Parameter],
+    params: Iterable[torch.Tensor],
     lr: float,
     betas: Sequence[float] | None = None,
     weight_decay: float | None = None,
@@ -70,7 +71,9 @@ def make_optimizer(
         try:
             b1, b2 = (float(b) for b in betas)
         except (TypeError, ValueError):
-            raise UserError(f"betas for {what} must be two numbers like [0.9, 0.999], got {betas!r}") from None
+            raise UserError(
+                f"betas for {what} must be two numbers like [0.9, 0.999], got {betas!r}"
+            ) from None
         kwargs["betas"] = (b1, b2)
     elif betas is not None:
         logger.warning("betas %s are ignored by %s=%r (SGD has no betas)", betas, what, name)
@@ -109,7 +112,7 @@ class CriticSet:
         elif qs is not None:
             self.modules = list(qs)
         elif hasattr(model, "q1") and hasattr(model, "q2"):
-            self.modules = [model.q1, model.q2]
+            self.modules = [cast(torch.nn.Module, model.q1), cast(torch.nn.Module, model.q2)]
         else:
             raise UserError(
                 f"{type(model).__name__} has no critics: an actor-critic model needs `qs` "
@@ -148,7 +151,9 @@ class CriticSet:
                 p.requires_grad_(f)
 
 
-def _build_model(model_cls: Callable[..., torch.nn.Module], observation_space: Any, action_space: Any, **extra: Any) -> torch.nn.Module:
+def _build_model(
+    model_cls: Callable[..., torch.nn.Module], observation_space: Any, action_space: Any, **extra: Any
+) -> torch.nn.Module:
     """Call ``model_cls(observation_space, action_space, **extra)``, passing each extra keyword
     only when the callable accepts it (a user model may not take ``n``)."""
     try:
@@ -246,14 +251,21 @@ class SACAgent(TrainingAgent):
 
         self.model = self._make_model().to(device)
         self.model_target = no_grad(copy.deepcopy(self.model))
+        # The actor: a TorchActorModule whose forward returns (action, logp).
+        self.actor: torch.nn.Module = cast(torch.nn.Module, self.model.actor)
         self.critics = CriticSet(self.model)
         self.critics_target = CriticSet(self.model_target)
 
         self.pi_optimizer = make_optimizer(
-            optimizer_actor, self.model.actor.parameters(), lr_actor, betas_actor, l2_actor, "optimizer_actor"
+            optimizer_actor, self.actor.parameters(), lr_actor, betas_actor, l2_actor, "optimizer_actor"
         )
         self.q_optimizer = make_optimizer(
-            optimizer_critic, self.critics.parameters(), lr_critic, betas_critic, l2_critic, "optimizer_critic"
+            optimizer_critic,
+            self.critics.parameters(),
+            lr_critic,
+            betas_critic,
+            l2_critic,
+            "optimizer_critic",
         )
 
         if target_entropy is None:
@@ -269,15 +281,15 @@ class SACAgent(TrainingAgent):
         self.alpha_t = torch.tensor(self.alpha, device=device)
 
         # Same order in both lists: Polyak averaging pairs them up.
-        self._params = list(self.model.parameters())
-        self._target_params = list(self.model_target.parameters())
+        self._params: list[torch.Tensor] = list(self.model.parameters())
+        self._target_params: list[torch.Tensor] = list(self.model_target.parameters())
 
     def _make_model(self) -> torch.nn.Module:
         return _build_model(self.model_cls, self.observation_space, self.action_space)
 
     def get_actor(self) -> TorchActorModule:
         """The actor, sharing parameter memory with the trained one (no copy, no gradients)."""
-        return self.model_nograd.actor
+        return cast(TorchActorModule, self.model_nograd.actor)
 
     def _entropy_coef(self) -> torch.Tensor:
         if self.log_alpha is not None:
@@ -302,10 +314,10 @@ class SACAgent(TrainingAgent):
         d = d.reshape(-1)
         alpha = self._entropy_coef()
 
-        pi, logp_pi = self.model.actor(o)
+        pi, logp_pi = self.actor(o)
         with torch.no_grad():
             # Target actions come from the current policy, values from the target critics.
-            a2, logp_a2 = self.model.actor(o2)
+            a2, logp_a2 = self.actor(o2)
             q_targ = self.critics_target(o2, a2).min(0).values
             # Bootstrap unless the episode *terminated*: a truncated episode would have gone on,
             # so its last transition keeps its future value.

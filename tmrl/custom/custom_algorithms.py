@@ -3,4 +3,4 @@
 from tmrl.algorithms.redq import REDQSACAgent
 from tmrl.algorithms.sac import SACAgent, SpinupSacAgent
 
-__all__ = ["SpinupSacAgent", "REDQSACAgent", "SACAgent"]
+__all__ = ["REDQSACAgent", "SACAgent", "SpinupSacAgent"]

@@ -8,4 +8,4 @@ from tmrl.models import (
     mlp,
 )
 
-__all__ = ["MLPActorCritic", "REDQMLPActorCritic", "SquashedGaussianMLPActor", "EnsembleQFunction", "mlp"]
+__all__ = ["EnsembleQFunction", "MLPActorCritic", "REDQMLPActorCritic", "SquashedGaussianMLPActor", "mlp"]
