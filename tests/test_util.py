@@ -225,3 +225,18 @@ def test_partial_to_dict_names_builtin_defaults_it_cannot_inspect():
 
     d = partial_to_dict(functools.partial(f))
     assert d["container"] == "builtins:dict" and d["n"] == 2
+
+
+def test_atomic_write_uses_ordinary_permissions_unless_asked(tmp_path):
+    import os
+    import stat
+
+    from tmrl.util import atomic_write_bytes
+
+    mask = os.umask(0o022)
+    os.umask(mask)
+    plain = atomic_write_bytes(tmp_path / "weights.tmod", b"w")
+    secret = atomic_write_bytes(tmp_path / "key.pem", b"k", mode=0o600)
+    assert stat.S_IMODE(plain.stat().st_mode) == 0o666 & ~mask
+    assert stat.S_IMODE(secret.stat().st_mode) == 0o600
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]

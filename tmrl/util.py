@@ -138,17 +138,31 @@ class cached_property:  # noqa: N801 (named like the builtin decorator it mirror
         return cache[self.name]
 
 
-def atomic_write_bytes(path: str | os.PathLike[str], data: bytes | memoryview) -> Path:
+def atomic_write_bytes(
+    path: str | os.PathLike[str], data: bytes | memoryview, mode: int | None = None
+) -> Path:
     """Write ``data`` to ``path`` atomically: a temporary file in the same folder, flushed and
-    synced, then renamed over ``path``. A crash leaves either the old file or the new one.
+    synced, then renamed over ``path``, then the folder synced. A crash leaves either the old file
+    or the new one.
 
-    The parent folder is created when missing. Returns the path.
+    Args:
+        path: the file to write; its parent folder is created when missing.
+        data: the whole content.
+        mode: permission bits of the file; by default those of an ordinary new file (0o666 less
+            the process umask). Pass ``0o600`` for secrets.
+
+    Returns:
+        The path.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if mode is None:
+        mode = 0o666 & ~_current_umask()
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            if hasattr(os, "fchmod"):  # absent on Windows, where the bits mean little anyway
+                os.fchmod(f.fileno(), mode)
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
@@ -159,12 +173,37 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes | memoryview) -
         except FileNotFoundError:
             pass
         raise
+    _fsync_folder(path.parent)
     return path
 
 
-def atomic_write_text(path: str | os.PathLike[str], text: str, encoding: str = "utf-8") -> Path:
+@functools.lru_cache(maxsize=1)
+def _current_umask() -> int:
+    # os.umask can only be read by setting it; read it once and restore it at once.
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (POSIX); a no-op where folders cannot be opened."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write_text(
+    path: str | os.PathLike[str], text: str, encoding: str = "utf-8", mode: int | None = None
+) -> Path:
     """Text version of :func:`atomic_write_bytes`."""
-    return atomic_write_bytes(path, text.encode(encoding))
+    return atomic_write_bytes(path, text.encode(encoding), mode=mode)
 
 
 def dump(obj: Any, path: str | os.PathLike[str]) -> Path:

@@ -58,8 +58,7 @@ def ensure_credentials(directory: str | os.PathLike[str], hostname: str = DEFAUL
         pem = key.private_bytes(
             serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
         )
-        atomic_write_bytes(key_path, pem)  # a mkstemp file: created with mode 0600
-        os.chmod(key_path, 0o600)
+        atomic_write_bytes(key_path, pem, mode=0o600)
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, hostname)])
     now = datetime.datetime.now(datetime.timezone.utc)
     sans: list[x509.GeneralName] = [x509.DNSName(hostname), x509.DNSName("localhost")]
