@@ -89,9 +89,20 @@ def test_one_sac_update_on_memory_batches_and_weights_round_trip(tmp_path):
     assert torch.allclose(other(obs, test=True)[0], actor(obs, test=True)[0])
 
 
-def test_lidar_wiring():
-    space = spaces.Tuple([spaces.Box(0, 1000, (1,)), spaces.Box(0, np.inf, (76,)), ACT, ACT])
+def test_lidar_wiring_scales_speed_and_lidar_only():
+    from tmrl.driving.models import lidar_obs_scales
+    from tmrl.models import MLPActorCritic
+
+    space = spaces.Tuple([spaces.Box(0, 1000, (1,)), spaces.Box(0, 1, (1,)), spaces.Box(0, np.inf, (76,)), ACT, ACT])
+    assert lidar_obs_scales(space) == (0.01, 1.0, 0.01, 1.0, 1.0)
     model = lidar_actor_critic(space, ACT, hidden_sizes=(64, 64))
-    obs = (torch.rand(4, 1), torch.rand(4, 76), torch.rand(4, 3), torch.rand(4, 3))
-    assert model.actor(obs)[0].shape == (4, 3)
+    obs = (torch.rand(4, 1) * 300, torch.rand(4, 1), torch.rand(4, 76) * 400, torch.rand(4, 3), torch.rand(4, 3))
+    a, _ = model.actor(obs, test=True)
+    assert a.shape == (4, 3)
+    # same weights without the scaling, fed pre-scaled inputs: same actions and Q values
+    plain = MLPActorCritic(space, ACT, hidden_sizes=(64, 64))
+    plain.load_state_dict(model.state_dict())
+    pre = (obs[0] * 0.01, obs[1], obs[2] * 0.01, obs[3], obs[4])
+    assert torch.allclose(plain.actor(pre, test=True)[0], a, atol=1e-6)
+    assert torch.allclose(plain.qs(pre, a), model.qs(obs, a), atol=1e-5)
     assert lidar_actor_critic(space, ACT, n=10).n == 10

@@ -9,9 +9,11 @@ The layer sizes default to tmrl 0.7's ``VanillaCNN`` (channels 64, 64, 128, 128,
 4, strides 2, MLP 256-256) but are arguments, and the input size comes from the observation space
 (``IMG_HIST_LEN``, ``IMG_HEIGHT``, ``IMG_WIDTH``), where the original hard-codes them.
 
-Lidar observations are flat vectors once preprocessed; their models are
-:class:`tmrl.models.MLPActorCritic` / :class:`tmrl.models.REDQMLPActorCritic` as they are
-(:func:`lidar_actor_critic`).
+Lidar observations are flat vectors once preprocessed. :class:`LidarActorCritic` is tmrl's MLP
+actor-critic with one change: speed (km/h) and lidar distances (pixels) are multiplied by 0.01
+inside the networks, so that every input is of order one (raw lidar values reach 400, which slows
+SAC down several times over on the simulator). Observations, samples and memories keep the
+original units.
 """
 
 from __future__ import annotations
@@ -26,7 +28,15 @@ from torch import nn
 
 from tmrl.actor import TorchActorModule
 from tmrl.errors import UserError
-from tmrl.models import LOG_STD_MAX, LOG_STD_MIN, MLPActorCritic, REDQMLPActorCritic, mlp, space_dim
+from tmrl.models import (
+    LOG_STD_MAX,
+    LOG_STD_MIN,
+    EnsembleQFunction,
+    MLPActorCritic,
+    SquashedGaussianMLPActor,
+    mlp,
+    space_dim,
+)
 
 __all__ = [
     "DEFAULT_CNN",
@@ -36,6 +46,10 @@ __all__ = [
     "CNNActorCritic",
     "REDQCNNActorCritic",
     "lidar_actor_critic",
+    "lidar_obs_scales",
+    "LidarActor",
+    "LidarQFunctions",
+    "LidarActorCritic",
 ]
 
 #: tmrl 0.7's VanillaCNN sizes.
@@ -230,9 +244,71 @@ class REDQCNNActorCritic(CNNActorCritic):
         super().__init__(observation_space, action_space, n=n, **kwargs)
 
 
+#: Input scale of speeds (km/h) and lidar distances (pixels) in the lidar models.
+LIDAR_INPUT_SCALE = 0.01
+
+
+def lidar_obs_scales(observation_space: Any) -> tuple[float, ...]:
+    """Per-element input scales for lidar observations: speed (the first element) and lidar
+    histories (elements whose size is a multiple of 19) by :data:`LIDAR_INPUT_SCALE`, the others
+    (progress, actions) by 1."""
+    elements = list(getattr(observation_space, "spaces", [observation_space]))
+    scales = []
+    for i, space in enumerate(elements):
+        dim = space_dim(space)
+        lidar = dim >= 19 and dim % 19 == 0
+        scales.append(LIDAR_INPUT_SCALE if i == 0 or lidar else 1.0)
+    return tuple(scales)
+
+
+def _scaled(obs: Any, scales: tuple[float, ...]) -> Any:
+    if not isinstance(obs, (tuple, list)):
+        return obs * scales[0]
+    return tuple(o * s if s != 1.0 else o for o, s in zip(obs, scales)) + tuple(obs[len(scales):])
+
+
+class LidarActor(SquashedGaussianMLPActor):
+    """:class:`tmrl.models.SquashedGaussianMLPActor` whose inputs are scaled by
+    :func:`lidar_obs_scales` (same arguments, plus ``obs_scales`` to override them)."""
+
+    def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
+                 activation: Callable[[], nn.Module] = nn.ReLU, device: Any = "cpu",
+                 obs_scales: Sequence[float] | None = None) -> None:
+        super().__init__(observation_space, action_space, hidden_sizes, activation, device=device)
+        self.obs_scales = tuple(float(s) for s in (obs_scales or lidar_obs_scales(observation_space)))
+
+    def forward(self, obs: Any, test: bool = False, with_logprob: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """As the MLP actor's, on scaled inputs."""
+        return super().forward(_scaled(obs, self.obs_scales), test, with_logprob)
+
+
+class LidarQFunctions(EnsembleQFunction):
+    """:class:`tmrl.models.EnsembleQFunction` whose observation inputs are scaled by
+    :func:`lidar_obs_scales`."""
+
+    def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
+                 activation: Callable[[], nn.Module] = nn.ReLU, n: int = 2,
+                 obs_scales: Sequence[float] | None = None) -> None:
+        super().__init__(observation_space, action_space, hidden_sizes, activation, n=n)
+        self.obs_scales = tuple(float(s) for s in (obs_scales or lidar_obs_scales(observation_space)))
+
+    def forward(self, obs: Any, act: torch.Tensor, members: Any = None, detach_params: bool = False) -> torch.Tensor:
+        """As the ensemble's, on scaled observations."""
+        return super().forward(_scaled(obs, self.obs_scales), act, members=members, detach_params=detach_params)
+
+
+class LidarActorCritic(MLPActorCritic):
+    """The lidar actor-critic: :class:`tmrl.models.MLPActorCritic` with scaled inputs
+    (:class:`LidarActor`, :class:`LidarQFunctions`); ``n`` critics (10 for REDQ)."""
+
+    def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
+                 activation: Callable[[], nn.Module] = nn.ReLU, n: int = 2) -> None:
+        super().__init__(observation_space, action_space, hidden_sizes, activation, n=n)
+        self.actor = LidarActor(observation_space, action_space, hidden_sizes, activation)
+        self.qs = LidarQFunctions(observation_space, action_space, hidden_sizes, activation, n=n)
+
+
 def lidar_actor_critic(observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
-                       n: int = 2, activation: Callable[[], nn.Module] = nn.ReLU) -> MLPActorCritic:
-    """The lidar models: an MLP actor-critic over the flattened observation (speed, optional
-    progress, lidar history, action buffer); REDQ's variant when ``n > 2``."""
-    cls = REDQMLPActorCritic if n > 2 else MLPActorCritic
-    return cls(observation_space, action_space, hidden_sizes=hidden_sizes, activation=activation, n=n)
+                       n: int = 2, activation: Callable[[], nn.Module] = nn.ReLU) -> LidarActorCritic:
+    """The lidar models (:class:`LidarActorCritic`) with ``n`` critics (SAC 2, REDQ 10)."""
+    return LidarActorCritic(observation_space, action_space, hidden_sizes=hidden_sizes, activation=activation, n=n)

@@ -447,21 +447,21 @@ def pipeline_parts(name: str) -> dict[str, Any]:
     """What a worker and a trainer need besides the environment, for an ``RTGYM_INTERFACE``
     value of the simulator or of TrackMania (the observations are the same):
     ``obs_preprocessor``, ``sample_compressor``, ``memory_cls`` (call it with ``hist_len``,
-    ``act_buf_len`` and the memory arguments) and ``model_cls`` (actor-critic class; the MLP for
-    lidar, the CNN for images; REDQ variants are chosen by the caller)."""
+    ``act_buf_len`` and the memory arguments) and ``model_cls`` (actor-critic class taking ``n``
+    critics: :class:`~tmrl.driving.models.LidarActorCritic` for lidar,
+    :class:`~tmrl.driving.models.CNNActorCritic` for images)."""
     from tmrl.driving import compressors, memories, preprocessors
-    from tmrl.driving.models import CNNActorCritic
-    from tmrl.models import MLPActorCritic
+    from tmrl.driving.models import CNNActorCritic, LidarActorCritic
 
     key = name.upper()
     if key in ("SIMLIDAR", "TM20LIDAR"):
         return dict(obs_preprocessor=preprocessors.preprocess_lidar_obs,
                     sample_compressor=compressors.compress_lidar_sample,
-                    memory_cls=memories.LidarMemory, model_cls=MLPActorCritic)
+                    memory_cls=memories.LidarMemory, model_cls=LidarActorCritic)
     if key in ("SIMLIDARPROGRESS", "TM20LIDARPROGRESS"):
         return dict(obs_preprocessor=preprocessors.preprocess_lidar_progress_obs,
                     sample_compressor=compressors.compress_lidar_progress_sample,
-                    memory_cls=memories.LidarProgressMemory, model_cls=MLPActorCritic)
+                    memory_cls=memories.LidarProgressMemory, model_cls=LidarActorCritic)
     if key in ("SIMFULL", "TM20FULL"):
         return dict(obs_preprocessor=preprocessors.preprocess_full_obs,
                     sample_compressor=compressors.compress_full_sample,
