@@ -72,6 +72,12 @@ class Track:
         object.__setattr__(self, "curvature", dh / self.spacing)
         for arr in (self.centre, self.tangents, self.normals, self.curvature):
             arr.setflags(write=False)
+        # Plain float lists: the per-substep nearest-point walk reads a handful of points, which is
+        # much faster from Python lists than from NumPy arrays.
+        object.__setattr__(self, "_xs", self.centre[:, 0].tolist())
+        object.__setattr__(self, "_ys", self.centre[:, 1].tolist())
+        object.__setattr__(self, "_txs", t[:, 0].tolist())
+        object.__setattr__(self, "_tys", t[:, 1].tolist())
 
     @property
     def n_points(self) -> int:
@@ -100,24 +106,31 @@ class Track:
         return np.concatenate([self.centre, self.centre[:1]], axis=0)
 
     def locate(self, pos: np.ndarray, hint: int, window: int = 100) -> tuple[int, float, float]:
-        """The centre point nearest ``pos`` within ``window`` points of ``hint`` (wrapping round).
+        """The centre point nearest ``pos``, found by walking from ``hint`` along the line while
+        the distance decreases (at most ``window`` points; the line's bends are wider than the
+        road, so the distance has a single minimum near a car on the road).
 
         Returns:
             ``(index, lateral, along)``: the point's index, the signed distance to the centre line
             (positive to the left of the driving direction) and the offset along the tangent.
         """
-        n = self.n_points
-        lo, hi = hint - window, hint + window + 1
-        if lo >= 0 and hi <= n:  # the common case: a plain slice, no index array
-            diff = self.centre[lo:hi] - pos
-            i = lo + int(np.argmin(np.einsum("ij,ij->i", diff, diff)))
-        else:
-            idx = (hint + np.arange(-window, window + 1)) % n
-            diff = self.centre[idx] - pos
-            i = int(idx[np.argmin(np.einsum("ij,ij->i", diff, diff))])
-        rx, ry = float(pos[0]) - self.centre[i, 0], float(pos[1]) - self.centre[i, 1]
-        t = self.tangents[i]
-        return i, float(-t[1] * rx + t[0] * ry), float(t[0] * rx + t[1] * ry)
+        xs, ys, n = self._xs, self._ys, self.n_points  # type: ignore[attr-defined]
+        px, py = float(pos[0]), float(pos[1])
+        i = hint % n
+        best = (xs[i] - px) ** 2 + (ys[i] - py) ** 2
+        for step in (1, -1):
+            moved = False
+            for _ in range(window):
+                j = (i + step) % n
+                d = (xs[j] - px) ** 2 + (ys[j] - py) ** 2
+                if d >= best:
+                    break
+                i, best, moved = j, d, True
+            if moved:
+                break
+        rx, ry = px - xs[i], py - ys[i]
+        tx, ty = self._txs[i], self._tys[i]  # type: ignore[attr-defined]
+        return i, -ty * rx + tx * ry, tx * rx + ty * ry
 
     def bounds(self, margin: float) -> tuple[np.ndarray, np.ndarray]:
         """``(low, high)`` corners of the box holding the track, widened by ``margin`` metres."""
