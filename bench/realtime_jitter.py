@@ -17,13 +17,15 @@ interpreter of the separate venv where it is installed (``--rtgym-python``), e.g
     python bench/realtime_jitter.py --both               # both, one table each
     python bench/realtime_jitter.py --semantics          # same episodes as rtgym? (no timing)
 
-Rounds alternate between the implementations so that a change in the machine's load affects both.
+Rounds alternate between the implementations in ABBA order, so that a change in the machine's load
+during the run favours neither; the intervals of all rounds are pooled.
 Figures are noisy on a shared machine: the script prints the load average beside them.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import subprocess
@@ -102,7 +104,6 @@ def child(impl: str, steps: int, warmup: int, inference_ms: float, period: float
 
 def child_semantics(impl: str) -> None:
     """Print, as JSON, what each configuration of the episode rules produces (no timing)."""
-    import itertools
 
     import gymnasium
     import numpy as np
@@ -213,10 +214,16 @@ def compare_semantics(args: argparse.Namespace) -> None:
 
 
 # parent -------------------------------------------------------------------------------------------
-def stats(timestamps: list[float]) -> tuple[float, float, float]:
+def intervals(timestamps: list[float]) -> list[float]:
+    """Milliseconds between consecutive timestamps."""
+    return [1000.0 * (b - a) for a, b in itertools.pairwise(timestamps)]
+
+
+def stats(values: list[float]) -> tuple[float, float, float]:
+    """Mean, standard deviation and 99th percentile."""
     import numpy as np
 
-    d = np.diff(np.asarray(timestamps)) * 1000.0
+    d = np.asarray(values)
     return float(d.mean()), float(d.std()), float(np.percentile(d, 99))
 
 
@@ -261,27 +268,21 @@ def measure(args: argparse.Namespace, busy: bool) -> None:
             cpus = set(range(ncpu - 1))
     try:
         load_before = os.getloadavg()
-        runs: dict[str, dict[str, list[float]]] = {
-            "tmrl": {"returns": [], "controls": []},
-            "rtgym": {"returns": [], "controls": []},
+        pooled: dict[str, dict[str, list[float]]] = {
+            impl: {"returns": [], "controls": []} for impl in ("tmrl", "rtgym")
         }
-        figures: dict[str, dict[str, list[tuple[float, float, float]]]] = {
-            k: {"returns": [], "controls": []} for k in runs
-        }
-        for _ in range(args.rounds):
-            for impl, python in (("tmrl", sys.executable), ("rtgym", args.rtgym_python)):
-                res = run_child(python, impl, args, cpus)
+        pythons = {"tmrl": sys.executable, "rtgym": args.rtgym_python}
+        for r in range(args.rounds):
+            # ABBA order, so that a load that rises or falls during the run favours neither
+            for impl in ("tmrl", "rtgym") if r % 2 == 0 else ("rtgym", "tmrl"):
+                res = run_child(pythons[impl], impl, args, cpus)
                 for key in ("returns", "controls"):
-                    figures[impl][key].append(stats(res[key]))
+                    pooled[impl][key] += intervals(res[key])
         load_after = os.getloadavg()
     finally:
         if hog is not None:
             hog.kill()
             hog.wait()
-
-    def pooled(impl: str, key: str) -> tuple[float, float, float]:
-        rows = figures[impl][key]
-        return tuple(sum(r[i] for r in rows) / len(rows) for i in range(3))  # type: ignore[return-value]
 
     title = "busy process on the other core" if busy else "no extra load"
     print(
@@ -291,7 +292,7 @@ def measure(args: argparse.Namespace, busy: bool) -> None:
     )
     print(f"{'figure (ms)':<34}{'tmrl':>10}{'rtgym':>10}{'ratio':>8}")
     for key, label in (("returns", "step() return interval"), ("controls", "time-step duration")):
-        ours, theirs = pooled("tmrl", key), pooled("rtgym", key)
+        ours, theirs = stats(pooled["tmrl"][key]), stats(pooled["rtgym"][key])
         for i, name in enumerate(("mean", "std", "p99")):
             ratio = ours[i] / theirs[i] if theirs[i] else float("nan")
             print(f"{label + ' ' + name:<34}{ours[i]:>10.3f}{theirs[i]:>10.3f}{ratio:>8.3f}")
@@ -303,7 +304,9 @@ def main() -> None:
     )
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=10)
-    parser.add_argument("--rounds", type=int, default=1, help="alternating runs per implementation")
+    parser.add_argument(
+        "--rounds", type=int, default=2, help="runs per implementation, in ABBA order (intervals pooled)"
+    )
     parser.add_argument("--period", type=float, default=0.05, help="time-step duration in seconds")
     parser.add_argument("--inference-ms", type=float, default=5.0)
     parser.add_argument(
