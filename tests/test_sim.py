@@ -423,3 +423,20 @@ def test_demo_runs_end_to_end_with_a_tiny_budget(tmp_path):
     weights = load_file(str(out / "weights.safetensors"))
     assert any(k.startswith("net.") for k in weights)
     assert (out / "logs" / "trainer.log").exists()
+
+
+def test_check_environment_writes_what_the_policy_sees(tmp_path):
+    import io
+
+    from tmrl.sim.tools import check_environment
+
+    for name in ("SIMLIDAR", "SIMFULL"):
+        cfg = sim_config(name)
+        cfg["ENV"]["RTGYM_CONFIG"]["ep_max_length"] = 1000
+        text = io.StringIO()
+        assert check_environment(cfg, steps=25, out_dir=tmp_path / name, every=10, out=text) == 0
+        files = sorted((tmp_path / name).glob("*.png"))
+        assert [f.name for f in files] == ["step_000010.png", "step_000020.png", "step_000025.png"]
+        w, h = _png_size(files[0])
+        assert (w, h) == ((958, 488) if name == "SIMLIDAR" else (2 * 48 * 4, 40 * 4))
+        assert "reward" in text.getvalue()
