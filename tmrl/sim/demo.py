@@ -61,19 +61,39 @@ def _parts(interface: str) -> dict[str, Any]:
     return pipeline_parts(interface)
 
 
-def _make_env(interface: str, track: str) -> Any:
-    from tmrl.sim.interfaces import SimEnv
+def _demo_config(interface: str, track: str) -> dict[str, Any]:
+    """The ``ENV`` part of a tmrl config for the demo's environment."""
+    from tmrl.sim.interfaces import DEFAULT_SIM_RTGYM_CONFIG
 
     s = DEMO_SETTINGS
-    return SimEnv(interface, track=track, img_hist_len=s["img_hist_len"], act_buf_len=s["act_buf_len"],
-                  ep_max_length=s["ep_max_length"])
+    rtgym = dict(DEFAULT_SIM_RTGYM_CONFIG, act_buf_len=s["act_buf_len"], ep_max_length=s["ep_max_length"],
+                 interface_kwargs={"track": track})
+    return {"ENV": {"RTGYM_INTERFACE": interface, "IMG_HIST_LEN": s["img_hist_len"], "IMG_WIDTH": 64,
+                    "IMG_HEIGHT": 64, "RTGYM_CONFIG": rtgym, "REWARD_CONFIG": {}}}
 
 
-def _stats_env(interface: str, track: str, workdir: Path) -> Any:
+def _make_env(interface: str, track: str, realtime: bool = False) -> Any:
+    """The fast environment, or the real-time one (``tmrl.realtime``, wall-clock physics)."""
+    from tmrl.sim.interfaces import fast_env, realtime_config
+
+    cfg = _demo_config(interface, track)
+    if not realtime:
+        return fast_env(cfg)
+    from tmrl.realtime import RealTimeEnv
+
+    return RealTimeEnv(realtime_config(cfg))
+
+
+def _race(env: Any) -> Any:
+    inner = env.unwrapped
+    return inner.race if hasattr(inner, "race") else inner.interface.race
+
+
+def _stats_env(interface: str, track: str, workdir: Path, realtime: bool = False) -> Any:
     """The worker's environment, wrapped to publish episode statistics and the best lap's path."""
     import gymnasium
 
-    env = _make_env(interface, track)
+    env = _make_env(interface, track, realtime)
 
     class Stats(gymnasium.Wrapper):
         def __init__(self, inner: Any) -> None:
@@ -92,12 +112,12 @@ def _stats_env(interface: str, track: str, workdir: Path) -> Any:
         def reset(self, **kwargs: Any) -> Any:
             out = self.env.reset(**kwargs)
             self.episode_return = 0.0
-            self.path = [tuple(self.env.unwrapped.race.car.state.position)]
+            self.path = [tuple(_race(self.env).car.state.position)]
             return out
 
         def step(self, action: Any) -> Any:
             obs, rew, terminated, truncated, info = self.env.step(action)
-            race = self.env.unwrapped.race
+            race = _race(self.env)
             self.steps += 1
             self.episode_return += rew
             self.path.append(tuple(race.car.state.position))
@@ -174,7 +194,8 @@ def _training_cls(interface: str, workdir: Path) -> Any:
     )
 
 
-def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, password: str) -> None:
+def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, password: str,
+              realtime: bool = False) -> None:
     import torch
 
     torch.set_num_threads(1)
@@ -195,12 +216,15 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
         parts = _parts(interface)
         actor_cls = parts["model_cls"](*_spaces(interface)).actor.__class__
         worker = RolloutWorker(
-            env_cls=lambda: _stats_env(interface, track, workdir), actor_module_cls=actor_cls,
+            env_cls=lambda: _stats_env(interface, track, workdir, realtime), actor_module_cls=actor_cls,
             sample_compressor=parts["sample_compressor"], obs_preprocessor=parts["obs_preprocessor"],
             server_ip="127.0.0.1", server_port=port, max_samples_per_episode=DEMO_SETTINGS["ep_max_length"],
             model_path=str(workdir / "weights_worker.tmod"), model_history=0, **common)
-        worker.run_synchronous(initial_steps=DEMO_SETTINGS["start_training"],
-                               max_steps_per_update=DEMO_SETTINGS["worker_steps_per_update"], end_episodes=False)
+        if realtime:
+            worker.run()  # the clock sets the pace
+        else:
+            worker.run_synchronous(initial_steps=DEMO_SETTINGS["start_training"],
+                                   max_steps_per_update=DEMO_SETTINGS["worker_steps_per_update"], end_episodes=False)
 
 
 def _spaces(interface: str) -> tuple[Any, Any]:
@@ -273,7 +297,9 @@ def _finish(workdir: Path, out: Path, track: str, worker: dict[str, Any]) -> dic
 
 
 def _parse(argv: Sequence[str]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m tmrl --demo", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m tmrl --demo",
+                                description="Train a driving policy on the built-in simulator: server, trainer and worker "
+                                            "on this machine, no game needed.")
     p.add_argument("--interface", default="SIMLIDAR", choices=_INTERFACES, help="observations (default SIMLIDAR)")
     p.add_argument("--track", default="classic", help="track name (oval, classic, technical) or integer seed")
     p.add_argument("--minutes", type=float, default=15.0, help="time budget in minutes (default 15)")
@@ -281,6 +307,8 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--out", default="tmrl_demo", help="output folder (default ./tmrl_demo)")
     p.add_argument("--start-training", type=int, default=DEMO_SETTINGS["start_training"],
                    help="environment steps collected before training starts (default 1000)")
+    p.add_argument("--realtime", action="store_true",
+                   help="run the simulator in real time through tmrl.realtime (20 steps/s) instead of fast mode")
     p.add_argument("--role", choices=("server", "trainer", "worker"), help=argparse.SUPPRESS)
     p.add_argument("--workdir", help=argparse.SUPPRESS)
     p.add_argument("--port", type=int, help=argparse.SUPPRESS)
@@ -297,7 +325,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.role:
         DEMO_SETTINGS["start_training"] = max(1, int(args.start_training))
         _run_role(args.role, args.interface, args.track, Path(args.workdir), args.port,
-                  os.environ.get("TMRL_DEMO_PASSWORD", ""))
+                  os.environ.get("TMRL_DEMO_PASSWORD", ""), args.realtime)
         return 0
     from tmrl.sim.track import make_track
 
@@ -315,14 +343,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         logs.append(log)
         cmd = [sys.executable, "-m", "tmrl.sim.demo", "--role", role, "--interface", args.interface,
                "--track", str(args.track), "--workdir", str(workdir), "--port", str(port),
-               "--start-training", str(args.start_training)]
+               "--start-training", str(args.start_training)] + (["--realtime"] if args.realtime else [])
         proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=log, start_new_session=True)
         procs.append(proc)
         return proc
 
     budget = args.minutes * 60.0
     tty = sys.stdout.isatty()
-    print(f"tmrl demo: {args.interface} on track {args.track}, budget {args.minutes:g} min"
+    print(f"tmrl demo: {args.interface} on track {args.track} ({'real time' if args.realtime else 'fast mode'}), budget {args.minutes:g} min"
           f"{f' or {args.steps} steps' if args.steps else ''}; Ctrl-C stops early. Run folder: {workdir}")
     t0 = time.monotonic()
     interrupted = False
