@@ -8,9 +8,17 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from tmrl.driving.compressors import compress_full_sample, compress_lidar_progress_sample, compress_lidar_sample
+from tmrl.driving.compressors import (
+    compress_full_sample,
+    compress_lidar_progress_sample,
+    compress_lidar_sample,
+)
 from tmrl.driving.memories import ImageMemory, LidarMemory, LidarProgressMemory
-from tmrl.driving.preprocessors import preprocess_full_obs, preprocess_lidar_obs, preprocess_lidar_progress_obs
+from tmrl.driving.preprocessors import (
+    preprocess_full_obs,
+    preprocess_lidar_obs,
+    preprocess_lidar_progress_obs,
+)
 from tmrl.errors import UserError
 
 DEFAULT = np.zeros(3, dtype=np.float32)

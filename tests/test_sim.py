@@ -10,8 +10,16 @@ import numpy as np
 import pytest
 
 import tmrl.sim
-from tmrl.driving.compressors import compress_full_sample, compress_lidar_progress_sample, compress_lidar_sample
-from tmrl.driving.preprocessors import preprocess_full_obs, preprocess_lidar_obs, preprocess_lidar_progress_obs
+from tmrl.driving.compressors import (
+    compress_full_sample,
+    compress_lidar_progress_sample,
+    compress_lidar_sample,
+)
+from tmrl.driving.preprocessors import (
+    preprocess_full_obs,
+    preprocess_lidar_obs,
+    preprocess_lidar_progress_obs,
+)
 from tmrl.errors import UserError
 from tmrl.sim.car import Car
 from tmrl.sim.interfaces import (
@@ -23,7 +31,6 @@ from tmrl.sim.interfaces import (
 from tmrl.sim.race import Race, follow_centre_line
 from tmrl.sim.render import BORDER, GROUND, ROAD, encode_png, track_map
 from tmrl.sim.track import DEFAULT_TRACK, TRACK_NAMES, _problems, make_track, named_track, track_from_seed
-
 
 # -- tracks ----------------------------------------------------------------------------------
 

@@ -17,9 +17,9 @@ import numpy as np
 from tmrl.driving.lidar import LIDAR_BEAMS
 
 __all__ = [
-    "compress_lidar_sample",
-    "compress_lidar_progress_sample",
     "compress_full_sample",
+    "compress_lidar_progress_sample",
+    "compress_lidar_sample",
     "image_to_uint8",
 ]
 

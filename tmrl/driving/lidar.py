@@ -15,11 +15,11 @@ one gather and one ``argmax``: no Python loop over beams or pixels.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["Lidar", "LIDAR_BEAMS", "LIDAR_MIN_DIST", "DEFAULT_BLACK_THRESHOLD"]
+__all__ = ["DEFAULT_BLACK_THRESHOLD", "LIDAR_BEAMS", "LIDAR_MIN_DIST", "Lidar"]
 
 #: Number of beams (angles 90 to 270 degrees every 10 degrees).
 LIDAR_BEAMS = 19
@@ -54,7 +54,7 @@ class Lidar:
         self.valid = np.arange(self.rows.shape[1])[None, :] < self.lengths[:, None]
 
     @classmethod
-    def for_image(cls, img: np.ndarray, black_threshold: float | Sequence[float] = DEFAULT_BLACK_THRESHOLD) -> "Lidar":
+    def for_image(cls, img: np.ndarray, black_threshold: float | Sequence[float] = DEFAULT_BLACK_THRESHOLD) -> Lidar:
         """A lidar sized for ``img`` (``(h, w)`` or ``(h, w, c)``)."""
         return cls(img.shape[0], img.shape[1], black_threshold)
 

@@ -18,14 +18,15 @@ histories ``(hist_len, h, w)`` float32 scaled by 1/256 (stored as uint8, one byt
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from tmrl.errors import UserError
 from tmrl.memory import RealTimeTorchMemory
 
-__all__ = ["HistoryMemory", "LidarMemory", "LidarProgressMemory", "ImageMemory"]
+__all__ = ["HistoryMemory", "ImageMemory", "LidarMemory", "LidarProgressMemory"]
 
 
 class HistoryMemory(RealTimeTorchMemory):

@@ -19,7 +19,8 @@ original units.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -40,16 +41,16 @@ from tmrl.models import (
 
 __all__ = [
     "DEFAULT_CNN",
-    "ImageEncoder",
-    "SquashedGaussianCNNActor",
-    "CNNQFunction",
     "CNNActorCritic",
+    "CNNQFunction",
+    "ImageEncoder",
+    "LidarActor",
+    "LidarActorCritic",
+    "LidarQFunctions",
     "REDQCNNActorCritic",
+    "SquashedGaussianCNNActor",
     "lidar_actor_critic",
     "lidar_obs_scales",
-    "LidarActor",
-    "LidarQFunctions",
-    "LidarActorCritic",
 ]
 
 #: tmrl 0.7's VanillaCNN sizes.

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["preprocess_lidar_obs", "preprocess_lidar_progress_obs", "preprocess_full_obs"]
+__all__ = ["preprocess_full_obs", "preprocess_lidar_obs", "preprocess_lidar_progress_obs"]
 
 
 def preprocess_lidar_obs(obs: tuple) -> tuple:

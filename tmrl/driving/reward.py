@@ -22,7 +22,8 @@ NumPy only; no game dependency.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -31,8 +32,8 @@ from tmrl.errors import UserError
 __all__ = [
     "DEFAULT_REWARD_CONFIG",
     "TrajectoryReward",
-    "resample_polyline",
     "patient_argmin",
+    "resample_polyline",
 ]
 
 #: The ``REWARD_CONFIG`` defaults of the original TrackMania config.json.
@@ -195,7 +196,7 @@ class TrajectoryReward:
 
     @classmethod
     def from_config(cls, trajectory: np.ndarray, reward_config: Mapping[str, Any] | None = None,
-                    spacing: float = 0.1) -> "TrajectoryReward":
+                    spacing: float = 0.1) -> TrajectoryReward:
         """Build from a ``REWARD_CONFIG`` dict (missing keys take :data:`DEFAULT_REWARD_CONFIG`).
 
         Raises:

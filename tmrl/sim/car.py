@@ -21,7 +21,7 @@ import numpy as np
 
 from tmrl.sim.track import Track
 
-__all__ = ["CarParams", "CarState", "Car"]
+__all__ = ["Car", "CarParams", "CarState"]
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import math
 import os
 import secrets
 import shutil
@@ -28,15 +27,15 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
-from tmrl.errors import UserError
 from tmrl.util import atomic_write_bytes, atomic_write_text
 
-__all__ = ["main", "DEMO_SETTINGS"]
+__all__ = ["DEMO_SETTINGS", "main"]
 
 #: Training settings of the demo (SAC with a small replay memory, a fast update rhythm).
 DEMO_SETTINGS: dict[str, Any] = dict(

@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -44,20 +45,20 @@ from tmrl.sim.render import Camera, track_map
 from tmrl.sim.track import Track, make_track
 
 __all__ = [
-    "SimLidarInterface",
-    "SimLidarProgressInterface",
+    "DEFAULT_SIM_RTGYM_CONFIG",
+    "SIM_INTERFACES",
+    "SimEnv",
+    "SimFullEnv",
     "SimFullInterface",
     "SimLidarEnv",
+    "SimLidarInterface",
     "SimLidarProgressEnv",
-    "SimFullEnv",
-    "SimEnv",
-    "SIM_INTERFACES",
-    "DEFAULT_SIM_RTGYM_CONFIG",
+    "SimLidarProgressInterface",
+    "fast_env",
     "interface_class",
     "interface_kwargs",
-    "realtime_config",
-    "fast_env",
     "pipeline_parts",
+    "realtime_config",
 ]
 
 #: rtgym settings the simulator configs ship with (TrackMania's, 20 steps per second).

@@ -9,7 +9,8 @@ ahead) that completes laps: it proves a track is drivable and gives a baseline l
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -17,7 +18,7 @@ from tmrl.driving.reward import TrajectoryReward
 from tmrl.sim.car import Car, CarParams
 from tmrl.sim.track import Track
 
-__all__ = ["Race", "follow_centre_line", "PHYSICS_DT"]
+__all__ = ["PHYSICS_DT", "Race", "follow_centre_line"]
 
 #: Physics substep in seconds; every call to :meth:`Race.advance` is split into such steps.
 PHYSICS_DT = 0.0125

@@ -24,16 +24,16 @@ from tmrl.sim.track import BORDER_WIDTH, Track
 from tmrl.util import atomic_write_bytes
 
 __all__ = [
-    "TrackMap",
-    "Camera",
-    "track_map",
-    "write_png",
-    "encode_png",
-    "draw_trajectory",
-    "line_chart",
-    "ROAD",
     "BORDER",
     "GROUND",
+    "ROAD",
+    "Camera",
+    "TrackMap",
+    "draw_trajectory",
+    "encode_png",
+    "line_chart",
+    "track_map",
+    "write_png",
 ]
 
 ROAD = 170

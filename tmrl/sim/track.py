@@ -22,10 +22,10 @@ import numpy as np
 from tmrl.errors import UserError
 
 __all__ = [
-    "Track",
-    "TRACK_NAMES",
     "DEFAULT_TRACK",
     "POINT_SPACING",
+    "TRACK_NAMES",
+    "Track",
     "make_track",
     "named_track",
     "track_from_seed",
