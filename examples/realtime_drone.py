@@ -22,7 +22,7 @@ import tmrl.realtime as rt
 def controller(obs: tuple) -> np.ndarray:
     """Head for the target: velocity proportional to the observed offset."""
     offset = np.concatenate((obs[2] - obs[0], obs[3] - obs[1]))
-    return np.clip(offset * 20.0, -2.0, 2.0).astype(np.float32)
+    return np.clip(offset * 5.0, -2.0, 2.0).astype(np.float32)
 
 
 def main() -> None:

@@ -177,12 +177,19 @@ class DroneInterface(RealTimeGymInterface):
 
     Args:
         success_distance: distance to the target that ends the episode.
+        speed_factor: the commanded velocity is multiplied by this before it is sent (and the
+            drone's ``max_vel`` by default too): with time steps ``k`` times shorter, a factor
+            ``k`` keeps the motion per time step the same.
         **drone_kwargs: passed to :class:`DummyRCDrone` (delays, ``control_sleep``, ``seed``...),
             which is built at the first ``reset()`` on the thread that calls it.
     """
 
-    def __init__(self, success_distance: float = 0.01, **drone_kwargs: Any) -> None:
+    def __init__(
+        self, success_distance: float = 0.01, speed_factor: float = 1.0, **drone_kwargs: Any
+    ) -> None:
         self.success_distance = float(success_distance)
+        self.speed_factor = float(speed_factor)
+        drone_kwargs.setdefault("max_vel", 2.0 * self.speed_factor)
         self.drone_kwargs = drone_kwargs
         self.world_size = float(drone_kwargs.get("world_size", 1.0))
         self.rc_drone: DummyRCDrone | None = None
@@ -203,7 +210,8 @@ class DroneInterface(RealTimeGymInterface):
 
     def send_control(self, control: Any) -> None:
         if control is not None and self.rc_drone is not None:
-            self.rc_drone.send_control(control[0], control[1])
+            k = self.speed_factor
+            self.rc_drone.send_control(k * float(control[0]), k * float(control[1]))
 
     def _obs(self) -> list[np.ndarray]:
         assert self.rc_drone is not None
@@ -249,7 +257,8 @@ def drone_config(fast: bool = False, **overrides: Any) -> dict[str, Any]:
 
     Args:
         fast: scale every duration down by 10 (5 ms time steps, 2 to 5 ms delays, 1 ms physics
-            period), for tests.
+            period) and the drone's speed up by 10, so that an episode looks the same in time
+            steps, for tests.
         **overrides: config keys to change. When ``time_step_duration`` is given without
             ``start_obs_capture``, the capture follows it (end of the time step).
             ``interface_kwargs`` are merged into the drone's.
@@ -266,6 +275,7 @@ def drone_config(fast: bool = False, **overrides: Any) -> dict[str, Any]:
         interface=DroneInterface,
         interface_args=(),
         interface_kwargs={
+            "speed_factor": 1.0 / scale,
             "communication_delay_min": 0.02 * scale,
             "communication_delay_max": 0.05 * scale,
             "control_sleep": 0.01 * scale,
