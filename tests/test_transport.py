@@ -479,3 +479,39 @@ def test_a_killed_trainer_is_replaced_and_gets_the_backlog(net):
     second = net.trainer()
     assert second.wait_connected(30)
     assert _receive(second, 1) == ["kept at the relay"]
+
+
+def test_samples_in_flight_to_a_dying_trainer_go_to_the_next_one(net, caplog):
+    import signal
+
+    net.relay()
+    worker = net.worker()
+    first = net.trainer()
+    assert first.wait_connected(30) and worker.wait_connected(30)
+    _wait_for(lambda: "asks for 64 more sample batches" in _log_text(caplog), what="the trainer's credit")
+    os.kill(first.pid, signal.SIGSTOP)  # it stops reading: what the relay sends it stays unacknowledged
+    for i in range(5):
+        worker.send_samples(i)
+    _wait_for(lambda: _log_text(caplog).count("sent a sample batch") >= 5, what="the batches sent to the first trainer")
+    os.kill(first.pid, signal.SIGKILL)
+    second = net.trainer()
+    got = _receive(second, 5)
+    assert sorted(set(got)) == [0, 1, 2, 3, 4]  # nothing lost (duplicates would be allowed)
+    assert "left with 5 sample batches unacknowledged: queued again" in _log_text(caplog)
+
+
+def test_samples_unacknowledged_by_a_dying_relay_are_sent_again(net):
+    import signal
+
+    old_relay = net.relay()
+    worker = net.worker()
+    assert worker.wait_connected(30)
+    os.kill(old_relay.pid, signal.SIGSTOP)  # receives nothing more, acknowledges nothing
+    for i in range(3):
+        worker.send_samples(("held by the worker", i))
+    os.kill(old_relay.pid, signal.SIGKILL)
+    _wait_for(lambda: not worker.connected, what="the worker to notice")
+    net.relay()
+    trainer = net.trainer()
+    got = _receive(trainer, 3)
+    assert sorted(set(got)) == [("held by the worker", i) for i in range(3)]

@@ -266,25 +266,24 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 if part[4] == total:
                     self.complete[group] = part[3]
 
-        def add_consumable(self, group: str, frames: list[bytes], copies: int) -> None:
+        def add_consumable(self, group: str, key: tuple, frames: list[bytes]) -> None:
             queue = self.group_info[group]["to_consume"]
             size = sum(len(f) for f in frames)
-            for _ in range(copies):
-                while queue and (len(queue) >= max_consumables or self.queued_bytes + size > max_consumable_bytes):
-                    self.queued_bytes -= sum(len(f) for f in queue.popleft())
-                    self.dropped += 1
-                    now = time.monotonic()
-                    level = logging.WARNING if now - self._last_drop_log > 5.0 else logging.DEBUG
-                    if level == logging.WARNING:
-                        self._last_drop_log = now
-                    log_relay.log(
-                        level,
-                        "the trainer is falling behind: dropped the oldest pending sample batch "
-                        "(%d dropped so far, max_consumables=%d, max_consumable_bytes=%d)",
-                        self.dropped, max_consumables, max_consumable_bytes,
-                    )
-                queue.append(frames)
-                self.queued_bytes += size
+            while queue and (len(queue) >= max_consumables or self.queued_bytes + size > max_consumable_bytes):
+                self.queued_bytes -= sum(len(f) for f in queue.popleft()[1])
+                self.dropped += 1
+                now = time.monotonic()
+                level = logging.WARNING if now - self._last_drop_log > 5.0 else logging.DEBUG
+                if level == logging.WARNING:
+                    self._last_drop_log = now
+                log_relay.log(
+                    level,
+                    "the trainer is falling behind: dropped the oldest pending sample batch "
+                    "(%d dropped so far, max_consumables=%d, max_consumable_bytes=%d)",
+                    self.dropped, max_consumables, max_consumable_bytes,
+                )
+            queue.append((key, frames))
+            self.queued_bytes += size
             self.dispatch(group)
 
         def dispatch(self, group: str) -> None:
@@ -293,11 +292,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             for cid in list(pending):
                 while pending[cid] > 0 and queue:
                     pending[cid] -= 1
-                    transport = self.to_clients[cid].transport
-                    frames = queue.popleft()
-                    self.queued_bytes -= sum(len(f) for f in frames)
-                    for out in frames:
-                        transport.write(out)
+                    self.to_clients[cid].deliver(group, *queue.popleft())
 
         def shutdown(self) -> None:
             if self.closing:
@@ -331,6 +326,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self._partial: list[Any] | None = None  # consumable being received: [msg_id, dest, count, total, chunks, size]
             self.paused = False
             self.stale: set[str] = set()
+            self.unacked: dict[tuple, tuple[str, list[bytes]]] = {}
 
         def connectionMade(self) -> None:
             self._server.connections.add(self)
@@ -342,6 +338,8 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             if self._server.has_client(self._identifier):
                 self._server.delete_client(self._identifier)
                 log_relay.info("%s (%s) disconnected", self._peer, "/".join(self._groups))
+            if self.unacked:
+                self._requeue_unacked()
             self._identifier = None
             self._state = "DEAD"
             self._partial = None
@@ -386,6 +384,8 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 return
             _, cmd, dest, obj = env
             if cmd == "ACK":
+                if type(obj) is tuple:
+                    self.unacked.pop(obj, None)
                 return
             if cmd == "HELLO":
                 self._hello(obj)
@@ -488,8 +488,10 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     self._kill("object frames smaller than announced")
                     return
                 frames = [srv.out_frame(key, i, count, total, c, False) for i, c in enumerate(part[4])]
-                for g, n in consumers.items():
-                    srv.add_consumable(g, frames, min(n, 16))
+                for g in consumers:  # one copy per group, whatever n > 0 asks
+                    srv.add_consumable(g, key, frames)
+                # The sender may forget the object now (it keeps it until then, for resending).
+                self.transport.write(_frame(self._header_size, wire.encode((0, "ACK", msg_id))))
 
         def _ntf(self, dest: Any) -> None:
             if type(dest) is not dict or not all(type(g) is str and type(n) is int for g, n in dest.items()):
@@ -500,16 +502,34 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 if info is None or self._identifier not in info["pending_consumers"]:
                     continue
                 if n > 0:
+                    log_relay.debug("%s asks for %d more sample batches", self._peer, n)
                     pending = info["pending_consumers"]
                     pending[self._identifier] = min(pending[self._identifier] + n, 1 << 30)
                     self._server.dispatch(g)
                 elif n < 0:
                     queue = info["to_consume"]
                     while queue:
-                        frames = queue.popleft()
-                        self._server.queued_bytes -= sum(len(f) for f in frames)
-                        for out in frames:
-                            self.transport.write(out)
+                        self.deliver(g, *queue.popleft())
+
+        def deliver(self, group: str, key: tuple, frames: list[bytes]) -> None:
+            # Kept until the link acknowledges it: if this connection drops first, the object goes
+            # back to the front of the queue for the next trainer (at-least-once delivery).
+            self._server.queued_bytes -= sum(len(f) for f in frames)
+            self.unacked[key] = (group, frames)
+            for out in frames:
+                self.transport.write(out)
+            log_relay.debug("sent a sample batch to %s", self._peer)
+
+        def _requeue_unacked(self) -> None:
+            srv = self._server
+            for key, (group, frames) in reversed(list(self.unacked.items())):
+                srv.group_info[group]["to_consume"].appendleft((key, frames))
+                srv.queued_bytes += sum(len(f) for f in frames)
+            groups = {g for g, _ in self.unacked.values()}
+            log_relay.info("%s left with %d sample batches unacknowledged: queued again", self._peer, len(self.unacked))
+            self.unacked.clear()
+            for g in groups:
+                srv.dispatch(g)
 
     class RelayFactory(Factory):
         def __init__(self, server: RelayState):
@@ -600,6 +620,8 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self.store: collections.deque[tuple[dict[str, int], memoryview, bytearray, tuple[int, int]]] = collections.deque()
             self.last_broadcast_sent: tuple[dict[str, int], memoryview, bytearray, tuple[int, int]] | None = None
             self.store_bytes = 0
+            self.unacked: collections.OrderedDict[Any, tuple[dict[str, int], memoryview, bytearray, tuple[int, int]]] = collections.OrderedDict()
+            self.unacked_bytes = 0
             self.dropped = 0
             self.session = random.getrandbits(62)
             self.counter = 0
@@ -634,6 +656,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 self.last_broadcast_sent = (dest, data, keep, msg_id)
             if self.proto is not None and self.proto.alive:
                 self.proto.send_object(dest, data, msg_id)
+                self.remember(dest, data, keep, msg_id)
                 return
             if any(n < 0 for n in dest.values()):  # only the newest broadcast matters
                 for item in [it for it in self.store if it[0] == dest]:
@@ -650,20 +673,38 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     where, self.dropped,
                 )
 
+        def remember(self, dest: dict[str, int], data: memoryview, keep: bytearray, msg_id: tuple[int, int]) -> None:
+            # Samples stay here until the relay acknowledges them, to be sent again if the
+            # connection drops first (at-least-once; the receiver may see a duplicate).
+            if not any(n > 0 for n in dest.values()):
+                return
+            self.unacked[msg_id] = (dest, data, keep, msg_id)
+            self.unacked_bytes += len(data)
+            while len(self.unacked) > cfg["max_store"] or self.unacked_bytes > cfg["max_store_bytes"]:
+                _, (_, old, _, _) = self.unacked.popitem(last=False)
+                self.unacked_bytes -= len(old)
+
+        def acked(self, msg_id: Any) -> None:
+            item = self.unacked.pop(msg_id, None)
+            if item is not None:
+                self.unacked_bytes -= len(item[1])
+
         def connected(self, proto: LinkProtocol) -> None:
             self.proto = proto
             self.last_failure = None
             log_link.info("connected to the relay at %s (%s)", where, "/".join(groups))
-            self.status(connected=True, refused=None)
             last = self.last_broadcast_sent
             if last is not None and not any(item[3] == last[3] for item in self.store):
                 proto.send_object(last[0], last[1], last[3])
             while self.store and self.proto is proto and proto.alive:
-                dest, data, _, msg_id = self.store.popleft()
+                dest, data, keep, msg_id = self.store.popleft()
                 self.store_bytes -= len(data)
                 proto.send_object(dest, data, msg_id)
+                self.remember(dest, data, keep, msg_id)
             self.outstanding = 0
             self.grant()
+            # Reported last: when the owner sees "connected", credit and resends are on the wire.
+            self.status(connected=True, refused=None)
             if self.closing:
                 self.finish(proto)
 
@@ -671,6 +712,11 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             was = self.proto is not None
             self.proto = None
             self.outstanding = 0
+            for item in reversed(list(self.unacked.values())):  # unacknowledged first, in order
+                self.store.appendleft(item)
+                self.store_bytes += len(item[1])
+            self.unacked.clear()
+            self.unacked_bytes = 0
             self.writable.set()  # objects now go to the bounded store instead of blocking
             if was and not self.closing:
                 log_link.warning("lost the connection to the relay at %s; reconnecting", where)
@@ -696,10 +742,13 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 if msg_id == self.last_broadcast:
                     return  # the relay re-sent what we already have (reconnection)
                 self.last_broadcast = msg_id
+                writer.send(_pipe.OBJ, payload)
             else:
                 self.outstanding = max(0, self.outstanding - 1)
                 self.backlog += 1
-            writer.send(_pipe.OBJ, payload)
+                writer.send(_pipe.OBJ, payload)
+                if self.proto is not None and self.proto.alive:
+                    self.proto.send_env("ACK", None, key)  # now in the trainer process
 
         def shutdown(self) -> None:
             if self.closing:
@@ -817,7 +866,10 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 self._client.status(connected=False, refused=reason)
             elif cmd == "OBJ":
                 self._frame(obj)
-            elif cmd != "ACK":
+            elif cmd == "ACK":
+                if type(obj) is tuple:
+                    self._client.acked(obj)
+            else:
                 raise ValueError(f"unknown command {cmd[:20]!r}")
 
         def _frame(self, obj: Any) -> None:
