@@ -403,6 +403,45 @@ def test_env_dropped_without_close_stops_its_thread(env_id):
     assert not thread.is_alive()
 
 
+class DuckTyped:
+    """No base class, no wait(), render() or close(): still an interface."""
+
+    def get_observation_space(self):
+        return spaces.Tuple((spaces.Discrete(5),))
+
+    def get_action_space(self):
+        return spaces.Discrete(2)
+
+    def get_default_action(self):
+        return 0
+
+    def send_control(self, control):
+        self.last = control
+
+    def reset(self, seed=None, options=None):
+        return [0], {}
+
+    def get_obs_rew_terminated_info(self):
+        return [1], 0.0, False, {}
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_duck_typed_interface(env_id):
+    clock = FakeClock()
+    env = gymnasium.make(
+        env_id, config=dict(DEFAULT_CONFIG_DICT, interface=DuckTyped, ep_max_length=2), clock=clock
+    )
+    try:
+        assert env.reset()[0] == (0, 0)
+        assert env.step(1)[0] == (1, 1)
+        _, _, terminated, truncated, _ = env.step(0)
+        assert (terminated, truncated) == (False, True)
+        env.unwrapped.wait()
+        assert env.unwrapped.render() is None
+    finally:
+        env.close()
+
+
 def test_ts_interface_constructor_error_leaves_no_thread():
     before = set(threading.enumerate())
     clock = FakeClock()

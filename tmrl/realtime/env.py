@@ -535,7 +535,8 @@ class RealTimeEnv(gymnasium.Env):
         The next time step restarts the clock without a warning."""
         self._join_thread()
         self.is_waiting = True
-        self._call_interface(lambda itf: itf.wait())
+        # wait() and render() are optional for interfaces that do not subclass the base class
+        self._call_interface(lambda itf: itf.wait() if callable(getattr(itf, "wait", None)) else None)
 
     def stop(self) -> None:
         """Wait for the running time step to end."""
@@ -561,7 +562,8 @@ class RealTimeEnv(gymnasium.Env):
         variants). ``join_thread=True`` first waits for the running time step to end."""
         if join_thread:
             self._join_thread()
-        return self._interface.render()
+        render = getattr(self._interface, "render", None)
+        return render() if callable(render) else None
 
     def set_default_action(self, default_action: Any) -> None:
         """Change the action applied at the next reset (and used to fill the buffer)."""
