@@ -41,6 +41,7 @@ _U64 = struct.Struct("<Q")
 _I64 = struct.Struct("<q")
 _F64 = struct.Struct("<d")
 _U8 = struct.Struct("<B")
+_SHAPES = [struct.Struct(f"<{i}Q") for i in range(65)]  # index: ndim (at most _MAX_NDIM)
 
 # Tags (one byte each).
 _NONE, _TRUE, _FALSE = b"N", b"T", b"F"
@@ -113,8 +114,10 @@ class _Encoder:
             self.int_(obj)
         elif t is tuple or t is list:
             self.put((_TUPLE if t is tuple else _LIST) + _U64.pack(len(obj)))
+            depth += 1
+            value = self.value
             for item in obj:
-                self.value(item, depth + 1)
+                value(item, depth)
         elif t is np.ndarray:
             self.array(obj)
         elif t is dict:
@@ -345,10 +348,21 @@ class _Decoder:
 
     def items(self, pos: int, depth: int) -> tuple[list[Any], int]:
         k, pos = self.length(pos)
+        depth += 1
+        if depth > MAX_DEPTH and k:
+            raise _corrupt(f"nested deeper than {MAX_DEPTH} levels")
+        # The body of value(), inlined: this loop runs once per element of every container.
+        mv, n, table = self.mv, self.n, _TABLE
         out = []
+        append = out.append
         for _ in range(k):
-            item, pos = self.value(pos, depth + 1)
-            out.append(item)
+            if pos >= n:
+                raise _corrupt("truncated")
+            fn = table.get(mv[pos])
+            if fn is None:
+                raise _corrupt(f"unknown tag {mv[pos]:#04x} at byte {pos}")
+            item, pos = fn(self, pos + 1, depth)
+            append(item)
         return out, pos
 
     def tuple_(self, pos: int, depth: int) -> tuple[Any, int]:
@@ -375,7 +389,7 @@ class _Decoder:
         if not 2 <= k <= 8:
             raise _corrupt("bad dtype code length")
         end2 = self.need(end, k)
-        code = self.mv[end:end2].tobytes()
+        code = bytes(self.mv[end:end2])
         dt = _DTYPES.get(code)
         if dt is not None:
             return dt, end2
@@ -393,16 +407,15 @@ class _Decoder:
 
     def array(self, pos: int, depth: int) -> tuple[Any, int]:
         dt, pos = self.dtype(pos)
+        mv = self.mv
         end = self.need(pos, 1)
-        ndim = self.mv[pos]
+        ndim = mv[pos]
         if ndim > _MAX_NDIM:
             raise _corrupt(f"array with {ndim} dimensions")
         pos = end
-        end = self.need(pos, 8 * ndim)
-        shape = struct.unpack_from(f"<{ndim}Q", self.mv, pos)
-        pos = end
-        end = self.need(pos, 1)
-        pad = self.mv[pos]
+        end = self.need(pos, 8 * ndim + 1)
+        shape = _SHAPES[ndim].unpack_from(mv, pos)
+        pad = mv[end - 1]
         if pad >= _ALIGN:
             raise _corrupt("bad array padding")
         pos = self.need(end, pad)
@@ -413,8 +426,8 @@ class _Decoder:
         end = pos + nbytes
         if nbytes < _ALIGN_MIN and dt.isnative:
             # Small arrays: a private writable copy (also covers empty arrays).
-            arr = np.frombuffer(bytearray(self.mv[pos:end]), dtype=dt)
-            return (arr.reshape(shape) if len(shape) != 1 else arr), end
+            arr = np.frombuffer(bytearray(mv[pos:end]), dtype=dt)
+            return (arr if ndim == 1 else arr.reshape(shape)), end
         native = dt.newbyteorder("=")
         if count == 0:
             return np.zeros(shape, dtype=native), end
