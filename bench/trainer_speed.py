@@ -80,6 +80,30 @@ class _PlainBuffer:
         return len(self.memory)
 
 
+def _loop_model_cls():
+    """Our models with the critics as a ModuleList of separate MLPs, evaluated one by one in
+    Python (the 'before' of the batched ensemble)."""
+    import torch
+
+    from tmrl.models import SquashedGaussianMLPActor, flatten_obs, mlp, space_dim
+
+    class Critic(torch.nn.Module):
+        def __init__(self, obs_space, act_space):
+            super().__init__()
+            self.q = mlp([space_dim(obs_space) + act_space.shape[0], 256, 256, 1], torch.nn.ReLU)
+
+        def forward(self, obs, act):
+            return self.q(torch.cat((flatten_obs(obs), act), -1)).squeeze(-1)
+
+    class LoopActorCritic(torch.nn.Module):
+        def __init__(self, observation_space, action_space, n=2):
+            super().__init__()
+            self.actor = SquashedGaussianMLPActor(observation_space, action_space)
+            self.qs = torch.nn.ModuleList(Critic(observation_space, action_space) for _ in range(n))
+
+    return LoopActorCritic
+
+
 def _build(side: str, algo: str, variant: str = ""):
     obs_space, act_space = _spaces()
     if side == "tmrl":
@@ -211,6 +235,11 @@ def main() -> None:
     parser.add_argument("--anchor-home", default="/tmp/tmrl-anchor/home")
     parser.add_argument("--no-anchor", action="store_true", help="measure ours only")
     parser.add_argument("--bf16", action="store_true", help="also measure ours with critic_dtype='bfloat16'")
+    parser.add_argument(
+        "--loop",
+        action="store_true",
+        help="also measure ours with a Python loop over separate critics (before)",
+    )
     args = parser.parse_args()
     if args.worker:
         worker_main(args.worker, args.threads)
@@ -234,6 +263,8 @@ def main() -> None:
     runs = [("ours", "ours", "")] + ([("tmrl", "tmrl", "")] if "tmrl" in sides else [])
     if args.bf16:
         runs.append(("ours-bf16", "ours", "bf16"))
+    if args.loop:
+        runs.append(("ours-loop", "ours", "loop"))
     results: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     print(
         f"batch {BATCH}, MLP 256x256, {N_SAMPLES} Pendulum-shaped samples in memory; "
@@ -262,19 +293,25 @@ def main() -> None:
     for algo in algos:
         for mode in ("full", "agent"):
             line = f"  {algo:5s} {mode:6s}"
-            med = {}
+            med, cpu = {}, {}
             for side, _, _ in runs:
                 rates = [r["updates_per_s"] for r in results[(side, algo, mode)]]
                 med[side] = statistics.median(rates)
+                cpu[side] = statistics.median(r["cpu_per_update_ms"] for r in results[(side, algo, mode)])
                 line += f"  {side}: {med[side]:7.1f} [{max(rates):7.1f}]"
                 if mode == "full":
                     shares = [r["sample_share"] for r in results[(side, algo, mode)]]
                     line += f" sampling {100 * statistics.median(shares):4.1f}%"
             if "tmrl" in med:
                 line += f"  ratio {med['ours'] / med['tmrl']:.2f}x"
-                if "ours-bf16" in med:
-                    line += f" (bf16 {med['ours-bf16'] / med['tmrl']:.2f}x)"
+                for other in ("ours-bf16", "ours-loop"):
+                    if other in med:
+                        line += f" ({other[5:]} {med[other] / med['tmrl']:.2f}x)"
             print(line)
+            if "tmrl" in cpu:
+                parts = ", ".join(f"{side} {ms:.1f}" for side, ms in cpu.items())
+                ratio = cpu["tmrl"] / cpu["ours"]
+                print(f"  {'':12s} CPU ms per update: {parts}  (tmrl/ours {ratio:.2f}x)")
     print(f"  memories: ours = {results[('ours', algos[0], 'full')][0]['memory']}")
 
 
