@@ -8,8 +8,9 @@ import pickle
 import socket
 import stat
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -448,7 +449,10 @@ def test_a_stalled_worker_does_not_make_the_relay_buffer_every_broadcast(net, ca
     finally:
         os.kill(stalled.pid, signal.SIGCONT)
     assert grown < 6 * size, f"the relay grew by {grown / 2**20:.0f} MiB for a stalled worker"
-    _wait_for(lambda: (stalled._weights or b"\x00")[:1] == bytes([12]), what="the newest weights at the stalled worker")
+    _wait_for(
+        lambda: (stalled._weights or b"\x00")[:1] == bytes([12]),
+        what="the newest weights at the stalled worker",
+    )
     assert "it will get the newest broadcast when it catches up" in _log_text(caplog)
 
 
@@ -492,7 +496,10 @@ def test_samples_in_flight_to_a_dying_trainer_go_to_the_next_one(net, caplog):
     os.kill(first.pid, signal.SIGSTOP)  # it stops reading: what the relay sends it stays unacknowledged
     for i in range(5):
         worker.send_samples(i)
-    _wait_for(lambda: _log_text(caplog).count("sent a sample batch") >= 5, what="the batches sent to the first trainer")
+    _wait_for(
+        lambda: _log_text(caplog).count("sent a sample batch") >= 5,
+        what="the batches sent to the first trainer",
+    )
     os.kill(first.pid, signal.SIGKILL)
     second = net.trainer()
     got = _receive(second, 5)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import pickle
 import random
 import struct
@@ -22,23 +23,57 @@ def _same(a, b) -> bool:
             and np.array_equal(a, b, equal_nan=a.dtype.kind in "fc")
         )
     if isinstance(a, np.generic):
-        return type(a) is type(b) and (a == b or (a != a and b != b))
+        return type(a) is type(b) and (a == b or (np.isnan(a) and np.isnan(b)))
     if isinstance(a, (tuple, list)):
         return type(a) is type(b) and len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
     if isinstance(a, dict):
         return type(b) is dict and list(a) == list(b) and all(_same(a[k], b[k]) for k in a)
-    if isinstance(a, float) and a != a:
-        return isinstance(b, float) and b != b
+    if isinstance(a, float) and math.isnan(a):
+        return isinstance(b, float) and math.isnan(b)
     return type(a) is type(b) and a == b
 
 
 SCALARS = [
-    None, True, False, 0, 1, -1, 2**63 - 1, -(2**63), 2**63, -(2**63) - 1, 3**200, -(7**300),
-    0.0, -0.0, 1.5, float("inf"), float("-inf"), float("nan"), "", "hé\u20ac\U0001f600", b"", b"\x00\xff",
+    None,
+    True,
+    False,
+    0,
+    1,
+    -1,
+    2**63 - 1,
+    -(2**63),
+    2**63,
+    -(2**63) - 1,
+    3**200,
+    -(7**300),
+    0.0,
+    -0.0,
+    1.5,
+    float("inf"),
+    float("-inf"),
+    float("nan"),
+    "",
+    "hé\u20ac\U0001f600",
+    b"",
+    b"\x00\xff",
 ]
 
-DTYPES = ["bool", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64",
-          "float16", "float32", "float64", "complex64", "complex128"]
+DTYPES = [
+    "bool",
+    "int8",
+    "uint8",
+    "int16",
+    "uint16",
+    "int32",
+    "uint32",
+    "int64",
+    "uint64",
+    "float16",
+    "float32",
+    "float64",
+    "complex64",
+    "complex128",
+]
 
 
 @pytest.mark.parametrize("value", SCALARS, ids=repr)
@@ -115,7 +150,11 @@ def test_unaligned_input_still_decodes():
 def test_torch_tensors_arrive_as_numpy():
     torch = pytest.importorskip("torch")
     t = torch.arange(12, dtype=torch.float32).reshape(3, 4).t()  # non-contiguous
-    back = wire.decode(wire.encode({"w": t, "h": torch.ones(2, dtype=torch.bfloat16), "p": torch.nn.Parameter(torch.zeros(2))}))
+    back = wire.decode(
+        wire.encode(
+            {"w": t, "h": torch.ones(2, dtype=torch.bfloat16), "p": torch.nn.Parameter(torch.zeros(2))}
+        )
+    )
     assert isinstance(back["w"], np.ndarray) and np.array_equal(back["w"], t.numpy())
     assert back["h"].dtype == np.float32 and back["p"].shape == (2,)
 
@@ -134,8 +173,16 @@ def test_subclasses_of_builtins_travel_as_base_types():
 
 @pytest.mark.parametrize(
     "bad",
-    [object(), {1, 2}, np.array(["a"]), np.array([object()]), np.zeros(2, dtype="datetime64[s]"),
-     np.zeros(2, dtype=[("a", "f4")]), lambda: 0, {[1]: 2} if False else {frozenset(): 1}],
+    [
+        object(),
+        {1, 2},
+        np.array(["a"]),
+        np.array([object()]),
+        np.zeros(2, dtype="datetime64[s]"),
+        np.zeros(2, dtype=[("a", "f4")]),
+        lambda: 0,
+        {[1]: 2} if False else {frozenset(): 1},
+    ],
     ids=lambda v: type(v).__name__,
 )
 def test_encode_refuses_code_and_unsupported_types(bad):
@@ -159,8 +206,17 @@ def test_decode_error_is_a_user_error_and_value_error():
 
 @pytest.mark.parametrize(
     "data",
-    [b"", b"TMRW", b"TMRX\x01N", b"TMRW\x02N", b"TMRW\x01", b"TMRW\x01NN", b"TMRW\x01?",
-     pickle.dumps({"a": 1}), pickle.dumps(print)],
+    [
+        b"",
+        b"TMRW",
+        b"TMRX\x01N",
+        b"TMRW\x02N",
+        b"TMRW\x01",
+        b"TMRW\x01NN",
+        b"TMRW\x01?",
+        pickle.dumps({"a": 1}),
+        pickle.dumps(print),
+    ],
     ids=repr,
 )
 def test_decode_refuses_malformed_messages(data):
@@ -203,7 +259,9 @@ def _sample_messages() -> list[bytes]:
             (
                 rng.standard_normal(3).astype(np.float32),
                 (rng.standard_normal((2, 4)), np.int64(3), np.arange(5, dtype=">u2")),
-                -1.25, False, True,
+                -1.25,
+                False,
+                True,
                 {"crc": 2**70, "name": "ép", "raw": b"\x00" * 9, (1, 2): [None, 3.5]},
             )
         ),

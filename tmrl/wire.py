@@ -18,13 +18,14 @@ from __future__ import annotations
 import math
 import struct
 import sys
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from tmrl.errors import UserError
 
-__all__ = ["encode", "decode", "DecodeError", "MAGIC", "VERSION", "MAX_DEPTH"]
+__all__ = ["MAGIC", "MAX_DEPTH", "VERSION", "DecodeError", "decode", "encode"]
 
 MAGIC = b"TMRW"
 VERSION = 1
@@ -92,10 +93,10 @@ class _Encoder:
     __slots__ = ("parts", "size")
 
     def __init__(self) -> None:
-        self.parts: list[bytes | memoryview] = [_HEADER]
+        self.parts: list[bytes | bytearray | memoryview] = [_HEADER]
         self.size = len(_HEADER)
 
-    def put(self, b: bytes | memoryview) -> None:
+    def put(self, b: bytes | bytearray | memoryview) -> None:
         self.parts.append(b)
         self.size += len(b)
 
@@ -126,9 +127,9 @@ class _Encoder:
                 self.key(k, depth + 1)
                 self.value(v, depth + 1)
         elif t is str:
-            data = obj.encode("utf-8", "surrogatepass")
-            self.put(_STR + _U64.pack(len(data)))
-            self.put(data)
+            text = obj.encode("utf-8", "surrogatepass")
+            self.put(_STR + _U64.pack(len(text)))
+            self.put(text)
         elif t is bytes or t is bytearray or t is memoryview:
             data: bytes | bytearray | memoryview = obj
             if t is memoryview:
@@ -202,7 +203,7 @@ class _Encoder:
         arr = np.ascontiguousarray(arr)
         pad = -(self.size + len(head) + 1) % _ALIGN
         self.put(head + _U8.pack(pad) + bytes(pad))
-        self.put(memoryview(arr).cast("B"))
+        self.put(arr.data.cast("B"))
 
     def scalar(self, s: np.generic) -> None:
         dt = s.dtype
@@ -277,7 +278,15 @@ def decode(data: bytes | bytearray | memoryview, copy: bool = False) -> Any:
         obj, pos = dec.value(len(_HEADER), 0)
     except DecodeError:
         raise
-    except (struct.error, IndexError, ValueError, TypeError, OverflowError, UnicodeDecodeError, MemoryError) as e:
+    except (
+        struct.error,
+        IndexError,
+        ValueError,
+        TypeError,
+        OverflowError,
+        UnicodeDecodeError,
+        MemoryError,
+    ) as e:
         # Defensive: any parsing slip on hostile input is reported as corrupt data.
         raise DecodeError(f"corrupt tmrl wire message: {e}") from None
     if pos != len(mv):
@@ -290,7 +299,7 @@ def _corrupt(msg: str) -> DecodeError:
 
 
 class _Decoder:
-    __slots__ = ("mv", "n", "copy")
+    __slots__ = ("copy", "mv", "n")
 
     def __init__(self, mv: memoryview, copy: bool):
         self.mv = mv
@@ -353,7 +362,7 @@ class _Decoder:
             raise _corrupt(f"nested deeper than {MAX_DEPTH} levels")
         # The body of value(), inlined: this loop runs once per element of every container.
         mv, n, table = self.mv, self.n, _TABLE
-        out = []
+        out: list[Any] = []
         append = out.append
         for _ in range(k):
             if pos >= n:
@@ -393,7 +402,11 @@ class _Decoder:
         dt = _DTYPES.get(code)
         if dt is not None:
             return dt, end2
-        if code[:1] not in (b"<", b">", b"|", b"=") or code[1:2] not in (b"b", b"i", b"u", b"f", b"c") or not code[2:].isdigit():
+        if (
+            code[:1] not in (b"<", b">", b"|", b"=")
+            or code[1:2] not in (b"b", b"i", b"u", b"f", b"c")
+            or not code[2:].isdigit()
+        ):
             raise _corrupt(f"bad dtype code {code!r}")
         try:
             dt = np.dtype(code.decode("ascii"))

@@ -13,4 +13,4 @@ from tmrl.transport.credentials import CERT_FILE, KEY_FILE, ensure_credentials
 from tmrl.transport.links import TrainerLink, WorkerLink
 from tmrl.transport.relay import RelayServer
 
-__all__ = ["RelayServer", "WorkerLink", "TrainerLink", "ensure_credentials", "KEY_FILE", "CERT_FILE"]
+__all__ = ["CERT_FILE", "KEY_FILE", "RelayServer", "TrainerLink", "WorkerLink", "ensure_credentials"]

@@ -1,3 +1,5 @@
+# Twisted's zope interfaces and tlspyo (untyped) defeat mypy here; the logic is tested instead.
+# mypy: disable-error-code="misc, has-type, arg-type, call-arg, import-untyped, list-item"
 """The network process behind a :class:`~tmrl.transport.RelayServer` or a link.
 
 Started as ``python -m tmrl.transport._netproc`` by :mod:`tmrl.transport._process`; it reads its
@@ -41,7 +43,8 @@ import random
 import signal
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from tmrl import wire
 from tmrl.transport import _pipe
@@ -189,9 +192,15 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 "trainers": {"max_count": 1, "max_consumables": max_consumables},
             }
             super().__init__(
-                port=cfg["port"], password=cfg["password"], serializer=None, deserializer=None,
-                accepted_groups=groups, header_size=cfg["header_size"], local_com_port=-1,
-                security="TLS" if cfg["security"] == "TLS" else "TCP", keys_dir=cfg["keys_dir"],
+                port=cfg["port"],
+                password=cfg["password"],
+                serializer=None,
+                deserializer=None,
+                accepted_groups=groups,
+                header_size=cfg["header_size"],
+                local_com_port=-1,
+                security="TLS" if cfg["security"] == "TLS" else "TCP",
+                keys_dir=cfg["keys_dir"],
             )
             for g in groups:
                 self.add_group(g)  # unbounded deque; bounded by hand below so drops are counted
@@ -235,7 +244,9 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             env = wire.encode((0, "OBJ", (key, idx, count, total, chunk, bcast)))
             return _frame(self.header_size, env)
 
-        def broadcast_frame(self, group: str, key: tuple, idx: int, count: int, total: int, chunk: bytes) -> None:
+        def broadcast_frame(
+            self, group: str, key: tuple, idx: int, count: int, total: int, chunk: bytes
+        ) -> None:
             out = self.out_frame(key, idx, count, total, chunk, True)
             part = self.partial.get(group)
             if idx == 0:
@@ -257,7 +268,10 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 for member in members:
                     if member.paused:
                         member.stale.add(group)
-                        log_relay.debug("%s is still receiving earlier data: it will get the newest broadcast when it catches up", member._peer)
+                        log_relay.debug(
+                            "%s is still receiving earlier data: it will get the newest broadcast when it catches up",
+                            member._peer,
+                        )
             for member in members:
                 if group not in member.stale:
                     member.transport.write(out)
@@ -269,7 +283,9 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
         def add_consumable(self, group: str, key: tuple, frames: list[bytes]) -> None:
             queue = self.group_info[group]["to_consume"]
             size = sum(len(f) for f in frames)
-            while queue and (len(queue) >= max_consumables or self.queued_bytes + size > max_consumable_bytes):
+            while queue and (
+                len(queue) >= max_consumables or self.queued_bytes + size > max_consumable_bytes
+            ):
                 self.queued_bytes -= sum(len(f) for f in queue.popleft()[1])
                 self.dropped += 1
                 now = time.monotonic()
@@ -280,7 +296,9 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     level,
                     "the trainer is falling behind: dropped the oldest pending sample batch "
                     "(%d dropped so far, max_consumables=%d, max_consumable_bytes=%d)",
-                    self.dropped, max_consumables, max_consumable_bytes,
+                    self.dropped,
+                    max_consumables,
+                    max_consumable_bytes,
                 )
             queue.append((key, frames))
             self.queued_bytes += size
@@ -323,7 +341,9 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self._peer = peer
             self._reader = _FrameReader(server.header_size, server.password_bytes, cfg["max_frame_bytes"])
             self._groups: tuple[str, ...] = ()
-            self._partial: list[Any] | None = None  # consumable being received: [msg_id, dest, count, total, chunks, size]
+            self._partial: list[Any] | None = (
+                None  # consumable being received: [msg_id, dest, count, total, chunks, size]
+            )
             self.paused = False
             self.stale: set[str] = set()
             self.unacked: dict[tuple, tuple[str, list[bytes]]] = {}
@@ -369,7 +389,9 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     try:
                         env = wire.decode(body, copy=True)
                     except wire.DecodeError:
-                        self._kill("a frame that is not tmrl wire data (pickle and other formats are refused)")
+                        self._kill(
+                            "a frame that is not tmrl wire data (pickle and other formats are refused)"
+                        )
                         return
                     self._handle(env)
             except ValueError as e:
@@ -450,7 +472,10 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             if (
                 type(dest) is not dict
                 or not dest
-                or not all(type(g) is str and g in srv.group_info and type(n) is int and n != 0 for g, n in dest.items())
+                or not all(
+                    type(g) is str and g in srv.group_info and type(n) is int and n != 0
+                    for g, n in dest.items()
+                )
             ):
                 self._kill("malformed destination")
                 return
@@ -459,7 +484,10 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 return
             # Workers only send samples to the trainer; the trainer only broadcasts to workers.
             role = "workers" if "workers" in self._groups else "trainers"
-            allowed = all((g == "trainers" and n > 0) if role == "workers" else (g == "workers" and n < 0) for g, n in dest.items())
+            allowed = all(
+                (g == "trainers" and n > 0) if role == "workers" else (g == "workers" and n < 0)
+                for g, n in dest.items()
+            )
             if not allowed:
                 self._kill(f"{role} may not send to {sorted(dest)} that way")
                 return
@@ -526,7 +554,9 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 srv.group_info[group]["to_consume"].appendleft((key, frames))
                 srv.queued_bytes += sum(len(f) for f in frames)
             groups = {g for g, _ in self.unacked.values()}
-            log_relay.info("%s left with %d sample batches unacknowledged: queued again", self._peer, len(self.unacked))
+            log_relay.info(
+                "%s left with %d sample batches unacknowledged: queued again", self._peer, len(self.unacked)
+            )
             self.unacked.clear()
             for g in groups:
                 srv.dispatch(g)
@@ -548,10 +578,15 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             try:
                 ctx = ssl.DefaultOpenSSLContextFactory(cfg["key_file"], cfg["cert_file"])
             except (OpenSSL.SSL.Error, OSError) as e:
-                writer.send(_pipe.READY, wire.encode({
-                    "error": f"cannot load the TLS credentials in {cfg['keys_dir']} ({e}): "
-                    "run `python -m tmrl --install` to create them"
-                }))
+                writer.send(
+                    _pipe.READY,
+                    wire.encode(
+                        {
+                            "error": f"cannot load the TLS credentials in {cfg['keys_dir']} ({e}): "
+                            "run `python -m tmrl --install` to create them"
+                        }
+                    ),
+                )
                 return
             listening = reactor.listenSSL(port, factory, ctx, interface=interface)
         else:
@@ -567,7 +602,12 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
         writer.send(_pipe.READY, wire.encode({"error": msg}))
         return
     bound = listening.getHost().port
-    log_relay.info("relay listening on %s port %d (%s)", interface or "all interfaces", bound, cfg["security"] or "plain TCP")
+    log_relay.info(
+        "relay listening on %s port %d (%s)",
+        interface or "all interfaces",
+        bound,
+        cfg["security"] or "plain TCP",
+    )
     writer.send(_pipe.READY, wire.encode({"ok": True, "port": bound}))
 
     def control_loop() -> None:
@@ -593,8 +633,8 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
     from tlspyo.client import TLSClientFactory as TlspyoClientFactory
     from twisted.internet import reactor, ssl
     from twisted.internet.error import ReactorNotRunning
-    from zope.interface import implementer
     from twisted.internet.interfaces import IPushProducer
+    from zope.interface import implementer
 
     groups: tuple[str, ...] = tuple(cfg["groups"])
     header_size: int = cfg["header_size"]
@@ -617,10 +657,16 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self.recon_jitter = 0.1
             self.password_bytes = cfg["password"].encode("utf-8")
             self.proto: LinkProtocol | None = None
-            self.store: collections.deque[tuple[dict[str, int], memoryview, bytearray, tuple[int, int]]] = collections.deque()
-            self.last_broadcast_sent: tuple[dict[str, int], memoryview, bytearray, tuple[int, int]] | None = None
+            self.store: collections.deque[tuple[dict[str, int], memoryview, bytearray, tuple[int, int]]] = (
+                collections.deque()
+            )
+            self.last_broadcast_sent: tuple[dict[str, int], memoryview, bytearray, tuple[int, int]] | None = (
+                None
+            )
             self.store_bytes = 0
-            self.unacked: collections.OrderedDict[Any, tuple[dict[str, int], memoryview, bytearray, tuple[int, int]]] = collections.OrderedDict()
+            self.unacked: collections.OrderedDict[
+                Any, tuple[dict[str, int], memoryview, bytearray, tuple[int, int]]
+            ] = collections.OrderedDict()
             self.unacked_bytes = 0
             self.dropped = 0
             self.session = random.getrandbits(62)
@@ -664,16 +710,21 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     self.store_bytes -= len(item[1])
             self.store.append((dest, data, keep, msg_id))
             self.store_bytes += len(data)
-            while len(self.store) > 1 and (len(self.store) > cfg["max_store"] or self.store_bytes > cfg["max_store_bytes"]):
+            while len(self.store) > 1 and (
+                len(self.store) > cfg["max_store"] or self.store_bytes > cfg["max_store_bytes"]
+            ):
                 _, old, _, _ = self.store.popleft()
                 self.store_bytes -= len(old)
                 self.dropped += 1
                 log_link.warning(
                     "not connected to the relay at %s: dropped the oldest unsent object (%d dropped so far)",
-                    where, self.dropped,
+                    where,
+                    self.dropped,
                 )
 
-        def remember(self, dest: dict[str, int], data: memoryview, keep: bytearray, msg_id: tuple[int, int]) -> None:
+        def remember(
+            self, dest: dict[str, int], data: memoryview, keep: bytearray, msg_id: tuple[int, int]
+        ) -> None:
             # Samples stay here until the relay acknowledges them, to be sent again if the
             # connection drops first (at-least-once; the receiver may see a duplicate).
             if not any(n > 0 for n in dest.values()):
@@ -758,7 +809,12 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 self.finish(self.proto)
             elif self.store:
                 # Not connected: give the relay a chance to take what this process still holds.
-                log_link.info("waiting up to %.0f s to deliver %d unsent objects to %s", cfg["close_timeout"], len(self.store), where)
+                log_link.info(
+                    "waiting up to %.0f s to deliver %d unsent objects to %s",
+                    cfg["close_timeout"],
+                    len(self.store),
+                    where,
+                )
                 reactor.callLater(cfg["close_timeout"], self.give_up)
             else:
                 if self.factory is not None:
@@ -775,7 +831,9 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
 
         def give_up(self) -> None:
             if self.store:
-                log_link.warning("closing with %d objects never sent (no connection to %s)", len(self.store), where)
+                log_link.warning(
+                    "closing with %d objects never sent (no connection to %s)", len(self.store), where
+                )
             _stop_reactor()
 
     def _stop_reactor() -> None:
@@ -824,7 +882,11 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             total = len(data)
             count = max(1, -(-total // chunk_bytes))
             for idx in range(count):
-                self.send_env("OBJ", dest, (msg_id, idx, count, total, data[idx * chunk_bytes : (idx + 1) * chunk_bytes]))
+                self.send_env(
+                    "OBJ",
+                    dest,
+                    (msg_id, idx, count, total, data[idx * chunk_bytes : (idx + 1) * chunk_bytes]),
+                )
 
         def _abort(self, reason: str) -> None:
             log_link.error("closed the connection to the relay at %s: %s", where, reason)
@@ -862,7 +924,9 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 if reason != self._client.last_refusal:
                     self._client.last_refusal = reason
                     hint = " (check the password on both machines)" if reason == "wrong password" else ""
-                    log_link.error("the relay at %s refused this %s: %s%s", where, "/".join(groups), reason, hint)
+                    log_link.error(
+                        "the relay at %s refused this %s: %s%s", where, "/".join(groups), reason, hint
+                    )
                 self._client.status(connected=False, refused=reason)
             elif cmd == "OBJ":
                 self._frame(obj)
@@ -884,10 +948,11 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     self._partials.popitem(last=False)
                 part = self._partials[key] = [bytearray(total), 0, 0]
             else:
-                part = self._partials.get(key)
-                if part is None or part[2] != idx:
+                found = self._partials.get(key)
+                if found is None or found[2] != idx:
                     self._partials.pop(key, None)
                     return  # joined mid-object, or lost frames: wait for the next one
+                part = found
             buf, filled, _ = part
             if filled + len(chunk) > total:
                 self._partials.pop(key, None)
@@ -934,11 +999,16 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
         try:
             with open(cfg["cert_file"], "rb") as f:
                 authority = ssl.Certificate.loadPEM(f.read())
-        except Exception as e:
-            writer.send(_pipe.READY, wire.encode({
-                "error": f"cannot load the TLS certificate {cfg['cert_file']} ({e}): copy certificate.pem "
-                "from the server's credentials folder (made by `python -m tmrl --install`)"
-            }))
+        except Exception as e:  # noqa: BLE001 (any failure here is a bad or missing file: one line)
+            writer.send(
+                _pipe.READY,
+                wire.encode(
+                    {
+                        "error": f"cannot load the TLS certificate {cfg['cert_file']} ({e}): copy certificate.pem "
+                        "from the server's credentials folder (made by `python -m tmrl --install`)"
+                    }
+                ),
+            )
             return
         options = ssl.optionsForClientTLS(hostname=cfg["hostname"], trustRoot=authority)
         reactor.connectSSL(cfg["server_ip"], cfg["server_port"], factory, options)
@@ -984,8 +1054,8 @@ class _PipeLogHandler(logging.Handler):
             if record.exc_info:
                 msg += "\n" + logging.Formatter().formatException(record.exc_info)
             self.writer.send(_pipe.LOG, wire.encode((record.levelno, record.name, msg)))
-        except Exception:
-            pass  # the parent is gone; nothing useful left to do with a log line
+        except Exception:  # noqa: BLE001, S110 (the parent is gone: no one left to tell)
+            pass
 
 
 def main() -> None:
@@ -994,12 +1064,12 @@ def main() -> None:
     # our stdin), so that pending objects are flushed and no port stays held.
     global _STDIN
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _STDIN = open(0, "rb", buffering=0, closefd=False)  # raw: reads return what the pipe holds
+    _STDIN = open(0, "rb", buffering=0, closefd=False)  # noqa: SIM115 (for the process's lifetime)
     out_fd = os.dup(1)
     os.dup2(2, 1)  # a stray print must not corrupt the pipe protocol
     writer = _pipe.PipeWriter(out_fd)
     try:
-        kind, payload = _pipe.read_message(_STDIN, 1 << 20)
+        _kind, payload = _pipe.read_message(_STDIN, 1 << 20)
     except _pipe.PipeClosed:
         return
     cfg = wire.decode(payload)
@@ -1010,7 +1080,9 @@ def main() -> None:
 
     logging.getLogger("tmrl.transport.twisted").setLevel(logging.WARNING)
     logging.getLogger("tlspyo").setLevel(logging.WARNING)
-    globalLogBeginner.beginLoggingTo([STDLibLogObserver(name="tmrl.transport.twisted")], redirectStandardIO=False)
+    globalLogBeginner.beginLoggingTo(
+        [STDLibLogObserver(name="tmrl.transport.twisted")], redirectStandardIO=False
+    )
     try:
         if cfg["role"] == "relay":
             run_relay(cfg, writer)

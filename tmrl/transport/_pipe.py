@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import struct
 import threading
-from typing import BinaryIO
+from typing import Any
 
 HEADER = struct.Struct("<BQ")
 
@@ -34,7 +34,7 @@ class PipeClosed(Exception):
     """The other end of the pipe is gone."""
 
 
-def read_exact(f: BinaryIO, n: int) -> bytearray:
+def read_exact(f: Any, n: int) -> bytearray:
     """Read exactly ``n`` bytes from the raw (unbuffered) file ``f`` into a new bytearray.
 
     Raises:
@@ -56,7 +56,7 @@ def read_exact(f: BinaryIO, n: int) -> bytearray:
     return buf
 
 
-def read_message(f: BinaryIO, max_len: int) -> tuple[int, bytearray]:
+def read_message(f: Any, max_len: int) -> tuple[int, bytearray]:
     """Read one message from the raw file ``f``; its payload must be at most ``max_len`` bytes.
 
     Raises:

@@ -8,8 +8,9 @@ import subprocess
 import sys
 import threading
 import weakref
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from tmrl import wire
 from tmrl.errors import UserError
@@ -17,7 +18,7 @@ from tmrl.transport import _pipe
 
 logger = logging.getLogger(__name__)
 
-_LIVE: "weakref.WeakSet[NetProcess]" = weakref.WeakSet()
+_LIVE: weakref.WeakSet[NetProcess] = weakref.WeakSet()
 _ATEXIT_REGISTERED = False
 
 
@@ -67,9 +68,11 @@ class NetProcess:
             bufsize=0,
             close_fds=True,
         )
-        _pipe.enlarge(self.proc.stdin.fileno())
-        _pipe.enlarge(self.proc.stdout.fileno())
-        self._writer = _pipe.PipeWriter(self.proc.stdin.fileno())
+        assert self.proc.stdin is not None and self.proc.stdout is not None  # both are PIPEs
+        self._stdin, self._stdout = self.proc.stdin, self.proc.stdout
+        _pipe.enlarge(self._stdin.fileno())
+        _pipe.enlarge(self._stdout.fileno())
+        self._writer = _pipe.PipeWriter(self._stdin.fileno())
         self._reader = threading.Thread(target=self._read_loop, name=f"tmrl-{name}-reader", daemon=True)
         self._reader.start()
         _LIVE.add(self)
@@ -129,7 +132,7 @@ class NetProcess:
             self._stopped = True
         self.send(_pipe.STOP)
         try:
-            self.proc.stdin.close()
+            self._stdin.close()
         except OSError:
             pass
         try:
@@ -140,13 +143,13 @@ class NetProcess:
             self.proc.wait()
         self._reader.join(timeout=5.0)
         try:
-            self.proc.stdout.close()
+            self._stdout.close()
         except OSError:
             pass
         _LIVE.discard(self)
 
     def _read_loop(self) -> None:
-        f = self.proc.stdout  # a raw FileIO (bufsize=0)
+        f = self._stdout  # a raw FileIO (bufsize=0)
         try:
             while True:
                 kind, payload = _pipe.read_message(f, self._max)
@@ -202,7 +205,9 @@ def check_common(
     if not isinstance(password, str):
         raise UserError(f"the password must be a string, not {type(password).__name__} (config key PASSWORD)")
     if type(header_size) is not int or not 4 <= header_size <= 18:
-        raise UserError(f"header_size must be an integer from 4 to 18, not {header_size!r}; use the same value everywhere")
+        raise UserError(
+            f"header_size must be an integer from 4 to 18, not {header_size!r}; use the same value everywhere"
+        )
     if type(max_frame_bytes) is not int or max_frame_bytes < 1 << 17:
         raise UserError(f"max_frame_bytes must be an integer of at least {1 << 17}, not {max_frame_bytes!r}")
     if len(str(max_frame_bytes)) > header_size:
@@ -214,7 +219,9 @@ def check_common(
     if security is None:
         return None, None
     if keys_dir is None:
-        raise UserError("TLS is on but no credentials folder was given (keys_dir): run `python -m tmrl --install` to create it")
+        raise UserError(
+            "TLS is on but no credentials folder was given (keys_dir): run `python -m tmrl --install` to create it"
+        )
     folder = Path(keys_dir).expanduser().resolve()
     needed = [CERT_FILE] + ([KEY_FILE] if needs_key else [])
     for fname in needed:

@@ -10,10 +10,11 @@ import datetime
 import ipaddress
 import os
 from pathlib import Path
+from typing import Any
 
 from tmrl.util import atomic_write_bytes
 
-__all__ = ["ensure_credentials", "KEY_FILE", "CERT_FILE", "DEFAULT_HOSTNAME"]
+__all__ = ["CERT_FILE", "DEFAULT_HOSTNAME", "KEY_FILE", "ensure_credentials"]
 
 KEY_FILE = "key.pem"
 CERT_FILE = "certificate.pem"
@@ -22,7 +23,9 @@ CERT_FILE = "certificate.pem"
 DEFAULT_HOSTNAME = "default"
 
 
-def ensure_credentials(directory: str | os.PathLike[str], hostname: str = DEFAULT_HOSTNAME) -> tuple[Path, Path]:
+def ensure_credentials(
+    directory: str | os.PathLike[str], hostname: str = DEFAULT_HOSTNAME
+) -> tuple[Path, Path]:
     """Create a TLS private key and a self-signed certificate in ``directory``, keeping existing ones.
 
     - both files present: nothing is written;
@@ -51,6 +54,7 @@ def ensure_credentials(directory: str | os.PathLike[str], hostname: str = DEFAUL
     from cryptography.x509.oid import NameOID
 
     folder.mkdir(parents=True, exist_ok=True)
+    key: Any
     if key_path.exists():
         key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
     else:

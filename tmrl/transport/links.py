@@ -50,20 +50,30 @@ class _Link:
         start_timeout: float = 60.0,
     ):
         security, folder = check_common(
-            password=password, header_size=header_size, security=security, keys_dir=keys_dir,
-            max_frame_bytes=max_frame_bytes, needs_key=False,
+            password=password,
+            header_size=header_size,
+            security=security,
+            keys_dir=keys_dir,
+            max_frame_bytes=max_frame_bytes,
+            needs_key=False,
         )
         if not isinstance(server_ip, str) or not server_ip:
-            raise UserError(f"the server address must be a non-empty string, not {server_ip!r} (config key SERVER_IP)")
+            raise UserError(
+                f"the server address must be a non-empty string, not {server_ip!r} (config key SERVER_IP)"
+            )
         if type(server_port) is not int or not 1 <= server_port <= 65535:
-            raise UserError(f"the server port must be an integer from 1 to 65535, not {server_port!r} (config key PORT)")
+            raise UserError(
+                f"the server port must be an integer from 1 to 65535, not {server_port!r} (config key PORT)"
+            )
         if security is None:
             if server_ip not in LOCAL_HOSTS and not allow_plain_tcp:
                 raise UserError(
                     f"plain TCP (security=None) to {server_ip} is refused: turn TLS on, or allow plain TCP "
                     "explicitly on a trusted network (allow_plain_tcp=True)"
                 )
-            logger.warning("TLS is off: traffic to %s:%d is neither encrypted nor authenticated", server_ip, server_port)
+            logger.warning(
+                "TLS is off: traffic to %s:%d is neither encrypted nor authenticated", server_ip, server_port
+            )
         self._allow_pickle = bool(allow_pickle)
         if self._allow_pickle:
             logger.warning(
@@ -189,7 +199,7 @@ class _Link:
     def __enter__(self) -> Any:
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -261,7 +271,7 @@ class WorkerLink(_Link):
     def _on_object(self, payload: bytearray) -> None:
         try:
             obj = self._decode(payload)
-        except Exception as e:  # hostile or corrupt data must not stop the reader thread
+        except Exception as e:  # noqa: BLE001 (hostile or corrupt data must not stop the reader)
             logger.error("dropped weights that could not be decoded: %s", e)
             return
         if not isinstance(obj, (bytes, bytearray)):
@@ -306,7 +316,7 @@ class TrainerLink(_Link):
         for payload in raw:
             try:
                 out.append(self._decode(payload))
-            except Exception as e:
+            except Exception as e:  # noqa: BLE001 (one bad object must not lose the others)
                 logger.error("dropped a sample batch that could not be decoded: %s", e)
         return out
 

@@ -70,11 +70,17 @@ class RelayServer:
         start_timeout: float = 60.0,
     ):
         security, folder = check_common(
-            password=password, header_size=header_size, security=security, keys_dir=keys_dir,
-            max_frame_bytes=max_frame_bytes, needs_key=True,
+            password=password,
+            header_size=header_size,
+            security=security,
+            keys_dir=keys_dir,
+            max_frame_bytes=max_frame_bytes,
+            needs_key=True,
         )
         if type(port) is not int or not 0 <= port <= 65535:
-            raise UserError(f"the server port must be an integer from 0 to 65535, not {port!r} (config key PORT)")
+            raise UserError(
+                f"the server port must be an integer from 0 to 65535, not {port!r} (config key PORT)"
+            )
         if max_workers is not None and (type(max_workers) is not int or max_workers < 0):
             raise UserError(f"max_workers must be a non-negative integer or None, not {max_workers!r}")
         if type(max_consumables) is not int or max_consumables < 1:
@@ -82,7 +88,9 @@ class RelayServer:
         interface = ""
         if security is None:
             if allow_plain_tcp:
-                logger.warning("TLS is off: the relay accepts plain TCP on every interface (allowed explicitly)")
+                logger.warning(
+                    "TLS is off: the relay accepts plain TCP on every interface (allowed explicitly)"
+                )
             else:
                 interface = "127.0.0.1"
                 logger.warning("TLS is off: the relay accepts plain TCP connections from this machine only")
@@ -128,8 +136,8 @@ class RelayServer:
         """
         self._proc.stop(timeout)
 
-    def __enter__(self) -> RelayServer:
+    def __enter__(self) -> RelayServer:  # noqa: PYI034
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
