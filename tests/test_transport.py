@@ -289,8 +289,11 @@ def test_tls_with_a_foreign_certificate_does_not_connect(net, tmp_path, credenti
     ensure_credentials(other)
     net.relay(security="TLS", keys_dir=credentials)
     worker = net.worker(security="TLS", keys_dir=other)
-    _wait_for(lambda: "cannot reach the relay" in _log_text(caplog), what="a TLS failure")
+    _wait_for(lambda: "check that certificate.pem is the server's" in _log_text(caplog), what="a TLS failure")
     assert not worker.connected
+    assert any(
+        r.levelno == logging.WARNING and "cannot reach the relay" in r.getMessage() for r in caplog.records
+    )
 
 
 def test_configuration_mistakes_are_one_line_user_errors(tmp_path, port_factory):
@@ -522,3 +525,11 @@ def test_samples_unacknowledged_by_a_dying_relay_are_sent_again(net):
     trainer = net.trainer()
     got = _receive(trainer, 3)
     assert sorted(set(got)) == [("held by the worker", i) for i in range(3)]
+
+
+def test_a_silent_connection_is_closed_after_the_handshake_timeout(net, caplog):
+    relay = net.relay(handshake_timeout=0.5)
+    s = _raw_connect(net.port)  # connects, never authenticates
+    assert _closed_by_peer(s)
+    _wait_for(lambda: "no handshake within" in _log_text(caplog), what="the timeout log line")
+    assert relay.running

@@ -345,6 +345,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 None  # consumable being received: [msg_id, dest, count, total, chunks, size]
             )
             self.paused = False
+            self._handshake_timer: Any = None
             self.stale: set[str] = set()
             self.unacked: dict[tuple, tuple[str, list[bytes]]] = {}
 
@@ -353,6 +354,18 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             _tune(self.transport)
             self.transport.registerProducer(self, True)
             self.transport.write(_frame(self._header_size, wire.encode((0, "HELLO", None))))
+            # Whoever found the port gets a bounded time to authenticate, not a free socket forever.
+            self._handshake_timer = reactor.callLater(cfg["handshake_timeout"], self._handshake_expired)
+
+        def _handshake_expired(self) -> None:
+            self._handshake_timer = None
+            if self._state == _HANDSHAKE:
+                self._kill(f"no handshake within {cfg['handshake_timeout']:.0f} s")
+
+        def _cancel_handshake_timer(self) -> None:
+            if self._handshake_timer is not None and self._handshake_timer.active():
+                self._handshake_timer.cancel()
+            self._handshake_timer = None
 
         def connectionLost(self, reason: Any = None) -> None:
             if self._server.has_client(self._identifier):
@@ -363,6 +376,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self._identifier = None
             self._state = "DEAD"
             self._partial = None
+            self._cancel_handshake_timer()
             self._server.connections.discard(self)
             self._server.maybe_stop()
 
@@ -437,6 +451,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 self._state = _CLOSED
                 self.transport.loseConnection()
                 return
+            self._cancel_handshake_timer()
             self._groups = groups
             self._identifier = self._server.add_client(groups=groups, client=self)
             self._state = _ALIVE
@@ -679,6 +694,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self.closing = False
             self.last_failure: str | None = None
             self.last_refusal: str | None = None
+            self.lost_reason: str | None = None
             self.factory: LinkFactory | None = None
 
         def status(self, **kw: Any) -> None:
@@ -868,6 +884,9 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self.transport.registerProducer(self, True)
 
         def connectionLost(self, reason: Any = None) -> None:
+            if not self.alive and reason is not None:
+                # The TLS layer tells us (not the factory) why a handshake failed.
+                self._client.lost_reason = reason.getErrorMessage()
             self._state = "DEAD"
             self.alive = False
             if self._client.proto is self or self._client.proto is None:
@@ -987,10 +1006,19 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             if self._state.closing and not self._state.store:
                 _stop_reactor()
                 return
-            msg = reason.getErrorMessage()
+            msg = self._state.lost_reason or reason.getErrorMessage()
+            self._state.lost_reason = None
             if msg != self._state.last_failure:
                 self._state.last_failure = msg
-                log_link.info("cannot reach the relay at %s (%s); retrying", where, msg)
+                # A certificate problem will not go away by retrying: say it louder.
+                tls = any(w in msg.lower() for w in ("ssl", "certificate", "tls", "handshake"))
+                log_link.log(
+                    logging.WARNING if tls else logging.INFO,
+                    "cannot reach the relay at %s (%s); retrying%s",
+                    where,
+                    msg,
+                    " (check that certificate.pem is the server's)" if tls else "",
+                )
             self.retry(connector)
 
     state = LinkState()

@@ -45,6 +45,8 @@ class RelayServer:
         max_consumable_bytes: the same bound in bytes (all pending batches together).
         max_object_bytes: largest object (sum of its frames) accepted.
         start_timeout: seconds to wait for the relay process to start.
+        handshake_timeout: a connection that has not completed the handshake (right password,
+            valid groups) after this many seconds is closed.
 
     Raises:
         UserError: the port cannot be bound (``"port 55555 is already in use: ..."``), TLS
@@ -68,6 +70,7 @@ class RelayServer:
         max_consumable_bytes: int = 2**30,
         max_object_bytes: int = DEFAULT_MAX_OBJECT_BYTES,
         start_timeout: float = 60.0,
+        handshake_timeout: float = 30.0,
     ):
         security, folder = check_common(
             password=password,
@@ -109,6 +112,7 @@ class RelayServer:
             "max_consumables": max_consumables,
             "max_consumable_bytes": max_consumable_bytes,
             "interface": interface,
+            "handshake_timeout": float(handshake_timeout),
         }
         self._proc = NetProcess(cfg, self._on_message, 1 << 20, name="relay")
         info = self._proc.wait_ready(start_timeout)
