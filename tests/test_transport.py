@@ -305,6 +305,12 @@ def test_configuration_mistakes_are_one_line_user_errors(tmp_path, port_factory)
         WorkerLink("192.0.2.1", port_factory(), PASSWORD, security=None)
     with pytest.raises(UserError, match="security"):
         TrainerLink("127.0.0.1", port_factory(), PASSWORD, security="SSLv2")
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "key.pem").write_text("not a key")
+    (broken / "certificate.pem").write_text("not a certificate")
+    with pytest.raises(UserError, match="cannot load the TLS credentials"):
+        RelayServer(port_factory(), PASSWORD, keys_dir=broken)
     assert _children() == []
 
 
