@@ -240,3 +240,17 @@ def test_atomic_write_uses_ordinary_permissions_unless_asked(tmp_path):
     assert stat.S_IMODE(plain.stat().st_mode) == 0o666 & ~mask
     assert stat.S_IMODE(secret.stat().st_mode) == 0o600
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_dump_load_round_trip_gives_writable_arrays(tmp_path):
+    import numpy as np
+
+    from tmrl.util import dump, load
+
+    obj = {"a": np.arange(1000, dtype=np.float32), "t": (1, "x", None)}
+    dump(obj, tmp_path / "obj.bin")
+    back = load(tmp_path / "obj.bin")
+    assert back["t"] == (1, "x", None)
+    np.testing.assert_array_equal(back["a"], obj["a"])
+    back["a"][0] = 5.0  # a read-only view would raise here
+    assert back["a"].flags.writeable

@@ -215,11 +215,12 @@ def dump(obj: Any, path: str | os.PathLike[str]) -> Path:
 
 
 def load(path: str | os.PathLike[str]) -> Any:
-    """Read an object written by :func:`dump`. Nothing in the file can execute code.
+    """Read an object written by :func:`dump`. Nothing in the file can execute code; the arrays
+    returned are independent, writable copies.
 
     Raises:
         tmrl.wire.DecodeError: the file is not in tmrl's data-only format or is truncated.
     """
     from tmrl import wire
 
-    return wire.decode(Path(path).read_bytes())
+    return wire.decode(Path(path).read_bytes(), copy=True)
