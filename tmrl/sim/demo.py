@@ -323,8 +323,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parse(sys.argv[1:] if argv is None else argv)
     if args.role:
         DEMO_SETTINGS["start_training"] = max(1, int(args.start_training))
-        _run_role(args.role, args.interface, args.track, Path(args.workdir), args.port,
-                  os.environ.get("TMRL_DEMO_PASSWORD", ""), args.realtime)
+        try:
+            _run_role(args.role, args.interface, args.track, Path(args.workdir), args.port,
+                      os.environ.get("TMRL_DEMO_PASSWORD", ""), args.realtime)
+        except KeyboardInterrupt:  # the parent stops its roles with SIGINT: a normal end
+            pass
         return 0
     from tmrl.sim.track import make_track
 
