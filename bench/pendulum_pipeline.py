@@ -68,9 +68,22 @@ def _read_steps(workdir: Path) -> int:
 # this tmrl
 
 
-OURS = dict(batch_size=256, memory_size=1_000_000, lr=1e-3, gamma=0.99, polyak=0.995, alpha=0.2,
-            steps_per_round=500, rounds=10, update_model_interval=20, update_buffer_interval=20,
-            max_training_steps_per_env_step=1.0, start_training=1000, worker_steps_per_update=40)
+OURS = dict(
+    hidden_sizes=(64, 64),
+    batch_size=256,
+    memory_size=1_000_000,
+    lr=1e-3,
+    gamma=0.99,
+    polyak=0.995,
+    alpha=0.2,
+    steps_per_round=500,
+    rounds=10,
+    update_model_interval=20,
+    update_buffer_interval=20,
+    max_training_steps_per_env_step=1.0,
+    start_training=1000,
+    worker_steps_per_update=40,
+)
 
 
 def _ours_training_cls(workdir: Path):
@@ -87,14 +100,30 @@ def _ours_training_cls(workdir: Path):
     return partial(
         TorchTrainingOffline,
         env_cls=spaces,
-        memory_cls=partial(GenericTorchMemory, memory_size=OURS["memory_size"], batch_size=OURS["batch_size"]),
-        training_agent_cls=partial(SACAgent, model_cls=MLPActorCritic, gamma=OURS["gamma"], polyak=OURS["polyak"],
-                                   alpha=OURS["alpha"], lr_actor=OURS["lr"], lr_critic=OURS["lr"],
-                                   lr_entropy=OURS["lr"], learn_entropy_coef=True, target_entropy=None),
-        epochs=1000, rounds=OURS["rounds"], steps=OURS["steps_per_round"],
-        update_buffer_interval=OURS["update_buffer_interval"], update_model_interval=OURS["update_model_interval"],
+        memory_cls=partial(
+            GenericTorchMemory, memory_size=OURS["memory_size"], batch_size=OURS["batch_size"]
+        ),
+        training_agent_cls=partial(
+            SACAgent,
+            model_cls=partial(MLPActorCritic, hidden_sizes=OURS["hidden_sizes"]),
+            gamma=OURS["gamma"],
+            polyak=OURS["polyak"],
+            alpha=OURS["alpha"],
+            lr_actor=OURS["lr"],
+            lr_critic=OURS["lr"],
+            lr_entropy=OURS["lr"],
+            learn_entropy_coef=True,
+            target_entropy=None,
+        ),
+        epochs=1000,
+        rounds=OURS["rounds"],
+        steps=OURS["steps_per_round"],
+        update_buffer_interval=OURS["update_buffer_interval"],
+        update_model_interval=OURS["update_model_interval"],
         max_training_steps_per_env_step=OURS["max_training_steps_per_env_step"],
-        start_training=OURS["start_training"], device="cpu",
+        start_training=OURS["start_training"],
+        device="cpu",
+        sleep_between_buffer_retrieval_attempts=0.01,
     )
 
 
@@ -110,26 +139,43 @@ def ours_role(role: str, workdir: Path, port: int) -> None:
         finally:
             server.stop()
     elif role == "trainer":
-        Trainer(training_cls=_ours_training_cls(workdir), server_ip="127.0.0.1", server_port=port,
-                model_path=str(workdir / "model_trainer.tmod"), checkpoint_path=None, **common).run()
+        Trainer(
+            training_cls=_ours_training_cls(workdir),
+            server_ip="127.0.0.1",
+            server_port=port,
+            model_path=str(workdir / "model_trainer.tmod"),
+            checkpoint_path=None,
+            **common,
+        ).run()
     elif role == "worker":
         from tmrl.envs import GenericGymEnv
         from tmrl.models import SquashedGaussianMLPActor
+        from tmrl.util import partial
 
         worker = RolloutWorker(
             env_cls=lambda: _counting_env(lambda: GenericGymEnv(id="Pendulum-v1"), str(workdir / "steps")),
-            actor_module_cls=SquashedGaussianMLPActor, server_ip="127.0.0.1", server_port=port,
-            max_samples_per_episode=1000, model_path=str(workdir / "model_worker.tmod"), model_history=0, **common)
-        worker.run_synchronous(initial_steps=OURS["start_training"],
-                               max_steps_per_update=OURS["worker_steps_per_update"] / OURS["update_model_interval"],
-                               end_episodes=False)
+            actor_module_cls=partial(SquashedGaussianMLPActor, hidden_sizes=OURS["hidden_sizes"]),
+            server_ip="127.0.0.1",
+            server_port=port,
+            max_samples_per_episode=1000,
+            model_path=str(workdir / "model_worker.tmod"),
+            model_history=0,
+            **common,
+        )
+        worker.run_synchronous(
+            initial_steps=OURS["start_training"],
+            max_steps_per_update=OURS["worker_steps_per_update"],
+            end_episodes=False,
+        )
     elif role == "eval":
         import gymnasium
 
         from tmrl.models import SquashedGaussianMLPActor
 
         env = gymnasium.make("Pendulum-v1")
-        actor = SquashedGaussianMLPActor(env.observation_space, env.action_space)
+        actor = SquashedGaussianMLPActor(
+            env.observation_space, env.action_space, hidden_sizes=OURS["hidden_sizes"]
+        )
         _eval_loop(env, actor, workdir, workdir / "model_trainer.tmod")
 
 
@@ -148,36 +194,71 @@ def tmrl_role(role: str, workdir: Path, port: int) -> None:
             time.sleep(1.0)
     elif role == "trainer":
         import gymnasium
+        from tmrl.custom.custom_memories import GenericTorchMemory
 
         from tmrl.custom.custom_algorithms import SpinupSacAgent
-        from tmrl.custom.custom_memories import GenericTorchMemory
         from tmrl.custom.custom_models import MLPActorCritic
         from tmrl.training_offline import TorchTrainingOffline
 
         env = gymnasium.make("Pendulum-v1")
         training_cls = partial(
-            TorchTrainingOffline, env_cls=(env.observation_space, env.action_space),
+            TorchTrainingOffline,
+            env_cls=(env.observation_space, env.action_space),
             memory_cls=partial(GenericTorchMemory, memory_size=1e6, batch_size=32, crc_debug=False),
-            training_agent_cls=partial(SpinupSacAgent, model_cls=MLPActorCritic, gamma=0.99, polyak=0.995, alpha=0.2,
-                                       lr_actor=1e-3, lr_critic=1e-3, lr_entropy=1e-3, learn_entropy_coef=True,
-                                       target_entropy=None),
-            epochs=1000, rounds=10, steps=1000, update_buffer_interval=1, update_model_interval=1,
-            max_training_steps_per_env_step=0.2, start_training=100, device=None)
-        Trainer(training_cls=training_cls, server_ip="127.0.0.1", server_port=port, password=cfg.PASSWORD,
-                model_path=str(workdir / "model_trainer.tmod"),
-                checkpoint_path=str(workdir / "checkpoint.tcpt"), security=None).run()
+            training_agent_cls=partial(
+                SpinupSacAgent,
+                model_cls=MLPActorCritic,
+                gamma=0.99,
+                polyak=0.995,
+                alpha=0.2,
+                lr_actor=1e-3,
+                lr_critic=1e-3,
+                lr_entropy=1e-3,
+                learn_entropy_coef=True,
+                target_entropy=None,
+            ),
+            epochs=1000,
+            rounds=10,
+            steps=1000,
+            update_buffer_interval=1,
+            update_model_interval=1,
+            max_training_steps_per_env_step=0.2,
+            start_training=100,
+            device=None,
+        )
+        Trainer(
+            training_cls=training_cls,
+            server_ip="127.0.0.1",
+            server_port=port,
+            password=cfg.PASSWORD,
+            model_path=str(workdir / "model_trainer.tmod"),
+            checkpoint_path=str(workdir / "checkpoint.tcpt"),
+            security=None,
+        ).run()
     elif role == "worker":
         from tmrl.custom.custom_models import SquashedGaussianMLPActor
         from tmrl.envs import GenericGymEnv
 
         worker = RolloutWorker(
-            env_cls=lambda: _counting_env(lambda: GenericGymEnv(id="Pendulum-v1", gym_kwargs={"render_mode": None}),
-                                          str(workdir / "steps")),
-            actor_module_cls=partial(SquashedGaussianMLPActor), sample_compressor=None, device="cpu",
-            server_ip="127.0.0.1", server_port=port, password=cfg.PASSWORD, max_samples_per_episode=1000,
-            model_path=str(workdir / "model_worker.tmod"), model_history=-1, crc_debug=False, security=None)
-        worker.run_synchronous(test_episode_interval=10, initial_steps=100, max_steps_per_update=10,
-                               end_episodes=True)
+            env_cls=lambda: _counting_env(
+                lambda: GenericGymEnv(id="Pendulum-v1", gym_kwargs={"render_mode": None}),
+                str(workdir / "steps"),
+            ),
+            actor_module_cls=partial(SquashedGaussianMLPActor),
+            sample_compressor=None,
+            device="cpu",
+            server_ip="127.0.0.1",
+            server_port=port,
+            password=cfg.PASSWORD,
+            max_samples_per_episode=1000,
+            model_path=str(workdir / "model_worker.tmod"),
+            model_history=-1,
+            crc_debug=False,
+            security=None,
+        )
+        worker.run_synchronous(
+            test_episode_interval=10, initial_steps=100, max_steps_per_update=10, end_episodes=True
+        )
     elif role == "eval":
         import gymnasium
 
@@ -221,11 +302,15 @@ def _eval_loop(env, actor, workdir: Path, model_path: Path) -> None:
             while not done:
                 with torch.no_grad():
                     act = actor.act_(np.asarray(obs, np.float32), test=True)
-                obs, rew, term, trunc, _ = env.step(np.asarray(act, np.float32).reshape(env.action_space.shape))
+                obs, rew, term, trunc, _ = env.step(
+                    np.asarray(act, np.float32).reshape(env.action_space.shape)
+                )
                 ret += float(rew)
                 done = term or trunc
             rets.append(ret)
-        print(json.dumps({"t": time.monotonic() - t0, "steps": steps, "ret": sum(rets) / len(rets)}), flush=True)
+        print(
+            json.dumps({"t": time.monotonic() - t0, "steps": steps, "ret": sum(rets) / len(rets)}), flush=True
+        )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -266,12 +351,24 @@ def _wait_listening(port: int, timeout: float) -> None:
     raise RuntimeError(f"the server did not listen on port {port} within {timeout} s")
 
 
-def run_pipeline(impl: str, python: str, home: str | None, timeout: float, eval_every: float,
-                 eval_episodes: int, keep: bool) -> dict:
+def run_pipeline(
+    impl: str,
+    python: str,
+    home: str | None,
+    timeout: float,
+    eval_every: float,
+    eval_episodes: int,
+    keep: bool,
+) -> dict:
     workdir = Path(tempfile.mkdtemp(prefix=f"pendulum-{impl}-"))
     port = _free_port()
-    env = dict(os.environ, BENCH_EVAL_EVERY=str(eval_every), BENCH_EVAL_EPISODES=str(eval_episodes),
-               OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    env = dict(
+        os.environ,
+        BENCH_EVAL_EVERY=str(eval_every),
+        BENCH_EVAL_EPISODES=str(eval_episodes),
+        OMP_NUM_THREADS="1",
+        PYTHONUNBUFFERED="1",
+    )
     if home:
         env["HOME"] = home
     else:
@@ -283,9 +380,25 @@ def run_pipeline(impl: str, python: str, home: str | None, timeout: float, eval_
 
     def start(role: str, stdout=None) -> subprocess.Popen:
         logs[role] = open(workdir / f"{role}.log", "wb")
-        p = subprocess.Popen([python, str(HERE), "--role", role, "--impl", impl, "--workdir", str(workdir),
-                              "--port", str(port)], cwd=str(workdir), env=env,
-                             stdout=stdout or logs[role], stderr=logs[role], start_new_session=True)
+        p = subprocess.Popen(
+            [
+                python,
+                str(HERE),
+                "--role",
+                role,
+                "--impl",
+                impl,
+                "--workdir",
+                str(workdir),
+                "--port",
+                str(port),
+            ],
+            cwd=str(workdir),
+            env=env,
+            stdout=stdout or logs[role],
+            stderr=logs[role],
+            start_new_session=True,
+        )
         procs.append(p)
         return p
 
@@ -308,8 +421,10 @@ def run_pipeline(impl: str, python: str, home: str | None, timeout: float, eval_
             for line in lines:
                 rec = json.loads(line)
                 result["evals"].append(rec)
-                print(f"  [{impl}] t={rec['t']:6.1f}s steps={rec['steps']:6d} mean test return={rec['ret']:8.1f}",
-                      flush=True)
+                print(
+                    f"  [{impl}] t={rec['t']:6.1f}s steps={rec['steps']:6d} mean test return={rec['ret']:8.1f}",
+                    flush=True,
+                )
                 for th in THRESHOLDS:
                     if th not in reached and rec["ret"] > th:
                         reached.add(th)
@@ -357,9 +472,13 @@ def main() -> None:
     for impl in args.impl.split(","):
         python, home = (args.python, None) if impl == "ours" else (args.anchor_python, args.anchor_home)
         print(f"{impl}: running (timeout {args.timeout:.0f} s)", flush=True)
-        results.append(run_pipeline(impl, python, home, args.timeout, args.eval_every, args.eval_episodes, args.keep))
+        results.append(
+            run_pipeline(impl, python, home, args.timeout, args.eval_every, args.eval_episodes, args.keep)
+        )
     print(f"uptime: {subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()}")
-    print(f"{'impl':6} | {'to -400: wall s':>15} {'env steps':>10} | {'to -200: wall s':>15} {'env steps':>10}")
+    print(
+        f"{'impl':6} | {'to -400: wall s':>15} {'env steps':>10} | {'to -200: wall s':>15} {'env steps':>10}"
+    )
     for r in results:
         cells = []
         for th in THRESHOLDS:

@@ -120,7 +120,7 @@ def role_server(impl: str, port: int) -> None:
     else:
         from tmrl.networking import Server
 
-        server = Server(port=port, password=PASSWORD, security=None, max_workers=None)  # noqa: F841
+        server = Server(port=port, password=PASSWORD, security=None, max_workers=None)
         while True:
             time.sleep(1.0)
 
@@ -129,12 +129,22 @@ def _trainer_interface(impl: str, port: int, workdir: Path):
     if impl == "ours":
         from tmrl.networking import TrainerInterface
 
-        return TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PASSWORD, security=None,
-                                model_path=str(workdir / "model_trainer.tmod"))
+        return TrainerInterface(
+            server_ip="127.0.0.1",
+            server_port=port,
+            password=PASSWORD,
+            security=None,
+            model_path=str(workdir / "model_trainer.tmod"),
+        )
     from tmrl.networking import TrainerInterface
 
-    return TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PASSWORD, security=None,
-                            model_path=str(workdir / "model_trainer.tmod"))
+    return TrainerInterface(
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PASSWORD,
+        security=None,
+        model_path=str(workdir / "model_trainer.tmod"),
+    )
 
 
 def role_sink(impl: str, port: int, workdir: Path, warmup: float, duration: float) -> None:
@@ -168,9 +178,17 @@ def role_sink(impl: str, port: int, workdir: Path, warmup: float, duration: floa
 def role_worker(impl: str, port: int, workdir: Path) -> None:
     from tmrl.networking import RolloutWorker
 
-    w = RolloutWorker(env_cls=_trivial_env_cls(), actor_module_cls=_actor_cls(impl, 1), server_ip="127.0.0.1",
-                      server_port=port, password=PASSWORD, security=None, max_samples_per_episode=EPISODE,
-                      model_path=str(workdir / f"model_worker_{os.getpid()}.tmod"), model_history=0)
+    w = RolloutWorker(
+        env_cls=_trivial_env_cls(),
+        actor_module_cls=_actor_cls(impl, 1),
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PASSWORD,
+        security=None,
+        max_samples_per_episode=EPISODE,
+        model_path=str(workdir / f"model_worker_{os.getpid()}.tmod"),
+        model_history=0,
+    )
     w.run(test_episode_interval=0, verbose=False)
 
 
@@ -178,8 +196,14 @@ def role_bytes(impl: str) -> None:
     """Bytes per sample of one 1000-sample episode, as each implementation serializes it."""
     from tmrl.networking import RolloutWorker
 
-    w = RolloutWorker(env_cls=_trivial_env_cls(), actor_module_cls=_actor_cls(impl, 1), standalone=True,
-                      max_samples_per_episode=EPISODE - 1, model_path=os.devnull + "_none", model_history=0)
+    w = RolloutWorker(
+        env_cls=_trivial_env_cls(),
+        actor_module_cls=_actor_cls(impl, 1),
+        standalone=True,
+        max_samples_per_episode=EPISODE - 1,
+        model_path=os.devnull + "_none",
+        model_history=0,
+    )
     w.collect_train_episode(EPISODE - 1)
     n = len(w.buffer)
     if impl == "ours":
@@ -199,8 +223,9 @@ def role_bcast_trainer(impl: str, port: int, workdir: Path, n_params: int, repea
     import numpy as np
 
     iface = _trainer_interface(impl, port, workdir)
-    actor = _actor_cls(impl, n_params)(gymnasium.spaces.Box(-1, 1, (3,), np.float32),
-                                       gymnasium.spaces.Box(-1, 1, (1,), np.float32))
+    actor = _actor_cls(impl, n_params)(
+        gymnasium.spaces.Box(-1, 1, (3,), np.float32), gymnasium.spaces.Box(-1, 1, (1,), np.float32)
+    )
     ack = workdir / "ack"
     for i in range(repeats):
         while not ack.exists() or int(ack.read_text() or -1) != i:
@@ -216,9 +241,16 @@ def role_bcast_trainer(impl: str, port: int, workdir: Path, n_params: int, repea
 def role_bcast_worker(impl: str, port: int, workdir: Path, n_params: int, repeats: int) -> None:
     from tmrl.networking import RolloutWorker
 
-    w = RolloutWorker(env_cls=_trivial_env_cls(), actor_module_cls=_actor_cls(impl, n_params), server_ip="127.0.0.1",
-                      server_port=port, password=PASSWORD, security=None,
-                      model_path=str(workdir / "model_worker.tmod"), model_history=0)
+    w = RolloutWorker(
+        env_cls=_trivial_env_cls(),
+        actor_module_cls=_actor_cls(impl, n_params),
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PASSWORD,
+        security=None,
+        model_path=str(workdir / "model_worker.tmod"),
+        model_history=0,
+    )
     ack = workdir / "ack"
     time.sleep(2.0)  # why: let the link connect before the first broadcast (the original cannot tell)
     for i in range(repeats):
@@ -258,9 +290,25 @@ class Run:
 
     def start(self, *role_args: str, pipe: bool = False) -> subprocess.Popen:
         log = open(self.workdir / f"{role_args[0]}-{len(self.procs)}.log", "wb")
-        p = subprocess.Popen([self.python, str(HERE), "--impl", self.impl, "--port", str(self.port), "--workdir",
-                              str(self.workdir), "--role", *role_args], cwd=str(self.workdir), env=self.env,
-                             stdout=subprocess.PIPE if pipe else log, stderr=log, start_new_session=True)
+        p = subprocess.Popen(
+            [
+                self.python,
+                str(HERE),
+                "--impl",
+                self.impl,
+                "--port",
+                str(self.port),
+                "--workdir",
+                str(self.workdir),
+                "--role",
+                *role_args,
+            ],
+            cwd=str(self.workdir),
+            env=self.env,
+            stdout=subprocess.PIPE if pipe else log,
+            stderr=log,
+            start_new_session=True,
+        )
         self.procs.append(p)
         return p
 
@@ -309,8 +357,9 @@ def _lines(p: subprocess.Popen, timeout: float):
         time.sleep(0.05)
 
 
-def measure_throughput(impl: str, python: str, home: str | None, workers: int, warmup: float, duration: float,
-                       keep: bool) -> dict:
+def measure_throughput(
+    impl: str, python: str, home: str | None, workers: int, warmup: float, duration: float, keep: bool
+) -> dict:
     run = Run(impl, python, home)
     try:
         run.start("server")
@@ -341,8 +390,9 @@ def measure_bytes(impl: str, python: str, home: str | None) -> float | None:
     return None
 
 
-def measure_broadcast(impl: str, python: str, home: str | None, n_params: int, repeats: int,
-                      timeout: float) -> float | None:
+def measure_broadcast(
+    impl: str, python: str, home: str | None, n_params: int, repeats: int, timeout: float
+) -> float | None:
     run = Run(impl, python, home)
     try:
         run.start("server")
@@ -424,15 +474,20 @@ def main() -> None:
             r[f"rss{k}"] = res.get("rss_end")
             r[f"rss_series{k}"] = res.get("rss", [])
             mb = [f"{x / 2**20:.0f}" for x in r[f"rss_series{k}"]]
-            print(f"{impl}: {k} worker(s): {r[f'sps{k}'] or 0:,.0f} samples/s; trainer memory (PSS) every 5 s (MiB): "
-                  f"{' '.join(mb)}; end {(r[f'rss{k}'] or 0) / 2**20:.0f} MiB   [{uptime()}]", flush=True)
+            print(
+                f"{impl}: {k} worker(s): {r[f'sps{k}'] or 0:,.0f} samples/s; trainer memory (PSS) every 5 s (MiB): "
+                f"{' '.join(mb)}; end {(r[f'rss{k}'] or 0) / 2**20:.0f} MiB   [{uptime()}]",
+                flush=True,
+            )
         if not args.skip_broadcast:
             for n in [int(x) for x in args.params.split(",")]:
                 lat = measure_broadcast(impl, python, home, n, args.repeats, args.broadcast_timeout)
                 r[f"bcast{n}"] = lat
-                print(f"{impl}: broadcast of a {n / 1e6:g}M-parameter actor: "
-                      f"{'timeout' if lat is None else f'{lat:.2f} s'} (median of {args.repeats})   [{uptime()}]",
-                      flush=True)
+                print(
+                    f"{impl}: broadcast of a {n / 1e6:g}M-parameter actor: "
+                    f"{'timeout' if lat is None else f'{lat:.2f} s'} (median of {args.repeats})   [{uptime()}]",
+                    flush=True,
+                )
     print(f"uptime: {uptime()}")
     ks = [int(x) for x in args.workers.split(",")]
     head = " | ".join([f"{k} worker(s) samples/s" for k in ks] + ["B/sample", f"RSS end ({max(ks)} w)"])
@@ -445,7 +500,9 @@ def main() -> None:
         if not args.skip_broadcast:
             for n in [int(x) for x in args.params.split(",")]:
                 lat = r.get(f"bcast{n}")
-                print(f"{'':6} | broadcast {n / 1e6:g}M params: {'timeout' if lat is None else f'{lat:.2f} s'}")
+                print(
+                    f"{'':6} | broadcast {n / 1e6:g}M params: {'timeout' if lat is None else f'{lat:.2f} s'}"
+                )
 
 
 if __name__ == "__main__":

@@ -82,11 +82,11 @@ class JsonActor:
     def save(self, path: str | os.PathLike[str]) -> None:
         Path(path).write_text(json.dumps({"bias": self.bias}))
 
-    def load(self, path: str | os.PathLike[str], device: Any) -> "JsonActor":
+    def load(self, path: str | os.PathLike[str], device: Any) -> JsonActor:
         self.bias = json.loads(Path(path).read_text())["bias"]
         return self
 
-    def to_device(self, device: Any) -> "JsonActor":
+    def to_device(self, device: Any) -> JsonActor:
         return self
 
 
@@ -95,8 +95,14 @@ class RecordingTraining:
     ``samples_per_epoch`` new ones, records their ``seq`` per worker in a JSON-lines log and
     broadcasts a JsonActor whose bias is the epoch number."""
 
-    def __init__(self, log_path: str, epochs: int = 1000, samples_per_epoch: int = 20,
-                 obs_dim: int = 3, poll: float = 0.005):
+    def __init__(
+        self,
+        log_path: str,
+        epochs: int = 1000,
+        samples_per_epoch: int = 20,
+        obs_dim: int = 3,
+        poll: float = 0.005,
+    ):
         self.log_path = log_path
         self.epochs = epochs
         self.epoch = 0
@@ -117,8 +123,9 @@ class RecordingTraining:
                     seqs: dict[str, list[int]] = {}
                     for sample, src in zip(buf.memory, buf.sources):
                         seqs.setdefault(str(src), []).append(int(sample[5]["seq"]))
-                    log.write(json.dumps({"epoch": self.epoch, "seqs": seqs,
-                                          "ret": buf.stat_train_return}) + "\n")
+                    log.write(
+                        json.dumps({"epoch": self.epoch, "seqs": seqs, "ret": buf.stat_train_return}) + "\n"
+                    )
                     log.flush()
                     got += len(buf)
                 else:
@@ -130,14 +137,24 @@ class RecordingTraining:
 
     # checkpoint functions (JSON: the trainer's dump/load hooks)
     @staticmethod
-    def dump(run: "RecordingTraining", path: str) -> None:
+    def dump(run: RecordingTraining, path: str) -> None:
         from tmrl.util import atomic_write_text
 
-        atomic_write_text(path, json.dumps({"log_path": run.log_path, "epochs": run.epochs, "epoch": run.epoch,
-                                            "samples_per_epoch": run.samples_per_epoch, "obs_dim": run.obs_dim}))
+        atomic_write_text(
+            path,
+            json.dumps(
+                {
+                    "log_path": run.log_path,
+                    "epochs": run.epochs,
+                    "epoch": run.epoch,
+                    "samples_per_epoch": run.samples_per_epoch,
+                    "obs_dim": run.obs_dim,
+                }
+            ),
+        )
 
     @staticmethod
-    def load(path: str) -> "RecordingTraining":
+    def load(path: str) -> RecordingTraining:
         d = json.loads(Path(path).read_text())
         run = RecordingTraining(d["log_path"], d["epochs"], d["samples_per_epoch"], d["obs_dim"])
         run.epoch = d["epoch"]
@@ -162,8 +179,11 @@ def received_seqs(path: str | os.PathLike[str]) -> dict[str, list[int]]:
 
 def make_worker(tmp_path: Path, standalone: bool = True, obs_dim: int = 3, **kwargs: Any) -> RolloutWorker:
     return RolloutWorker(
-        env_cls=lambda: CountingEnv(obs_dim), actor_module_cls=JsonActor, standalone=standalone,
-        model_path=str(tmp_path / f"worker_{os.getpid()}_{id(kwargs)}.json"), model_history=0,
+        env_cls=lambda: CountingEnv(obs_dim),
+        actor_module_cls=JsonActor,
+        standalone=standalone,
+        model_path=str(tmp_path / f"worker_{os.getpid()}_{id(kwargs)}.json"),
+        model_history=0,
         **kwargs,
     )
 
@@ -244,8 +264,22 @@ def test_pack_roundtrip_uniform_samples_with_reset_none_actions_is_exact_and_sma
 def test_pack_roundtrip_mixed_structures_falls_back_exactly():
     b = Buffer(maxlen=100)
     samples = [
-        (None, (np.zeros((2, 2), np.uint8), [1.0, 2]), np.float32(1.5), True, False, {"a": "x", "crc": (None, 1)}),
-        (np.array([1.0]), (np.ones((2, 2), np.uint8), [3.0, 4]), np.float32(2.5), False, True, {"a": "y", "crc": (np.zeros(2), 2)}),
+        (
+            None,
+            (np.zeros((2, 2), np.uint8), [1.0, 2]),
+            np.float32(1.5),
+            True,
+            False,
+            {"a": "x", "crc": (None, 1)},
+        ),
+        (
+            np.array([1.0]),
+            (np.ones((2, 2), np.uint8), [3.0, 4]),
+            np.float32(2.5),
+            False,
+            True,
+            {"a": "y", "crc": (np.zeros(2), 2)},
+        ),
         (np.array([2.0]), (np.ones((3, 2), np.uint8), [5.0]), 7, False, False, {"b": 1}),
     ]
     for s in samples:
@@ -261,15 +295,40 @@ def test_pack_roundtrip_non_tuple_samples_and_empty_buffer():
     assert len(_roundtrip(Buffer(maxlen=10))) == 0
 
 
-@pytest.mark.parametrize("payload", [
-    None, {"kind": "samples"}, {"kind": "samples", "v": 1, "n": 2, "src": 1, "cols": [("R", [1])] * 6},
-    {"kind": "samples", "v": 1, "n": 1, "src": 1, "cols": [("?", 1)] * 6},
-    {"kind": "samples", "v": 1, "n": 1, "src": 1, "cols": [("A", np.zeros(3))] * 6},
-    {"kind": "samples", "v": 99, "n": 0, "src": 1, "cols": []},
-])
+@pytest.mark.parametrize(
+    "payload",
+    [
+        None,
+        {"kind": "samples"},
+        {"kind": "samples", "v": 1, "n": 2, "src": 1, "cols": [("R", [1])] * 6},
+        {"kind": "samples", "v": 1, "n": 1, "src": 1, "cols": [("?", 1)] * 6},
+        {"kind": "samples", "v": 1, "n": 1, "src": 1, "cols": [("A", np.zeros(3))] * 6},
+        {"kind": "samples", "v": 99, "n": 0, "src": 1, "cols": []},
+    ],
+)
 def test_unpack_rejects_malformed_payloads_with_payload_error(payload):
     with pytest.raises(PayloadError):
         unpack_buffer(payload, maxlen=10)
+
+
+# ------------------------------------------------------------------------------------------------
+# weights envelope
+
+
+def test_weights_envelope_roundtrip_and_corruption():
+    from tmrl.networking import pack_weights, unpack_weights
+
+    data = bytes(range(256)) * 10
+    env = pack_weights(data, {"observation": {"type": "Box"}}, 7)
+    header, view = unpack_weights(env)
+    assert (
+        bytes(view) == data
+        and header["version"] == 7
+        and header["spaces"] == {"observation": {"type": "Box"}}
+    )
+    for bad in (env[:-1], b"garbage" * 3, env[:10], b"TMRLWGT1" + b"\xff" * 20):
+        with pytest.raises(PayloadError):
+            unpack_weights(bad)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -315,8 +374,14 @@ def test_standalone_worker_terminated_episode_is_not_truncated_and_default_actio
     class RTEnv(CountingEnv):
         default_action = np.array([0.25], np.float32)
 
-    w = RolloutWorker(env_cls=lambda: RTEnv(episode_length=3), actor_module_cls=JsonActor, standalone=True,
-                      model_path=str(tmp_path / "m.json"), model_history=0, max_samples_per_episode=3)
+    w = RolloutWorker(
+        env_cls=lambda: RTEnv(episode_length=3),
+        actor_module_cls=JsonActor,
+        standalone=True,
+        model_path=str(tmp_path / "m.json"),
+        model_history=0,
+        max_samples_per_episode=3,
+    )
     w.collect_train_episode()
     mem = w.buffer.memory
     assert np.array_equal(mem[0][0], RTEnv.default_action)
@@ -333,7 +398,7 @@ def test_worker_crc_debug_stores_full_transition_before_compression(tmp_path):
     w = make_worker(tmp_path, max_samples_per_episode=2, crc_debug=True, sample_compressor=compressor)
     w.collect_train_episode()
     assert seen[0][0] is None  # reset: no previous observation
-    prev_obs, act, new_obs, rew, term, trunc = seen[1]
+    prev_obs, _act, new_obs, _rew, _term, _trunc = seen[1]
     assert prev_obs[0] == 0 and new_obs[0] == 1 and new_obs.shape == (3,)
     assert w.buffer.memory[1][1].shape == (1,)  # compressed sample, full transition in info
     assert seen[2][5] is True  # the cut is visible in the stored transition
@@ -342,8 +407,13 @@ def test_worker_crc_debug_stores_full_transition_before_compression(tmp_path):
 def test_worker_loads_existing_model_file_at_start(tmp_path):
     path = tmp_path / "pre.json"
     path.write_text(json.dumps({"bias": 0.75}))
-    w = RolloutWorker(env_cls=CountingEnv, actor_module_cls=JsonActor, standalone=True, model_path=str(path),
-                      model_history=0)
+    w = RolloutWorker(
+        env_cls=CountingEnv,
+        actor_module_cls=JsonActor,
+        standalone=True,
+        model_path=str(path),
+        model_history=0,
+    )
     assert w.act(np.zeros(3, np.float32))[0] == pytest.approx(0.75)
 
 
@@ -368,3 +438,41 @@ def test_run_env_benchmark_rejects_bad_steps_and_envs_without_benchmarks(tmp_pat
         w.run_env_benchmark(math.inf)
     with pytest.raises(UserError, match="benchmark"):
         w.run_env_benchmark(3)
+
+
+# ------------------------------------------------------------------------------------------------
+# CRC debug mode through the wire into a memory
+
+
+def test_crc_debug_samples_survive_the_wire_and_the_memory_checks_them(tmp_path):
+    from tmrl.memory import CRCMismatchError, GenericTorchMemory
+
+    def lying_compressor(act, obs, rew, terminated, truncated, info):
+        return act, obs * 2, rew, terminated, truncated, info  # no memory undoes this
+
+    for compressor, ok in ((None, True), (lying_compressor, False)):
+        w = make_worker(tmp_path, max_samples_per_episode=8, crc_debug=True, sample_compressor=compressor)
+        w.collect_train_episode()
+        received = unpack_buffer(wire.decode(wire.encode(pack_buffer(w.buffer, w.source_id, 0))), maxlen=100)
+        memory = GenericTorchMemory(memory_size=100, batch_size=4, crc_debug=True)
+        memory.append(received)
+        slots = memory.valid_slots()
+        assert len(slots) == 8
+        if ok:
+            for i in slots:
+                memory[int(i)]
+        else:
+            with pytest.raises(CRCMismatchError, match="new_obs"):
+                for i in slots:
+                    memory[int(i)]
+
+
+# ------------------------------------------------------------------------------------------------
+# roles
+
+
+def test_run_worker_rejects_unknown_mode():
+    from tmrl.roles import run_worker
+
+    with pytest.raises(UserError, match="train, expert, test"):
+        run_worker({}, "play")

@@ -17,8 +17,9 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -27,7 +28,7 @@ import pytest
 from tmrl.networking import RolloutWorker, Server, SpacesMismatchError, Trainer, TrainerInterface
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_networking import CountingEnv, JsonActor, RecordingTraining, read_log, received_seqs  # noqa: E402
+from test_networking import CountingEnv, JsonActor, RecordingTraining, read_log, received_seqs
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -70,17 +71,34 @@ def relay_connections(port: int) -> list[str]:
 
 
 def worker(tmp_path: Path, port: int, name: str, obs_dim: int = 3, **kwargs: Any) -> RolloutWorker:
-    return RolloutWorker(env_cls=lambda: CountingEnv(obs_dim), actor_module_cls=JsonActor, server_ip="127.0.0.1",
-                         server_port=port, password=PW, security=None, model_path=str(tmp_path / f"{name}.json"),
-                         model_history=0, max_samples_per_episode=10, **kwargs)
+    return RolloutWorker(
+        env_cls=lambda: CountingEnv(obs_dim),
+        actor_module_cls=JsonActor,
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PW,
+        security=None,
+        model_path=str(tmp_path / f"{name}.json"),
+        model_history=0,
+        max_samples_per_episode=10,
+        **kwargs,
+    )
 
 
 def interface(tmp_path: Path, port: int, **kwargs: Any) -> TrainerInterface:
-    return TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PW, security=None,
-                            model_path=str(tmp_path / "trainer_model.json"), **kwargs)
+    return TrainerInterface(
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PW,
+        security=None,
+        model_path=str(tmp_path / "trainer_model.json"),
+        **kwargs,
+    )
 
 
-def drain(iface: TrainerInterface, expected: int, timeout: float = 15.0, source: int | None = None) -> list[tuple]:
+def drain(
+    iface: TrainerInterface, expected: int, timeout: float = 15.0, source: int | None = None
+) -> list[tuple]:
     """Retrieve until ``expected`` samples (from ``source`` when given) arrived; returns
     (source, seq, act) of each sample from that source (or of every sample)."""
     got: list[tuple] = []
@@ -102,8 +120,13 @@ class Child:
 
     def __init__(self, tmp_path: Path, role: str, **args: Any):
         self.log = open(tmp_path / f"{role}-{time.monotonic_ns()}.log", "wb")
-        self.proc = subprocess.Popen([sys.executable, str(HERE), role, json.dumps(args)], stdout=subprocess.PIPE,
-                                     stderr=self.log, start_new_session=True, cwd=str(tmp_path))
+        self.proc = subprocess.Popen(
+            [sys.executable, str(HERE), role, json.dumps(args)],
+            stdout=subprocess.PIPE,
+            stderr=self.log,
+            start_new_session=True,
+            cwd=str(tmp_path),
+        )
 
     def line(self, timeout: float = 20.0) -> dict:
         """Next JSON line the child prints (a readiness or progress event)."""
@@ -148,9 +171,15 @@ def test_trainer_and_two_workers_exchange_samples_and_weights(tmp_path, port_fac
     port = port_factory()
     closing.append(Server(port=port, password=PW, security=None))
     log = tmp_path / "log.jsonl"
-    trainer = Trainer(training_cls=lambda: RecordingTraining(str(log), epochs=2, samples_per_epoch=44),
-                      server_ip="127.0.0.1", server_port=port, password=PW, security=None,
-                      model_path=str(tmp_path / "trainer.json"), checkpoint_path=None)
+    trainer = Trainer(
+        training_cls=lambda: RecordingTraining(str(log), epochs=2, samples_per_epoch=44),
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PW,
+        security=None,
+        model_path=str(tmp_path / "trainer.json"),
+        checkpoint_path=None,
+    )
     thread = threading.Thread(target=trainer.run, daemon=True)
     thread.start()
     workers = [worker(tmp_path, port, f"w{i}") for i in range(2)]
@@ -189,7 +218,9 @@ def test_worker_with_other_spaces_gets_clear_error(tmp_path, port_factory, closi
     assert "(3,)" in msg and "(4,)" in msg and "same environment" in msg
 
 
-def test_worker_killed_and_restarted_gets_latest_weights_and_samples_flow(tmp_path, port_factory, closing, children):
+def test_worker_killed_and_restarted_gets_latest_weights_and_samples_flow(
+    tmp_path, port_factory, closing, children
+):
     port = port_factory()
     closing.append(Server(port=port, password=PW, security=None))
     iface = interface(tmp_path, port)
@@ -203,7 +234,9 @@ def test_worker_killed_and_restarted_gets_latest_weights_and_samples_flow(tmp_pa
     iface.broadcast_model(actor)
     first.kill()
     # a new worker, started after the broadcast, gets it from the server and acts with it
-    second = Child(tmp_path, "worker", port=port, episodes=3, wait_weights=True, model=str(tmp_path / "w2.json"))
+    second = Child(
+        tmp_path, "worker", port=port, episodes=3, wait_weights=True, model=str(tmp_path / "w2.json")
+    )
     children.append(second)
     src2 = second.line()["source"]
     assert second.line()["bias"] == 0.5
@@ -245,7 +278,8 @@ def test_server_killed_and_restarted_keeps_samples_of_live_worker(tmp_path, port
 
 
 def test_trainer_killed_and_restarted_resumes_from_checkpoint_without_losing_samples(
-        tmp_path, port_factory, closing, children):
+    tmp_path, port_factory, closing, children
+):
     port = port_factory()
     closing.append(Server(port=port, password=PW, security=None))
     w = worker(tmp_path, port, "w")
@@ -258,10 +292,16 @@ def test_trainer_killed_and_restarted_resumes_from_checkpoint_without_losing_sam
     w.collect_train_episode()
     w.send_and_clear_buffer()
     assert w.update_actor_weights(verbose=False, blocking=True) == 1 and w.actor.bias == 1.0  # epoch 1 done
-    wait_for(lambda: ckpt.exists() and json.loads(ckpt.read_text())["epoch"] == 1, what="the epoch-1 checkpoint")
+    wait_for(
+        lambda: ckpt.exists() and json.loads(ckpt.read_text())["epoch"] == 1, what="the epoch-1 checkpoint"
+    )
     first.kill()
-    wait_for(lambda: relay_connections(port).count("ESTABLISHED") == 1 and "CLOSE_WAIT" not in relay_connections(port),
-             what="the server to close the killed trainer's connection")
+    wait_for(
+        lambda: (
+            relay_connections(port).count("ESTABLISHED") == 1 and "CLOSE_WAIT" not in relay_connections(port)
+        ),
+        what="the server to close the killed trainer's connection",
+    )
     w.collect_train_episode()  # sent while no trainer is connected: the server keeps it
     w.send_and_clear_buffer()
     second = Child(tmp_path, "trainer", **args)
@@ -269,10 +309,15 @@ def test_trainer_killed_and_restarted_resumes_from_checkpoint_without_losing_sam
     assert second.line()["epoch"] == 1  # resumed, not restarted from scratch
     # the resumed trainer re-broadcasts its weights, then finishes epoch 2 with the kept samples
     biases = set()
-    wait_for(lambda: (w.update_actor_weights(verbose=False) and biases.add(w.actor.bias)) or 2.0 in biases,
-             timeout=20, what="the resumed trainer's epoch-2 weights")
+    wait_for(
+        lambda: (w.update_actor_weights(verbose=False) and biases.add(w.actor.bias)) or 2.0 in biases,
+        timeout=20,
+        what="the resumed trainer's epoch-2 weights",
+    )
     entries = read_log(log)
-    assert sorted(s for e in entries if e["epoch"] == 1 for s in e["seqs"][str(w.source_id)]) == list(range(11, 22))
+    assert sorted(s for e in entries if e["epoch"] == 1 for s in e["seqs"][str(w.source_id)]) == list(
+        range(11, 22)
+    )
     assert sorted(s for e in entries for s in e["seqs"][str(w.source_id)]) == list(range(22))
 
 
@@ -283,11 +328,26 @@ def test_tls_with_fresh_credentials(tmp_path, port_factory, closing):
     ensure_credentials(keys)
     port = port_factory()
     closing.append(Server(port=port, password=PW, security="TLS", keys_dir=str(keys)))
-    iface = TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PW, security="TLS", keys_dir=str(keys),
-                             model_path=str(tmp_path / "t.json"))
-    w = RolloutWorker(env_cls=CountingEnv, actor_module_cls=JsonActor, server_ip="127.0.0.1", server_port=port,
-                      password=PW, security="TLS", keys_dir=str(keys), model_path=str(tmp_path / "w.json"),
-                      model_history=0, max_samples_per_episode=4)
+    iface = TrainerInterface(
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PW,
+        security="TLS",
+        keys_dir=str(keys),
+        model_path=str(tmp_path / "t.json"),
+    )
+    w = RolloutWorker(
+        env_cls=CountingEnv,
+        actor_module_cls=JsonActor,
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PW,
+        security="TLS",
+        keys_dir=str(keys),
+        model_path=str(tmp_path / "w.json"),
+        model_history=0,
+        max_samples_per_episode=4,
+    )
     closing.extend([iface, w])
     w.collect_train_episode()
     w.send_and_clear_buffer()
@@ -298,17 +358,123 @@ def test_tls_with_fresh_credentials(tmp_path, port_factory, closing):
     assert w.update_actor_weights(verbose=False, blocking=True) == 1 and w.actor.bias == 0.125
 
 
+def test_real_sac_stack_trains_broadcasts_safetensors_and_resumes_from_checkpoint(
+    tmp_path, port_factory, closing
+):
+    from tmrl.algorithms.sac import SACAgent
+    from tmrl.envs import GenericGymEnv
+    from tmrl.memory import GenericTorchMemory
+    from tmrl.models import MLPActorCritic, SquashedGaussianMLPActor
+    from tmrl.training_offline import TorchTrainingOffline
+    from tmrl.util import partial
+
+    port = port_factory()
+    closing.append(Server(port=port, password=PW, security=None))
+    env = gymnasium.make("Pendulum-v1")
+
+    def training(epochs: int):
+        return partial(
+            TorchTrainingOffline,
+            env_cls=(env.observation_space, env.action_space),
+            memory_cls=partial(GenericTorchMemory, memory_size=1000, batch_size=16),
+            training_agent_cls=partial(SACAgent, model_cls=partial(MLPActorCritic, hidden_sizes=(16, 16))),
+            epochs=epochs,
+            rounds=1,
+            steps=10,
+            update_buffer_interval=5,
+            update_model_interval=5,
+            max_training_steps_per_env_step=10.0,
+            start_training=50,
+            sleep_between_buffer_retrieval_attempts=0.01,
+            device="cpu",
+        )
+
+    w = RolloutWorker(
+        env_cls=partial(GenericGymEnv, id="Pendulum-v1"),
+        actor_module_cls=partial(SquashedGaussianMLPActor, hidden_sizes=(16, 16)),
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PW,
+        security=None,
+        model_path=str(tmp_path / "worker.tmod"),
+        model_history=0,
+        max_samples_per_episode=60,
+    )
+    closing.append(w)
+    w.collect_train_episode()
+    w.send_and_clear_buffer()
+    ckpt = tmp_path / "checkpoint"
+    trainer = Trainer(
+        training_cls=training(1),
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PW,
+        security=None,
+        model_path=str(tmp_path / "trainer.tmod"),
+        checkpoint_path=str(ckpt),
+    )
+    trainer.run()
+    assert trainer.run_instance.epoch == 1 and trainer.checkpoint_exists()
+    assert w.update_actor_weights(verbose=False, blocking=True) == 1
+    trained = trainer.run_instance.agent.get_actor().state_dict()
+    for name, value in w.actor.state_dict().items():  # the worker now acts with the trained weights
+        assert np.array_equal(value.numpy(), trained[name].numpy()), name
+    resumed = Trainer(
+        training_cls=training(2),
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PW,
+        security=None,
+        model_path=str(tmp_path / "trainer.tmod"),
+        checkpoint_path=str(ckpt),
+    )
+    resumed.run()
+    assert resumed.run_instance.epoch == 2
+    assert resumed.run_instance.total_samples == 61  # the memory came back with the checkpoint
+    assert resumed.run_instance.total_updates == 20
+
+
+def test_run_with_wandb_without_wandb_names_the_extra(tmp_path, port_factory, monkeypatch):
+    from tmrl.errors import UserError
+
+    monkeypatch.setitem(sys.modules, "wandb", None)  # as if it were not installed
+    trainer = Trainer(
+        training_cls=lambda: None,
+        server_ip="127.0.0.1",
+        server_port=port_factory(),
+        password=PW,
+        security=None,
+        model_path=str(tmp_path / "t.json"),
+        checkpoint_path=None,
+    )
+    try:
+        with pytest.raises(UserError, match=r"tmrl\[wandb\]"):
+            trainer.run_with_wandb(entity="e", project="p", run_id="r")
+    finally:
+        trainer.interface.close()
+
+
 def test_cli_server_exits_cleanly_on_ctrl_c_and_frees_port(tmp_path, port_factory, _isolated_data_folder):
     port = port_factory()
     env = dict(os.environ, TMRL_CONFIG_OVERRIDE=json.dumps({"PORT": port, "TLS": False, "PASSWORD": PW}))
-    proc = subprocess.Popen([sys.executable, "-m", "tmrl", "--server"], env=env, stderr=subprocess.PIPE,
-                            stdout=subprocess.DEVNULL, cwd=str(tmp_path))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tmrl", "--server"],
+        env=env,
+        stderr=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        cwd=str(tmp_path),
+    )
     lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(ln.decode().rstrip() for ln in proc.stderr), daemon=True)
+    reader = threading.Thread(
+        target=lambda: lines.extend(ln.decode().rstrip() for ln in proc.stderr), daemon=True
+    )
     reader.start()
     try:
-        wait_for(lambda: proc.poll() is not None or any("server running on port" in ln for ln in lines),
-                 timeout=30, what="the server to run")
+        wait_for(
+            lambda: proc.poll() is not None or any("server running on port" in ln for ln in lines),
+            timeout=30,
+            what="the server to run",
+        )
         assert proc.poll() is None
         proc.send_signal(signal.SIGINT)
         proc.wait(20)
@@ -350,9 +516,17 @@ def _child(role: str, args: dict) -> None:
         while server.running:
             time.sleep(0.5)
     elif role == "worker":
-        w = RolloutWorker(env_cls=CountingEnv, actor_module_cls=JsonActor, server_ip="127.0.0.1", server_port=port,
-                          password=PW, security=None, model_path=args["model"], model_history=0,
-                          max_samples_per_episode=10)
+        w = RolloutWorker(
+            env_cls=CountingEnv,
+            actor_module_cls=JsonActor,
+            server_ip="127.0.0.1",
+            server_port=port,
+            password=PW,
+            security=None,
+            model_path=args["model"],
+            model_history=0,
+            max_samples_per_episode=10,
+        )
         _say({"source": w.source_id})
         if args.get("wait_weights"):
             w.update_actor_weights(verbose=False, blocking=True)
@@ -365,10 +539,17 @@ def _child(role: str, args: dict) -> None:
         while True:
             time.sleep(1)
     elif role == "trainer":
-        trainer = Trainer(training_cls=lambda: RecordingTraining(args["log"], epochs=1000, samples_per_epoch=11),
-                          server_ip="127.0.0.1", server_port=port, password=PW, security=None,
-                          model_path=args["model"], checkpoint_path=args["checkpoint"],
-                          dump_run_instance_fn=RecordingTraining.dump, load_run_instance_fn=RecordingTraining.load)
+        trainer = Trainer(
+            training_cls=lambda: RecordingTraining(args["log"], epochs=1000, samples_per_epoch=11),
+            server_ip="127.0.0.1",
+            server_port=port,
+            password=PW,
+            security=None,
+            model_path=args["model"],
+            checkpoint_path=args["checkpoint"],
+            dump_run_instance_fn=RecordingTraining.dump,
+            load_run_instance_fn=RecordingTraining.load,
+        )
         run = trainer._load_or_create()
         _say({"epoch": run.epoch})
         while run.epoch < run.epochs:

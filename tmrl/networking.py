@@ -28,11 +28,13 @@ import logging
 import math
 import os
 import secrets
+import struct
 import tempfile
 import threading
 import time
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -40,14 +42,14 @@ from tmrl.errors import UserError
 
 __all__ = [
     "Buffer",
-    "Server",
     "RolloutWorker",
+    "Server",
+    "SpacesMismatchError",
     "Trainer",
     "TrainerInterface",
+    "describe_spaces",
     "pack_buffer",
     "unpack_buffer",
-    "describe_spaces",
-    "SpacesMismatchError",
 ]
 
 logger = logging.getLogger(__name__)
@@ -83,8 +85,10 @@ def _cfg(name: str, value: Any, fallback: Any = None) -> Any:
 def _link_options() -> dict[str, Any]:
     """Transport options that only the config sets (plain TCP beyond localhost, pickle opt-in,
     frame size limit)."""
-    opts = {"allow_plain_tcp": bool(_cfg("ALLOW_PLAIN_TCP", None, False)),
-            "allow_pickle": bool(_cfg("ALLOW_PICKLE", None, False))}
+    opts: dict[str, Any] = {
+        "allow_plain_tcp": bool(_cfg("ALLOW_PLAIN_TCP", None, False)),
+        "allow_pickle": bool(_cfg("ALLOW_PICKLE", None, False)),
+    }
     max_frame = _cfg("MAX_FRAME_BYTES", None, None)
     if max_frame:
         opts["max_frame_bytes"] = int(max_frame)
@@ -145,7 +149,7 @@ class Buffer:
         if not values:
             return 0 if name.endswith("steps") else 0.0
         mean = sum(values) / len(values)
-        return int(round(mean)) if name.endswith("steps") else float(mean)
+        return round(mean) if name.endswith("steps") else float(mean)
 
     def _set_stat(self, name: str, value: float) -> None:
         self.stats.setdefault(self.source_id, {})[name] = value
@@ -181,8 +185,12 @@ class Buffer:
             if self.sources is not None:
                 del self.sources[:excess]
             self.dropped += excess
-            logger.warning("buffer full (%d samples): dropped the %d oldest, %d so far",
-                           self.maxlen, excess, self.dropped)
+            logger.warning(
+                "buffer full (%d samples): dropped the %d oldest, %d so far",
+                self.maxlen,
+                excess,
+                self.dropped,
+            )
 
     def append_sample(self, sample: Any) -> None:
         """Append one sample ``(act, new_obs, rew, terminated, truncated, info)``."""
@@ -207,7 +215,7 @@ class Buffer:
             return [self.source_id] * len(self.memory)
         return None
 
-    def __iadd__(self, other: "Buffer") -> "Buffer":
+    def __iadd__(self, other: Buffer) -> Buffer:
         mine = self._sources_or_default()
         theirs = other._sources_or_default()
         if mine is not None or theirs is not None:
@@ -311,7 +319,12 @@ def _unpack_column(col: Any, n: int, depth: int = 0) -> list[Any]:
     elif tag == "0":
         out = [None] * n
     elif tag == "N":
-        if len(col) != 3 or not isinstance(col[1], np.ndarray) or col[1].dtype != np.bool_ or len(col[1]) != n:
+        if (
+            len(col) != 3
+            or not isinstance(col[1], np.ndarray)
+            or col[1].dtype != np.bool_
+            or len(col[1]) != n
+        ):
             raise PayloadError("malformed None mask in a received payload")
         mask = col[1]
         rest = iter(_unpack_column(col[2], int(n - mask.sum()), depth + 1))
@@ -327,7 +340,12 @@ def _unpack_column(col: Any, n: int, depth: int = 0) -> list[Any]:
         else:
             out = [list(x) for x in zip(*subs)]
     elif tag == "D":
-        if len(col) != 3 or not isinstance(col[1], list) or not isinstance(col[2], list) or len(col[1]) != len(col[2]):
+        if (
+            len(col) != 3
+            or not isinstance(col[1], list)
+            or not isinstance(col[2], list)
+            or len(col[1]) != len(col[2])
+        ):
             raise PayloadError("malformed dict column in a received payload")
         keys = col[1]
         subs = [_unpack_column(c, n, depth + 1) for c in col[2]]
@@ -357,8 +375,15 @@ def pack_buffer(buffer: Buffer, source_id: int, seq: int) -> dict[str, Any]:
     else:
         cols = ("R", list(memory))
     own = buffer.stats.get(buffer.source_id, {})
-    return {"v": PAYLOAD_VERSION, "kind": "samples", "src": int(source_id), "seq": int(seq),
-            "n": n, "cols": cols, "stats": dict(own)}
+    return {
+        "v": PAYLOAD_VERSION,
+        "kind": "samples",
+        "src": int(source_id),
+        "seq": int(seq),
+        "n": n,
+        "cols": cols,
+        "stats": dict(own),
+    }
 
 
 def unpack_buffer(payload: Any, maxlen: int | None = None) -> Buffer:
@@ -371,8 +396,10 @@ def unpack_buffer(payload: Any, maxlen: int | None = None) -> Buffer:
     if not isinstance(payload, dict) or payload.get("kind") != "samples":
         raise PayloadError("received an object that is not a tmrl sample payload")
     if payload.get("v") != PAYLOAD_VERSION:
-        raise PayloadError(f"sample payload version {payload.get('v')!r} is not {PAYLOAD_VERSION}: "
-                           "run the same tmrl version on workers and trainer")
+        raise PayloadError(
+            f"sample payload version {payload.get('v')!r} is not {PAYLOAD_VERSION}: "
+            "run the same tmrl version on workers and trainer"
+        )
     n, src, cols = payload.get("n"), payload.get("src"), payload.get("cols")
     if type(n) is not int or n < 0 or type(src) is not int:
         raise PayloadError("malformed sample payload header")
@@ -395,6 +422,60 @@ def unpack_buffer(payload: Any, maxlen: int | None = None) -> Buffer:
 
 
 # ================================================================================================
+# Weights envelope
+
+
+_WEIGHTS_MAGIC = b"TMRLWGT1"
+_U32 = struct.Struct("<I")
+
+
+def pack_weights(data: bytes, spaces: dict[str, Any] | None, version: int) -> bytes:
+    """The bytes broadcast to workers: a magic, a small :mod:`tmrl.wire` header (payload
+    version, weights version, the actor's spaces, the size) and the weights file's bytes as they
+    are (no re-encoding of the big part: one copy for a model of any size)."""
+    from tmrl import wire
+
+    header = wire.encode(
+        {
+            "v": PAYLOAD_VERSION,
+            "kind": "weights",
+            "version": int(version),
+            "spaces": spaces,
+            "size": len(data),
+        }
+    )
+    return b"".join((_WEIGHTS_MAGIC, _U32.pack(len(header)), header, data))
+
+
+def unpack_weights(envelope: bytes | bytearray | memoryview) -> tuple[dict[str, Any], memoryview]:
+    """Inverse of :func:`pack_weights`: ``(header, weights bytes as a view, not a copy)``.
+
+    Raises:
+        PayloadError: not a weights envelope of this tmrl version, or truncated.
+    """
+    from tmrl import wire
+
+    view = memoryview(envelope)
+    start = len(_WEIGHTS_MAGIC) + _U32.size
+    if len(view) < start or bytes(view[: len(_WEIGHTS_MAGIC)]) != _WEIGHTS_MAGIC:
+        raise PayloadError("received weights in an unknown format: run the same tmrl version everywhere")
+    (hlen,) = _U32.unpack(view[len(_WEIGHTS_MAGIC) : start])
+    try:
+        header = wire.decode(bytes(view[start : start + hlen]))
+    except wire.DecodeError as err:
+        raise PayloadError(f"received weights with a corrupt header ({err})") from None
+    data = view[start + hlen :]
+    if (
+        not isinstance(header, dict)
+        or header.get("kind") != "weights"
+        or header.get("v") != PAYLOAD_VERSION
+        or header.get("size") != len(data)
+    ):
+        raise PayloadError("received weights that are truncated or from another tmrl version")
+    return header, data
+
+
+# ================================================================================================
 # Spaces description (sent with the weights)
 
 
@@ -407,8 +488,11 @@ def _describe_space(space: Any) -> Any:
     if hasattr(space, "spaces") and isinstance(space.spaces, (tuple, list)):
         return {"type": name, "spaces": [_describe_space(s) for s in space.spaces]}
     if hasattr(space, "spaces") and isinstance(space.spaces, dict):
-        return {"type": name, "keys": [str(k) for k in space.spaces],
-                "spaces": [_describe_space(s) for s in space.spaces.values()]}
+        return {
+            "type": name,
+            "keys": [str(k) for k in space.spaces],
+            "spaces": [_describe_space(s) for s in space.spaces.values()],
+        }
     out: dict[str, Any] = {"type": name}
     shape = getattr(space, "shape", None)
     if shape is not None:
@@ -433,8 +517,11 @@ def _space_str(d: Any) -> str:
     if "spaces" in d:
         inner = ", ".join(_space_str(s) for s in d["spaces"])
         return f"{d.get('type')}({inner})"
-    parts = [f"shape={tuple(d['shape'])}" if "shape" in d else "", d.get("dtype", ""),
-             f"n={d['n']}" if "n" in d else ""]
+    parts = [
+        f"shape={tuple(d['shape'])}" if "shape" in d else "",
+        d.get("dtype", ""),
+        f"n={d['n']}" if "n" in d else "",
+    ]
     return f"{d.get('type')}({', '.join(p for p in parts if p)})"
 
 
@@ -476,7 +563,8 @@ class Server:
         UserError: the port cannot be bound, TLS credentials are missing, or plain TCP is refused.
     """
 
-    _alive: list["Server"] = []  # why: keeps every Server reachable until stop() (see docstring)
+    # why: keeps every Server reachable until stop(), so that a Server() not kept in a variable runs on
+    _alive: ClassVar[list[Server]] = []
 
     def __init__(
         self,
@@ -500,9 +588,14 @@ class Server:
             max_workers = None
         self.port = port
         self._relay = RelayServer(
-            port=port, password=password, local_port=local_port, header_size=header_size,
-            security=security, keys_dir=str(keys_dir) if keys_dir is not None else None,
-            max_workers=max_workers, **_link_options(),
+            port=port,
+            password=password,
+            local_port=local_port,
+            header_size=header_size,
+            security=security,
+            keys_dir=str(keys_dir) if keys_dir is not None else None,
+            max_workers=max_workers,
+            **_link_options(),
         )
         Server._alive.append(self)
         logger.info("server listening on port %d (%s)", port, "TLS" if security else "plain TCP")
@@ -518,10 +611,10 @@ class Server:
         if self in Server._alive:
             Server._alive.remove(self)
 
-    def __enter__(self) -> "Server":
+    def __enter__(self) -> Server:
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
 
@@ -534,7 +627,15 @@ class TrainerInterface:
     :meth:`retrieve_buffer` and :meth:`broadcast_model`.
 
     Statistics are kept per worker across calls: the buffer returned by :meth:`retrieve_buffer`
-    reports, for each worker, the latest episode statistics it ever sent.
+    reports, for each worker, the latest episode statistics it ever sent. When the connection to
+    the server comes back (a restarted server), the latest weights are broadcast again.
+
+    Args: as :class:`Trainer` (``server_ip``, ``server_port``, ``password``, ``header_size``,
+    ``security``, ``keys_dir``, ``hostname``, ``model_path``); ``local_com_port`` and
+    ``max_buf_len`` are accepted for compatibility with tmrl 0.7 and unused.
+
+    Raises:
+        UserError: bad connection settings (see :mod:`tmrl.transport`).
     """
 
     def __init__(
@@ -558,10 +659,15 @@ class TrainerInterface:
         security = _cfg_keep_none("SECURITY", security, "TLS")
         keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
         self._link = TrainerLink(
-            self.server_ip, int(_cfg("PORT", server_port, 55555)), _cfg("PASSWORD", password, ""),
-            local_port=local_com_port, header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
-            security=security, keys_dir=str(keys_dir) if keys_dir is not None else None,
-            hostname=_cfg("HOSTNAME", hostname, "default"), **_link_options(),
+            self.server_ip,
+            int(_cfg("PORT", server_port, 55555)),
+            _cfg("PASSWORD", password, ""),
+            local_port=local_com_port,
+            header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
+            security=security,
+            keys_dir=str(keys_dir) if keys_dir is not None else None,
+            hostname=_cfg("HOSTNAME", hostname, "default"),
+            **_link_options(),
         )
         self._stats: dict[int | None, dict[str, float]] = {}
         self._last_seq: dict[int, int] = {}
@@ -572,16 +678,19 @@ class TrainerInterface:
         self._last_weights: bytes | None = None
         self._weights_lock = threading.Lock()
         self._closed = threading.Event()
-        self._watcher = threading.Thread(target=self._rebroadcast_on_reconnect, daemon=True,
-                                         name="tmrl-trainer-reconnect")
+        self._watcher = threading.Thread(
+            target=self._rebroadcast_on_reconnect, daemon=True, name="tmrl-trainer-reconnect"
+        )
         self._watcher.start()
         logger.info("trainer connecting to the server at %s", self.server_ip)
 
     @property
     def connected(self) -> bool:
+        """Whether the trainer is connected to the server right now."""
         return bool(self._link.connected)
 
     def wait_connected(self, timeout: float | None = None) -> bool:
+        """Wait until connected to the server; ``False`` after ``timeout`` seconds."""
         return bool(self._link.wait_connected(timeout))
 
     def _rebroadcast_on_reconnect(self) -> None:
@@ -618,8 +727,12 @@ class TrainerInterface:
                 last = self._last_seq.get(src)
                 if last is not None and seq > last + 1:
                     self.lost_payloads += seq - last - 1
-                    logger.warning("worker %d: %d sample payloads never arrived (%d in total)",
-                                   src, seq - last - 1, self.lost_payloads)
+                    logger.warning(
+                        "worker %d: %d sample payloads never arrived (%d in total)",
+                        src,
+                        seq - last - 1,
+                        self.lost_payloads,
+                    )
                 self._last_seq[src] = seq
             for key, values in buf.stats.items():
                 self._stats.setdefault(key, {}).update(values)
@@ -634,10 +747,11 @@ class TrainerInterface:
         The actor saves itself to a temporary file next to ``model_path``, which then replaces
         ``model_path`` (the trainer keeps a local copy) and whose bytes are broadcast.
         """
-        from tmrl import wire
 
         self.model_path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.model_path.name}.", suffix=".tmp", dir=self.model_path.parent)
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{self.model_path.name}.", suffix=".tmp", dir=self.model_path.parent
+        )
         os.close(fd)
         try:
             model.save(tmp)
@@ -648,10 +762,11 @@ class TrainerInterface:
                 os.unlink(tmp)
         obs_space = getattr(model, "observation_space", None)
         act_space = getattr(model, "action_space", None)
-        spaces = describe_spaces(obs_space, act_space) if obs_space is not None and act_space is not None else None
+        spaces = (
+            describe_spaces(obs_space, act_space) if obs_space is not None and act_space is not None else None
+        )
         self.weights_version += 1
-        envelope = wire.encode({"v": PAYLOAD_VERSION, "kind": "weights", "version": self.weights_version,
-                                "spaces": spaces, "actor": data})
+        envelope = pack_weights(data, spaces, self.weights_version)
         with self._weights_lock:
             self._last_weights = envelope
             self._link.broadcast_weights(envelope)
@@ -726,9 +841,16 @@ class Trainer:
         self.updater_fn = updater_fn
         self.run_instance: Any = None
         self.interface = TrainerInterface(
-            server_ip=server_ip, server_port=server_port, password=password, local_com_port=local_com_port,
-            header_size=header_size, max_buf_len=max_buf_len, security=security, keys_dir=keys_dir,
-            hostname=hostname, model_path=model_path,
+            server_ip=server_ip,
+            server_port=server_port,
+            password=password,
+            local_com_port=local_com_port,
+            header_size=header_size,
+            max_buf_len=max_buf_len,
+            security=security,
+            keys_dir=keys_dir,
+            hostname=hostname,
+            model_path=model_path,
         )
 
     def checkpoint_exists(self) -> bool:
@@ -748,8 +870,12 @@ class Trainer:
         if path is not None and self.checkpoint_exists():
             t0 = time.perf_counter()
             run_instance = self.load_run_instance_fn(path)
-            logger.info("resumed from checkpoint %s (epoch %s) in %.1f s", path,
-                        getattr(run_instance, "epoch", "?"), time.perf_counter() - t0)
+            logger.info(
+                "resumed from checkpoint %s (epoch %s) in %.1f s",
+                path,
+                getattr(run_instance, "epoch", "?"),
+                time.perf_counter() - t0,
+            )
             if self.updater_fn is not None:
                 run_instance = self.updater_fn(run_instance, self.training_cls)
             # why: workers that (re)connect must get the resumed weights without waiting for
@@ -758,7 +884,7 @@ class Trainer:
             if agent is not None and hasattr(agent, "get_actor"):
                 try:
                     self.interface.broadcast_model(agent.get_actor())
-                except Exception:  # noqa: BLE001 (a user actor that cannot save yet is not fatal here)
+                except Exception:
                     logger.exception("could not broadcast the resumed actor")
         else:
             run_instance = self.training_cls()
@@ -786,8 +912,13 @@ class Trainer:
         finally:
             self.interface.close()
 
-    def run_with_wandb(self, entity: str | None = None, project: str | None = None,
-                       run_id: str | None = None, key: str | None = None) -> None:
+    def run_with_wandb(
+        self,
+        entity: str | None = None,
+        project: str | None = None,
+        run_id: str | None = None,
+        key: str | None = None,
+    ) -> None:
         """Like :meth:`run`, logging every epoch's statistics to Weights & Biases.
 
         Args:
@@ -799,7 +930,7 @@ class Trainer:
             UserError: wandb is not installed.
         """
         try:
-            import wandb
+            import wandb  # type: ignore[import-not-found]
         except ImportError as err:
             raise UserError('wandb is not installed: pip install "tmrl[wandb]"') from err
         from tmrl.util import partial_to_dict
@@ -811,13 +942,19 @@ class Trainer:
         if key:
             os.environ["WANDB_API_KEY"] = key
         try:
-            config = partial_to_dict(self.training_cls)
-        except (ValueError, TypeError):
+            config = partial_to_dict(self.training_cls)  # type: ignore[arg-type]
+        except (ValueError, TypeError, AttributeError):
             config = {}
         resume = self.checkpoint_exists()
         wandb_dir = tempfile.mkdtemp(prefix="tmrl-wandb-")
-        wandb.init(dir=wandb_dir, entity=entity, project=project, id=run_id,
-                   resume="allow" if resume else None, config=config)
+        wandb.init(
+            dir=wandb_dir,
+            entity=entity,
+            project=project,
+            id=run_id,
+            resume="allow" if resume else None,
+            config=config,
+        )
         try:
             for stats in self._iterate_epochs():
                 for entry in stats if isinstance(stats, list) else [stats]:
@@ -916,16 +1053,22 @@ class RolloutWorker:
         self.debug_ts_res_cpt = 0
         self.server_ip = _cfg("SERVER_IP_FOR_WORKER", server_ip, "127.0.0.1")
         self._link: Any = None
+        self._closed = False
         if not standalone:
             from tmrl.transport import WorkerLink
 
             security = _cfg_keep_none("SECURITY", security, "TLS")
             keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
             self._link = WorkerLink(
-                self.server_ip, int(_cfg("PORT", server_port, 55555)), _cfg("PASSWORD", password, ""),
-                local_port=local_port, header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
-                security=security, keys_dir=str(keys_dir) if keys_dir is not None else None,
-                hostname=_cfg("HOSTNAME", hostname, "default"), **_link_options(),
+                self.server_ip,
+                int(_cfg("PORT", server_port, 55555)),
+                _cfg("PASSWORD", password, ""),
+                local_port=local_port,
+                header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
+                security=security,
+                keys_dir=str(keys_dir) if keys_dir is not None else None,
+                hostname=_cfg("HOSTNAME", hostname, "default"),
+                **_link_options(),
             )
             logger.info("worker %d connecting to the server at %s", self.source_id, self.server_ip)
 
@@ -942,13 +1085,14 @@ class RolloutWorker:
 
     def close(self) -> None:
         """Send what was handed to the network, then disconnect (idempotent)."""
+        self._closed = True
         if self._link is not None:
             self._link.close()
 
-    def __enter__(self) -> "RolloutWorker":
+    def __enter__(self) -> RolloutWorker:
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # --- stepping --------------------------------------------------------------------------------
@@ -957,7 +1101,9 @@ class RolloutWorker:
         """The actor's action for ``obs`` (``test=True``: deterministic)."""
         return self.actor.act_(obs, test=test)
 
-    def _record(self, act: Any, new_obs: Any, rew: float, terminated: bool, truncated: bool, info: dict) -> None:
+    def _record(
+        self, act: Any, new_obs: Any, rew: float, terminated: bool, truncated: bool, info: dict
+    ) -> None:
         if self.get_local_buffer_sample is not None:
             sample = self.get_local_buffer_sample(act, new_obs, rew, terminated, truncated, info)
         else:
@@ -1022,8 +1168,9 @@ class RolloutWorker:
         ret, steps = 0.0, 0
         obs, _ = self.reset(collect_samples=True)
         for i in self._steps(max_samples):
-            obs, rew, terminated, truncated, _ = self.step(obs, test=False, collect_samples=True,
-                                                           last_step=i == max_samples - 1)
+            obs, rew, terminated, truncated, _ = self.step(
+                obs, test=False, collect_samples=True, last_step=i == max_samples - 1
+            )
             ret += rew
             steps += 1
             if terminated or truncated:
@@ -1047,14 +1194,20 @@ class RolloutWorker:
         self.buffer.stat_test_steps = steps
         return ret
 
-    def run_episodes(self, max_samples_per_episode: float | None = None, nb_episodes: float = math.inf,
-                     train: bool = False) -> None:
+    def run_episodes(
+        self, max_samples_per_episode: float | None = None, nb_episodes: float = math.inf, train: bool = False
+    ) -> None:
         """Run ``nb_episodes`` episodes with :meth:`run_episode` (deployment)."""
         for _ in self._steps(nb_episodes):
             self.run_episode(max_samples_per_episode, train=train)
 
-    def run(self, test_episode_interval: int = 0, nb_episodes: float = math.inf, verbose: bool = True,
-            expert: bool = False) -> None:
+    def run(
+        self,
+        test_episode_interval: int = 0,
+        nb_episodes: float = math.inf,
+        verbose: bool = True,
+        expert: bool = False,
+    ) -> None:
         """Collect train episodes, sending each to the server and loading new weights between
         episodes.
 
@@ -1067,8 +1220,12 @@ class RolloutWorker:
         """
         log = logger.info if verbose else logger.debug
         for episode in self._steps(nb_episodes):
-            if (not expert and test_episode_interval and episode % test_episode_interval == 0
-                    and not self.crc_debug):
+            if (
+                not expert
+                and test_episode_interval
+                and episode % test_episode_interval == 0
+                and not self.crc_debug
+            ):
                 log("running a test episode")
                 self.run_episode(self.max_samples_per_episode, train=False)
             log("collecting a %s episode", "expert" if expert else "train")
@@ -1079,9 +1236,15 @@ class RolloutWorker:
             else:
                 self.update_actor_weights(verbose=verbose)
 
-    def run_synchronous(self, test_episode_interval: int = 0, nb_steps: float = math.inf,
-                        initial_steps: int = 1, max_steps_per_update: float = math.inf,
-                        end_episodes: bool = True, verbose: bool = False) -> None:
+    def run_synchronous(
+        self,
+        test_episode_interval: int = 0,
+        nb_steps: float = math.inf,
+        initial_steps: int = 1,
+        max_steps_per_update: float = math.inf,
+        end_episodes: bool = True,
+        verbose: bool = False,
+    ) -> None:
         """Collect ``nb_steps`` steps while keeping pace with the trainer: at most
         ``max_steps_per_update`` environment steps per model received (for environments that can
         be stepped as fast as wanted).
@@ -1178,8 +1341,10 @@ class RolloutWorker:
                 break
         bench = getattr(self.env.unwrapped, "benchmarks", None)
         if bench is None:
-            raise UserError("this environment has no benchmarks(): benchmarks need a real-time "
-                            "environment created with \"benchmark\": true in its config")
+            raise UserError(
+                "this environment has no benchmarks(): benchmarks need a real-time "
+                'environment created with "benchmark": true in its config'
+            )
         res = bench()
         if verbose:
             logger.info("benchmark results: %s", res)
@@ -1209,13 +1374,8 @@ class RolloutWorker:
         self.buffer.clear()
 
     def _load_weights(self, envelope: bytes, verbose: bool) -> None:
-        from tmrl import wire
-
-        msg = wire.decode(envelope)
-        if not isinstance(msg, dict) or msg.get("kind") != "weights" or not isinstance(msg.get("actor"), bytes):
-            raise PayloadError("received weights in an unknown format: run the same tmrl version everywhere")
+        msg, data = unpack_weights(envelope)
         check_spaces(self.spaces, msg.get("spaces"))
-        data = msg["actor"]
         from tmrl.util import atomic_write_bytes
 
         atomic_write_bytes(self.model_path, data)
@@ -1248,9 +1408,12 @@ class RolloutWorker:
         if self._link is None:
             return 0
         while True:
+            t0 = time.monotonic()
             envelope = self._link.latest_weights(block=blocking, timeout=1.0 if blocking else None)
-            if envelope is not None or not blocking:
+            if envelope is not None or not blocking or self._closed:
                 break
+            if time.monotonic() - t0 < 0.5:  # the link's process is gone: do not spin
+                time.sleep(0.5)
         if envelope is None:
             return 0
         self._load_weights(envelope, verbose)

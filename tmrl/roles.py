@@ -12,11 +12,12 @@ from __future__ import annotations
 import logging
 import sys
 import threading
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from tmrl.errors import UserError
 
-__all__ = ["run_server", "run_trainer", "run_worker", "run_benchmark", "WORKER_MODES"]
+__all__ = ["WORKER_MODES", "run_benchmark", "run_server", "run_trainer", "run_worker"]
 
 logger = logging.getLogger(__name__)
 
@@ -112,10 +113,12 @@ def run_trainer(cfg: Mapping[str, Any] | None = None, wandb: bool = False) -> in
     logger.info("trainer running %s", getattr(_objects(), "ALG_NAME", "the configured algorithm"))
     try:
         if wandb:
-            trainer.run_with_wandb(entity=getattr(cc, "WANDB_ENTITY", None),
-                                   project=getattr(cc, "WANDB_PROJECT", None),
-                                   run_id=getattr(cc, "WANDB_RUN_ID", None),
-                                   key=getattr(cc, "WANDB_KEY", None))
+            trainer.run_with_wandb(
+                entity=getattr(cc, "WANDB_ENTITY", None),
+                project=getattr(cc, "WANDB_PROJECT", None),
+                run_id=getattr(cc, "WANDB_RUN_ID", None),
+                key=getattr(cc, "WANDB_KEY", None),
+            )
         else:
             trainer.run()
     except KeyboardInterrupt:
