@@ -447,3 +447,32 @@ def test_check_environment_writes_what_the_policy_sees(tmp_path):
         w, h = _png_size(files[0])
         assert (w, h) == ((958, 488) if name == "SIMLIDAR" else (2 * 48 * 4, 40 * 4))
         assert "reward" in text.getvalue()
+
+
+def test_interface_kwargs_are_checked():
+    from tmrl.sim.interfaces import interface_kwargs
+
+    cfg = sim_config("SIMLIDAR")
+    cfg["ENV"]["RTGYM_CONFIG"]["interface_kwargs"] = {"save_replays": False, "lidar_scale": 0.1}
+    assert interface_kwargs(cfg)["lidar_scale"] == 0.1 and "save_replays" not in interface_kwargs(cfg)
+    cfg["ENV"]["RTGYM_CONFIG"]["interface_kwargs"] = {"view_width": 20.0}
+    with pytest.raises(UserError, match="view_width"):
+        interface_kwargs(cfg)
+
+
+def test_demo_reads_the_environment_from_a_config(tmp_path):
+    import json
+
+    from tmrl.sim import demo
+
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"ENV": {"RTGYM_INTERFACE": "SIMLIDARPROGRESS", "IMG_HIST_LEN": 2,
+                                        "RTGYM_CONFIG": {"act_buf_len": 3, "interface_kwargs": {"track": "oval"}}}}))
+    env = demo._demo_config("SIMLIDARPROGRESS", "technical", str(path))["ENV"]
+    assert env["IMG_HIST_LEN"] == 2 and env["RTGYM_CONFIG"]["act_buf_len"] == 3
+    assert env["RTGYM_CONFIG"]["interface_kwargs"]["track"] == "technical"
+    path.write_text(json.dumps({"ENV": {"RTGYM_INTERFACE": "TM20FULL"}}))
+    with pytest.raises(UserError, match="SIMLIDAR"):
+        demo.main(["--config", str(path), "--minutes", "0"])
+    with pytest.raises(UserError, match="unknown track"):
+        demo.main(["--track", "nowhere"])

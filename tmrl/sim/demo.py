@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import math
 import os
 import secrets
 import shutil
@@ -33,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from tmrl.errors import UserError
 from tmrl.util import atomic_write_bytes, atomic_write_text
 
 __all__ = ["DEMO_SETTINGS", "main"]
@@ -60,10 +62,20 @@ def _parts(interface: str) -> dict[str, Any]:
     return pipeline_parts(interface)
 
 
-def _demo_config(interface: str, track: str) -> dict[str, Any]:
-    """The ``ENV`` part of a tmrl config for the demo's environment."""
+def _demo_config(interface: str, track: str, config_path: str | None = None) -> dict[str, Any]:
+    """The ``ENV`` part of a tmrl config for the demo's environment: the demo's settings, or the
+    ``ENV`` section of the config file given with ``--config`` (interface and track as resolved
+    by the parent)."""
     from tmrl.sim.interfaces import DEFAULT_SIM_RTGYM_CONFIG
 
+    if config_path:
+        from tmrl.config.loader import load_config
+
+        env = dict(load_config(config_path)["ENV"])
+        rtgym = dict(env["RTGYM_CONFIG"])
+        rtgym["interface_kwargs"] = dict(rtgym.get("interface_kwargs") or {}, track=track)
+        env.update(RTGYM_INTERFACE=interface, RTGYM_CONFIG=rtgym)
+        return {"ENV": env}
     s = DEMO_SETTINGS
     rtgym = dict(DEFAULT_SIM_RTGYM_CONFIG, act_buf_len=s["act_buf_len"], ep_max_length=s["ep_max_length"],
                  interface_kwargs={"track": track})
@@ -75,7 +87,7 @@ def _make_env(interface: str, track: str, realtime: bool = False) -> Any:
     """The fast environment, or the real-time one (``tmrl.realtime``, wall-clock physics)."""
     from tmrl.sim.interfaces import fast_env, realtime_config
 
-    cfg = _demo_config(interface, track)
+    cfg = _demo_config(interface, track, os.environ.get("TMRL_DEMO_CONFIG") or None)
     if not realtime:
         return fast_env(cfg)
     from tmrl.realtime import RealTimeEnv
@@ -154,7 +166,7 @@ def _stats_env(interface: str, track: str, workdir: Path, realtime: bool = False
     return Stats(env)
 
 
-def _training_cls(interface: str, workdir: Path) -> Any:
+def _training_cls(interface: str, track: str, workdir: Path) -> Any:
     from tmrl.algorithms.sac import SACAgent
     from tmrl.training_offline import TorchTrainingOffline
     from tmrl.util import partial
@@ -176,12 +188,13 @@ def _training_cls(interface: str, workdir: Path) -> Any:
 
     s = DEMO_SETTINGS
     parts = _parts(interface)
-    env = _make_env(interface, "oval")  # only its spaces are used
+    env = _make_env(interface, track)  # only its spaces and settings are used
     spaces = (env.observation_space, env.action_space)
+    hist_len, act_buf_len = env.interface.img_hist_len, env.act_buf_len
     return partial(
         TorchTrainingOffline,
         env_cls=spaces,
-        memory_cls=partial(parts["memory_cls"], hist_len=s["img_hist_len"], act_buf_len=s["act_buf_len"],
+        memory_cls=partial(parts["memory_cls"], hist_len=hist_len, act_buf_len=act_buf_len,
                            memory_size=s["memory_size"], batch_size=s["batch_size"]),
         training_agent_cls=partial(CountingSAC, model_cls=parts["model_cls"], gamma=s["gamma"], polyak=s["polyak"],
                                    alpha=s["alpha"], lr_actor=s["lr"], lr_critic=s["lr"], lr_entropy=s["lr"],
@@ -209,15 +222,15 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
         finally:
             server.stop()
     elif role == "trainer":
-        Trainer(training_cls=_training_cls(interface, workdir), server_ip="127.0.0.1", server_port=port,
+        Trainer(training_cls=_training_cls(interface, track, workdir), server_ip="127.0.0.1", server_port=port,
                 model_path=str(workdir / "weights.tmod"), checkpoint_path=None, **common).run()
     elif role == "worker":
         parts = _parts(interface)
-        actor_cls = parts["model_cls"](*_spaces(interface)).actor.__class__
+        actor_cls = parts["model_cls"](*_spaces(interface, track)).actor.__class__
         worker = RolloutWorker(
             env_cls=lambda: _stats_env(interface, track, workdir, realtime), actor_module_cls=actor_cls,
             sample_compressor=parts["sample_compressor"], obs_preprocessor=parts["obs_preprocessor"],
-            server_ip="127.0.0.1", server_port=port, max_samples_per_episode=DEMO_SETTINGS["ep_max_length"],
+            server_ip="127.0.0.1", server_port=port, max_samples_per_episode=math.inf,
             model_path=str(workdir / "weights_worker.tmod"), model_history=0, **common)
         if realtime:
             worker.run()  # the clock sets the pace
@@ -226,8 +239,8 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
                                    max_steps_per_update=DEMO_SETTINGS["worker_steps_per_update"], end_episodes=False)
 
 
-def _spaces(interface: str) -> tuple[Any, Any]:
-    env = _make_env(interface, "oval")
+def _spaces(interface: str, track: str) -> tuple[Any, Any]:
+    env = _make_env(interface, track)
     return env.observation_space, env.action_space
 
 
@@ -299,8 +312,10 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m tmrl --demo",
                                 description="Train a driving policy on the built-in simulator: server, trainer and worker "
                                             "on this machine, no game needed.")
-    p.add_argument("--interface", default="SIMLIDAR", choices=_INTERFACES, help="observations (default SIMLIDAR)")
-    p.add_argument("--track", default="classic", help="track name (oval, classic, technical) or integer seed")
+    p.add_argument("--interface", choices=_INTERFACES, help="observations (default SIMLIDAR, or the --config's)")
+    p.add_argument("--track", help="track name (oval, classic, technical) or integer seed (default classic, "
+                                   "or the --config's RTGYM_CONFIG.interface_kwargs.track)")
+    p.add_argument("--config", help="a config.json whose ENV section (a SIM* interface) sets the environment")
     p.add_argument("--minutes", type=float, default=15.0, help="time budget in minutes (default 15)")
     p.add_argument("--steps", type=int, default=0, help="stop after this many environment steps (0: no limit)")
     p.add_argument("--out", default="tmrl_demo", help="output folder (default ./tmrl_demo)")
@@ -331,11 +346,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     from tmrl.sim.track import make_track
 
+    if args.config:
+        from tmrl.config.loader import load_config
+        from tmrl.sim.interfaces import interface_kwargs
+
+        cfg = load_config(args.config)
+        name = str(cfg["ENV"]["RTGYM_INTERFACE"]).upper()
+        args.interface = args.interface or (name if name in _INTERFACES else None)
+        if args.interface is None:
+            raise UserError(f"{args.config}: ENV.RTGYM_INTERFACE is {name}; the demo needs one of {', '.join(_INTERFACES)}")
+        cfg["ENV"]["RTGYM_INTERFACE"] = args.interface
+        args.track = args.track or interface_kwargs(cfg).get("track")
+        args.config = str(Path(args.config).resolve())
+    args.interface = args.interface or "SIMLIDAR"
+    args.track = str(args.track or "classic")
     make_track(args.track)  # a bad name fails here, in one line
     out = Path(args.out).resolve()
     workdir = Path(tempfile.mkdtemp(prefix="tmrl-demo-"))
     port = _free_port()
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1", TMRL_DEMO_PASSWORD=secrets.token_hex(16))
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1", TMRL_DEMO_PASSWORD=secrets.token_hex(16),
+               TMRL_DEMO_CONFIG=args.config or "")
     env.setdefault("TMRL_DATA", str(workdir / "TmrlData"))
     procs: list[subprocess.Popen] = []
     logs = []

@@ -405,8 +405,26 @@ def interface_kwargs(cfg: Mapping[str, Any]) -> dict[str, Any]:
     }
     if name == "SIMFULL":
         kwargs["img_size"] = (int(env.get("IMG_WIDTH", 64)), int(env.get("IMG_HEIGHT", 64)))
-    kwargs.update(dict(env.get("RTGYM_CONFIG", {}).get("interface_kwargs") or {}))
+    extra = dict(env.get("RTGYM_CONFIG", {}).get("interface_kwargs") or {})
+    extra.pop("save_replays", None)  # TrackMania's, found in configs written for the original
+    allowed = _SIM_KWARGS | (_FULL_KWARGS if name == "SIMFULL" else _LIDAR_KWARGS)
+    unknown = sorted(set(extra) - allowed)
+    if unknown:
+        raise UserError(
+            f"ENV.RTGYM_CONFIG.interface_kwargs has {unknown}, unknown to {name}: the simulator takes "
+            f"{sorted(allowed)}"
+        )
+    if "lidar_size" in extra:
+        extra["lidar_size"] = tuple(extra["lidar_size"])
+    if "img_size" in extra:
+        extra["img_size"] = tuple(extra["img_size"])
+    kwargs.update(extra)
     return kwargs
+
+
+_SIM_KWARGS = frozenset({"track", "img_hist_len", "reward_config"})
+_LIDAR_KWARGS = frozenset({"lidar_size", "lidar_scale", "black_threshold"})
+_FULL_KWARGS = frozenset({"img_size", "view_width"})
 
 
 def realtime_config(cfg: Mapping[str, Any], **extra_kwargs: Any) -> dict[str, Any]:
