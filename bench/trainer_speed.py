@@ -11,9 +11,28 @@ Two figures per side and algorithm:
   sides), with the share of the time spent in ``sample``;
 - ``agent``: ``agent.train(batch)`` on one ready batch.
 
+TrackMania cases (``--cases tmfull,tmlidar``), SAC only, the original's config values (ALG of
+its TM20FULL config: lr, betas, gamma, alpha...):
+
+- ``tmfull``: TM20FULL-shaped data, speed/gear/rpm and a history of 4 grayscale 64x64 images
+  plus 2 actions, CNN actor-critic (ours: the ``TM20FULL`` parts of
+  :func:`tmrl.sim.interfaces.pipeline_parts`, i.e. ``ImageMemory`` and ``CNNActorCritic``;
+  theirs: ``MemoryTMFull`` and ``VanillaCNNActorCritic`` with ``SpinupSacAgent``);
+- ``tmlidar``: TM20LIDAR-shaped data, speed and a history of 4 lidars of 19 beams plus 2
+  actions, MLP 256x256 (ours: ``LidarMemory``, ``LidarActorCritic``; theirs: ``MemoryTMLidar``,
+  ``MLPActorCritic``).
+
+Both sides store the same synthetic episodes (random frames or lidars, episodes of 1000, 400,
+700 and 250 steps, the last truncated or terminated), each side compressed by its own sample
+compressor (ours ``compress_full_sample``/``compress_lidar_sample``; theirs
+``get_local_buffer_sample_tm20_imgs``/``get_local_buffer_sample_lidar``) from the same
+preprocessed observations. ``--memory-bytes`` also prints the bytes each side's memory holds per
+stored sample (tracemalloc, ``--memory-bytes-samples`` samples, memory sized to fit them).
+
 Usage::
 
     /work/venv/bin/python bench/trainer_speed.py [--rounds 3] [--seconds 4] [--threads N]
+        [--cases pendulum,tmfull,tmlidar] [--memory-bytes]
         [--anchor-python /tmp/tmrl-anchor/venv/bin/python] [--anchor-home /tmp/tmrl-anchor/home]
 
 The original is run as ``HOME=<anchor-home> <anchor-python> bench/trainer_speed.py --worker tmrl``
@@ -29,6 +48,7 @@ import statistics
 import subprocess
 import sys
 import time
+import tracemalloc
 from pathlib import Path
 from typing import Any
 
@@ -136,11 +156,156 @@ def _build(side: str, algo: str, variant: str = ""):
     return memory, agent, memory_name
 
 
-def _measure(memory, agent, mode: str, seconds: float) -> dict[str, Any]:
+# --- TrackMania-shaped cases ---------------------------------------------------------------------
+
+TM_SAMPLES = {"tmfull": 50_000, "tmlidar": 100_000}
+TM_EPISODES = (1000, 400, 700, 250)  # steps; 1000 = ep_max_length, so truncated, else terminated
+TM_HIST = 4
+TM_ACT_BUF = 2
+TM_IMG = 64
+TM_BEAMS = 19
+# The ALG values of tmrl 0.7.1's default TM20FULL config, on both sides.
+TM_ALG: dict[str, Any] = {
+    "lr_actor": 1e-5, "lr_critic": 5e-5, "lr_entropy": 3e-4, "gamma": 0.995, "polyak": 0.995,
+    "learn_entropy_coef": False, "target_entropy": -0.5, "alpha": 0.01, "optimizer_actor": "adam",
+    "optimizer_critic": "adam", "betas_actor": (0.997, 0.997), "betas_critic": (0.997, 0.997),
+    "l2_actor": 0.0, "l2_critic": 0.0,
+}
+
+
+def _tm_spaces(case: str):
+    """Preprocessed observation space (what the models see) and action space."""
+    import numpy as np
+    from gymnasium import spaces
+
+    act = spaces.Box(-1.0, 1.0, (3,), np.float32)
+    one = spaces.Box(-np.inf, np.inf, (1,), np.float32)
+    if case == "tmfull":
+        imgs = spaces.Box(0.0, 1.0, (TM_HIST, TM_IMG, TM_IMG), np.float32)
+        obs = spaces.Tuple((one, one, one, imgs, act, act))
+    else:
+        lidars = spaces.Box(0.0, np.inf, (TM_HIST * TM_BEAMS,), np.float32)
+        obs = spaces.Tuple((one, lidars, act, act))
+    return obs, act
+
+
+def _tm_samples(case: str, n: int, compressor, seed: int = 0) -> list:
+    """``n`` samples as a worker sends them: the preprocessed observation of each step (history
+    and action buffer built as the interfaces and rtgym do), then ``compressor``."""
+    from collections import deque
+
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    out: list = []
+    ep = 0
+    while len(out) < n:
+        length = TM_EPISODES[ep % len(TM_EPISODES)]
+        ep += 1
+        if case == "tmfull":
+            frames = rng.integers(0, 256, (length, TM_IMG, TM_IMG), dtype=np.uint8)
+        else:
+            frames = rng.uniform(0.0, 400.0, (length, TM_BEAMS)).astype(np.float32)
+        hist: deque = deque([frames[0]] * TM_HIST, maxlen=TM_HIST)
+        default = np.zeros(3, np.float32)
+        acts: deque = deque([default] * TM_ACT_BUF, maxlen=TM_ACT_BUF)
+        for t in range(length):
+            if len(out) >= n:
+                break
+            if t == 0:
+                act, rew = default, 0.0
+            else:
+                act = rng.uniform(-1.0, 1.0, 3).astype(np.float32)
+                rew = float(rng.uniform(-0.1, 1.0))
+                hist.append(frames[t])
+                acts.append(act)
+            speed = np.array([rng.uniform(0.0, 300.0)], np.float32)
+            if case == "tmfull":
+                gear = np.array([float(rng.integers(0, 6))], np.float32)
+                rpm = np.array([rng.uniform(0.0, 11000.0)], np.float32)
+                imgs = np.stack(hist).astype(np.float32) / 256.0
+                obs = (speed / 1000.0, gear / 10.0, rpm / 10000.0, imgs, *acts)
+            else:
+                obs = (speed, np.stack(hist).reshape(-1), *acts)
+            last = t == length - 1
+            terminated = last and length < 1000
+            truncated = last and length >= 1000
+            out.append(compressor(act, obs, rew, terminated, truncated, {}))
+    return out
+
+
+def _tm_memory(side: str, case: str, memory_size: int):
+    """Each side's memory for ``case``, built as its pipeline builds it, and its compressor."""
+    if side == "tmrl":
+        from tmrl.custom import custom_memories as cm
+
+        cls, compressor = (
+            (cm.MemoryTMFull, cm.get_local_buffer_sample_tm20_imgs)
+            if case == "tmfull"
+            else (cm.MemoryTMLidar, cm.get_local_buffer_sample_lidar)
+        )
+        memory = cls(memory_size=memory_size, batch_size=BATCH, dataset_path="", imgs_obs=TM_HIST,
+                     act_buf_len=TM_ACT_BUF, nb_steps=1, sample_preprocessor=None, crc_debug=False, device="cpu")
+        return memory, compressor, f"tmrl 0.7.1 {cls.__name__}"
+    from tmrl.sim.interfaces import pipeline_parts
+
+    parts = pipeline_parts("TM20FULL" if case == "tmfull" else "TM20LIDAR")
+    memory = parts["memory_cls"](hist_len=TM_HIST, act_buf_len=TM_ACT_BUF, memory_size=memory_size,
+                                 batch_size=BATCH, device="cpu", nb_steps=1)
+    return memory, parts["sample_compressor"], f"tmrl.driving.memories.{type(memory).__name__}"
+
+
+def _build_tm(side: str, case: str, variant: str = ""):
+    obs_space, act_space = _tm_spaces(case)
+    memory, compressor, memory_name = _tm_memory(side, case, 1_000_000)
+    if side == "tmrl":
+        from tmrl.custom.custom_algorithms import SpinupSacAgent
+        from tmrl.custom.custom_models import MLPActorCritic, VanillaCNNActorCritic
+
+        model = VanillaCNNActorCritic if case == "tmfull" else MLPActorCritic
+        agent = SpinupSacAgent(observation_space=obs_space, action_space=act_space, device="cpu",
+                               model_cls=model, **TM_ALG)
+    else:
+        from tmrl.algorithms.sac import SACAgent
+        from tmrl.sim.interfaces import pipeline_parts
+
+        parts = pipeline_parts("TM20FULL" if case == "tmfull" else "TM20LIDAR")
+        agent = SACAgent(observation_space=obs_space, action_space=act_space, device="cpu",
+                         model_cls=parts["model_cls"], **TM_ALG)
+    memory.append(_PlainBuffer(_tm_samples(case, TM_SAMPLES[case], compressor)))
+    return memory, agent, memory_name
+
+
+def _tm_memory_bytes(side: str, case: str, n: int) -> dict[str, Any]:
+    """Bytes the memory holds per stored sample: everything tracemalloc sees still allocated
+    once the memory holds ``n`` samples (memory sized ``n``) and a batch was drawn, the samples'
+    list itself released."""
+    import gc
+
+    _tm_memory(side, case, 16)  # imports happen outside the measurement
+    _tm_samples(case, 8, lambda *sample: sample)
+    gc.collect()
+    tracemalloc.start()
+    base = tracemalloc.get_traced_memory()[0]
+    memory, compressor, name = _tm_memory(side, case, n)
+    samples = _tm_samples(case, n, compressor, seed=1)
+    buf = _PlainBuffer(samples)
+    memory.append(buf)
+    del buf, samples
+    memory.sample()  # caches built on first sampling count too
+    gc.collect()
+    held = tracemalloc.get_traced_memory()[0] - base
+    tracemalloc.stop()
+    del memory
+    gc.collect()
+    return {"bytes_per_sample": held / n, "samples": n, "memory": name}
+
+
+def _measure(memory, agent, mode: str, seconds: float, warmup: int = 3, min_updates: int = 5) -> dict[str, Any]:
     import torch
 
     batch = memory.sample()
-    for _ in range(3):  # warm-up: allocator, optimizer state
+    for _ in range(warmup):  # warm-up: allocator, optimizer state
         agent.train(memory.sample() if mode == "full" else batch)
     n = 0
     t_sample = 0.0
@@ -154,7 +319,7 @@ def _measure(memory, agent, mode: str, seconds: float) -> dict[str, Any]:
         agent.train(batch)
         n += 1
         elapsed = time.perf_counter() - start
-        if elapsed >= seconds and n >= 5:
+        if elapsed >= seconds and n >= min_updates:
             break
     cpu = time.process_time() - cpu0
     return {
@@ -177,11 +342,21 @@ def worker_main(side: str, threads: int | None) -> None:
         cmd = json.loads(line)
         if cmd.get("quit"):
             break
-        key = cmd["algo"] + ":" + cmd.get("variant", "")
+        case = cmd.get("case", "pendulum")
+        if "memory_bytes" in cmd:
+            print(RESULT + json.dumps(_tm_memory_bytes(side, case, int(cmd["memory_bytes"]))), flush=True)
+            continue
+        key = case + ":" + cmd["algo"] + ":" + cmd.get("variant", "")
         if key not in built:
-            built[key] = _build(side, cmd["algo"], cmd.get("variant", ""))
+            if case == "pendulum":
+                built[key] = _build(side, cmd["algo"], cmd.get("variant", ""))
+            else:
+                built[key] = _build_tm(side, case, cmd.get("variant", ""))
         memory, agent, memory_name = built[key]
-        res = _measure(memory, agent, cmd["mode"], cmd["seconds"])
+        # A CNN update takes seconds on a CPU: fewer warm-up and minimum updates.
+        slow = case == "tmfull"
+        res = _measure(memory, agent, cmd["mode"], cmd["seconds"], warmup=1 if slow else 3,
+                       min_updates=3 if slow else 5)
         res["memory"] = memory_name
         print(RESULT + json.dumps(res), flush=True)
 
@@ -205,9 +380,11 @@ class _Worker:
             cwd=cwd,
         )
 
-    def run(self, algo: str, mode: str, seconds: float, variant: str = "") -> dict[str, Any]:
+    def run(self, algo: str, mode: str, seconds: float, variant: str = "", case: str = "pendulum") -> dict[str, Any]:
+        return self.ask({"algo": algo, "mode": mode, "seconds": seconds, "variant": variant, "case": case})
+
+    def ask(self, cmd: dict[str, Any]) -> dict[str, Any]:
         assert self.proc.stdin and self.proc.stdout
-        cmd = {"algo": algo, "mode": mode, "seconds": seconds, "variant": variant}
         self.proc.stdin.write(json.dumps(cmd) + "\n")
         self.proc.stdin.flush()
         for line in self.proc.stdout:
@@ -222,6 +399,15 @@ class _Worker:
             self.proc.wait(timeout=30)
 
 
+CASES = ("pendulum", "tmfull", "tmlidar")
+CASE_TITLES = {
+    "pendulum": f"Pendulum-shaped, MLP 256x256, {N_SAMPLES} samples in memory",
+    "tmfull": f"TM20FULL-shaped, CNN, history {TM_HIST} of {TM_IMG}x{TM_IMG}, {TM_SAMPLES['tmfull']} samples",
+    "tmlidar": f"TM20LIDAR-shaped, MLP 256x256, history {TM_HIST} of {TM_BEAMS} beams, "
+    f"{TM_SAMPLES['tmlidar']} samples",
+}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--worker", choices=["ours", "tmrl"], help=argparse.SUPPRESS)
@@ -230,20 +416,33 @@ def main() -> None:
     parser.add_argument(
         "--threads", type=int, default=None, help="torch threads on both sides (default: torch's)"
     )
-    parser.add_argument("--algos", default="sac,redq")
+    parser.add_argument("--algos", default="sac,redq", help="algorithms of the pendulum case")
+    parser.add_argument(
+        "--cases", default="pendulum", help=f"comma-separated, among {', '.join(CASES)} (TM cases: SAC only)"
+    )
+    parser.add_argument("--modes", default="full,agent", help="full (sample + train) and/or agent (train only)")
+    parser.add_argument(
+        "--memory-bytes", action="store_true", help="also print each side's bytes per stored sample (TM cases)"
+    )
+    parser.add_argument("--memory-bytes-samples", type=int, default=20_000)
     parser.add_argument("--anchor-python", default="/tmp/tmrl-anchor/venv/bin/python")
     parser.add_argument("--anchor-home", default="/tmp/tmrl-anchor/home")
     parser.add_argument("--no-anchor", action="store_true", help="measure ours only")
-    parser.add_argument("--bf16", action="store_true", help="also measure ours with critic_dtype='bfloat16'")
+    parser.add_argument("--bf16", action="store_true", help="also measure ours with critic_dtype='bfloat16' (pendulum)")
     parser.add_argument(
         "--loop",
         action="store_true",
-        help="also measure ours with a Python loop over separate critics (before)",
+        help="also measure ours with a Python loop over separate critics (before; pendulum)",
     )
     args = parser.parse_args()
     if args.worker:
         worker_main(args.worker, args.threads)
         return
+    cases = [c for c in args.cases.split(",") if c]
+    unknown = sorted(set(cases) - set(CASES))
+    if unknown:
+        sys.exit(f"unknown case(s) {unknown}: use {', '.join(CASES)}")
+    modes = [m for m in args.modes.split(",") if m]
 
     repo = Path(__file__).resolve().parent.parent
     env_ours = dict(os.environ, PYTHONPATH=str(repo))
@@ -258,30 +457,45 @@ def main() -> None:
         # Outside the repository, so that `import tmrl` finds the installed 0.7.1.
         sides["tmrl"] = _Worker("tmrl", args.anchor_python, env_tmrl, "/tmp", args.threads)
 
-    algos = args.algos.split(",")
-    # (label, worker, variant): "ours-bf16" runs in the same worker process as "ours".
-    runs = [("ours", "ours", "")] + ([("tmrl", "tmrl", "")] if "tmrl" in sides else [])
+    # (case, algo) jobs; per job the runs (label, worker, variant). "ours-bf16" and "ours-loop"
+    # run in the same worker process as "ours".
+    jobs: list[tuple[str, str]] = []
+    for case in cases:
+        jobs += [(case, a) for a in args.algos.split(",")] if case == "pendulum" else [(case, "sac")]
+    base_runs = [("ours", "ours", "")] + ([("tmrl", "tmrl", "")] if "tmrl" in sides else [])
+    pendulum_runs = list(base_runs)
     if args.bf16:
-        runs.append(("ours-bf16", "ours", "bf16"))
+        pendulum_runs.append(("ours-bf16", "ours", "bf16"))
     if args.loop:
-        runs.append(("ours-loop", "ours", "loop"))
-    results: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
-    print(
-        f"batch {BATCH}, MLP 256x256, {N_SAMPLES} Pendulum-shaped samples in memory; "
-        f"{args.rounds} rounds of {args.seconds:.0f} s per measurement, interleaved"
-    )
+        pendulum_runs.append(("ours-loop", "ours", "loop"))
+
+    def runs_of(case: str) -> list[tuple[str, str, str]]:
+        return pendulum_runs if case == "pendulum" else base_runs
+
+    results: dict[tuple[str, str, str, str], list[dict[str, Any]]] = {}
+    print(f"batch {BATCH}; {args.rounds} rounds of {args.seconds:.0f} s per measurement, interleaved; cases:")
+    for case in cases:
+        print(f"  {case}: {CASE_TITLES[case]}")
+    load_start = os.getloadavg()
+    mem_bytes: dict[tuple[str, str], dict[str, Any]] = {}
     try:
+        if args.memory_bytes:
+            for case in (c for c in cases if c != "pendulum"):
+                for side, w in sides.items():
+                    mem_bytes[(side, case)] = w.ask({"case": case, "memory_bytes": args.memory_bytes_samples})
         for rnd in range(args.rounds):
             print(f"round {rnd + 1}: load average {os.getloadavg()[0]:.2f}", flush=True)
-            for algo in algos:
-                for mode in ("full", "agent"):
+            for case, algo in jobs:
+                for mode in modes:
+                    runs = runs_of(case)
                     order = runs if rnd % 2 == 0 else runs[::-1]
                     for side, worker, variant in order:
-                        res = sides[worker].run(algo, mode, args.seconds, variant)
-                        results.setdefault((side, algo, mode), []).append(res)
+                        res = sides[worker].run(algo, mode, args.seconds, variant, case)
+                        results.setdefault((case, side, algo, mode), []).append(res)
                         share = f", sampling {100 * res['sample_share']:.1f}%" if mode == "full" else ""
+                        label = algo if case == "pendulum" else case
                         print(
-                            f"  {side:9s} {algo:5s} {mode:6s} {res['updates_per_s']:7.1f} updates/s"
+                            f"  {side:9s} {label:7s} {mode:6s} {res['updates_per_s']:7.1f} updates/s"
                             f" ({res['cpu_per_update_ms']:.1f} ms CPU/update, {res['threads']} threads{share})",
                             flush=True,
                         )
@@ -289,18 +503,24 @@ def main() -> None:
         for w in sides.values():
             w.close()
 
-    print(f"\nsummary (median over rounds; best in brackets), load average now {os.getloadavg()[0]:.2f}")
-    for algo in algos:
-        for mode in ("full", "agent"):
-            line = f"  {algo:5s} {mode:6s}"
+    print(
+        f"\nsummary (median over rounds; best in brackets), load average at start "
+        f"{load_start[0]:.2f}/{load_start[1]:.2f}/{load_start[2]:.2f}, now {os.getloadavg()[0]:.2f}"
+    )
+    for case, algo in jobs:
+        runs = runs_of(case)
+        label = algo if case == "pendulum" else case
+        for mode in modes:
+            line = f"  {label:7s} {mode:6s}"
             med, cpu = {}, {}
             for side, _, _ in runs:
-                rates = [r["updates_per_s"] for r in results[(side, algo, mode)]]
+                rs = results[(case, side, algo, mode)]
+                rates = [r["updates_per_s"] for r in rs]
                 med[side] = statistics.median(rates)
-                cpu[side] = statistics.median(r["cpu_per_update_ms"] for r in results[(side, algo, mode)])
-                line += f"  {side}: {med[side]:7.1f} [{max(rates):7.1f}]"
+                cpu[side] = statistics.median(r["cpu_per_update_ms"] for r in rs)
+                line += f"  {side}: {med[side]:7.2f} [{max(rates):7.2f}]"
                 if mode == "full":
-                    shares = [r["sample_share"] for r in results[(side, algo, mode)]]
+                    shares = [r["sample_share"] for r in rs]
                     line += f" sampling {100 * statistics.median(shares):4.1f}%"
             if "tmrl" in med:
                 line += f"  ratio {med['ours'] / med['tmrl']:.2f}x"
@@ -311,8 +531,17 @@ def main() -> None:
             if "tmrl" in cpu:
                 parts = ", ".join(f"{side} {ms:.1f}" for side, ms in cpu.items())
                 ratio = cpu["tmrl"] / cpu["ours"]
-                print(f"  {'':12s} CPU ms per update: {parts}  (tmrl/ours {ratio:.2f}x)")
-    print(f"  memories: ours = {results[('ours', algos[0], 'full')][0]['memory']}")
+                print(f"  {'':14s} CPU ms per update: {parts}  (tmrl/ours {ratio:.2f}x)")
+        first = results[(case, "ours", algo, modes[0])][0]["memory"]
+        theirs = results.get((case, "tmrl", algo, modes[0]))
+        print(f"  {'':14s} memories: ours = {first}" + (f", theirs = {theirs[0]['memory']}" if theirs else ""))
+    if mem_bytes:
+        frame = TM_IMG * TM_IMG
+        print("\nreplay memory bytes per stored sample (tracemalloc)")
+        for (side, case), res in mem_bytes.items():
+            extra = f" ({res['bytes_per_sample'] / frame:.3f} x one {TM_IMG}x{TM_IMG} uint8 frame)" if case == "tmfull" else ""
+            print(f"  {side:5s} {case:7s} {res['bytes_per_sample']:9.1f} B/sample over {res['samples']} samples{extra}"
+                  f"  [{res['memory']}]")
 
 
 if __name__ == "__main__":
