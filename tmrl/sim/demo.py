@@ -135,7 +135,9 @@ def _stats_env(interface: str, track: str, workdir: Path, realtime: bool = False
             if terminated or truncated:
                 self._episode_end(race, info)
             now = time.monotonic()
-            if now - self.last_write > 0.5 or terminated or truncated:
+            # also every 50 steps: the worker pauses between models, and a count written only
+            # on time would stay behind during the pause
+            if now - self.last_write > 0.5 or terminated or truncated or self.steps % 50 == 0:
                 self._write(now)
             return obs, rew, terminated, truncated, info
 
