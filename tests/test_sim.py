@@ -365,6 +365,10 @@ def test_fast_env_and_realtime_config_from_a_config():
     assert rt["interface_kwargs"]["track"] == "oval" and rt["interface_kwargs"]["img_hist_len"] == 2
     parts = pipeline_parts("SIMLIDARPROGRESS")
     assert parts["memory_cls"].__name__ == "LidarProgressMemory"
+    for name in ("SIMLIDAR", "SIMFULL", "TM20LIDARPROGRESS"):
+        parts = pipeline_parts(name)
+        e = SimEnv(name if name.startswith("SIM") else "SIMLIDARPROGRESS", img_hist_len=2)
+        assert type(parts["model_cls"](e.observation_space, e.action_space).actor) is parts["actor_cls"]
     with pytest.raises(UserError, match="RTGYM_INTERFACE"):
         fast_env(sim_config("TM20FULL"))
 

@@ -468,21 +468,24 @@ def pipeline_parts(name: str) -> dict[str, Any]:
     ``obs_preprocessor``, ``sample_compressor``, ``memory_cls`` (call it with ``hist_len``,
     ``act_buf_len`` and the memory arguments) and ``model_cls`` (actor-critic class taking ``n``
     critics: :class:`~tmrl.driving.models.LidarActorCritic` for lidar,
-    :class:`~tmrl.driving.models.CNNActorCritic` for images)."""
+    :class:`~tmrl.driving.models.CNNActorCritic` for images) and ``actor_cls`` (the worker's
+    policy class, the same as ``model_cls(...).actor``)."""
     from tmrl.driving import compressors, memories, preprocessors
-    from tmrl.driving.models import CNNActorCritic, LidarActorCritic
+    from tmrl.driving.models import CNNActorCritic, LidarActor, LidarActorCritic, SquashedGaussianCNNActor
 
     key = name.upper()
     if key in ("SIMLIDAR", "TM20LIDAR"):
         return dict(obs_preprocessor=preprocessors.preprocess_lidar_obs,
                     sample_compressor=compressors.compress_lidar_sample,
-                    memory_cls=memories.LidarMemory, model_cls=LidarActorCritic)
+                    memory_cls=memories.LidarMemory, model_cls=LidarActorCritic, actor_cls=LidarActor)
     if key in ("SIMLIDARPROGRESS", "TM20LIDARPROGRESS"):
         return dict(obs_preprocessor=preprocessors.preprocess_lidar_progress_obs,
                     sample_compressor=compressors.compress_lidar_progress_sample,
-                    memory_cls=memories.LidarProgressMemory, model_cls=LidarActorCritic)
+                    memory_cls=memories.LidarProgressMemory, model_cls=LidarActorCritic,
+                    actor_cls=LidarActor)
     if key in ("SIMFULL", "TM20FULL"):
         return dict(obs_preprocessor=preprocessors.preprocess_full_obs,
                     sample_compressor=compressors.compress_full_sample,
-                    memory_cls=memories.ImageMemory, model_cls=CNNActorCritic)
+                    memory_cls=memories.ImageMemory, model_cls=CNNActorCritic,
+                    actor_cls=SquashedGaussianCNNActor)
     raise UserError(f"no driving pipeline for ENV.RTGYM_INTERFACE {name!r}: use a SIM* or TM20* interface")
