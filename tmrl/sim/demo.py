@@ -228,7 +228,7 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
                 model_path=str(workdir / "weights.tmod"), checkpoint_path=None, **common).run()
     elif role == "worker":
         parts = _parts(interface)
-        actor_cls = parts["model_cls"](*_spaces(interface, track)).actor.__class__
+        actor_cls = parts["actor_cls"]
         worker = RolloutWorker(
             env_cls=lambda: _stats_env(interface, track, workdir, realtime), actor_module_cls=actor_cls,
             sample_compressor=parts["sample_compressor"], obs_preprocessor=parts["obs_preprocessor"],
@@ -239,11 +239,6 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
         else:
             worker.run_synchronous(initial_steps=DEMO_SETTINGS["start_training"],
                                    max_steps_per_update=DEMO_SETTINGS["worker_steps_per_update"], end_episodes=False)
-
-
-def _spaces(interface: str, track: str) -> tuple[Any, Any]:
-    env = _make_env(interface, track)
-    return env.observation_space, env.action_space
 
 
 # ------------------------------------------------------------------------------------------------
