@@ -147,8 +147,12 @@ def _trainer_interface(impl: str, port: int, workdir: Path):
     )
 
 
-def role_sink(impl: str, port: int, workdir: Path, warmup: float, duration: float) -> None:
-    """Trainer side of the throughput run: retrieve as fast as possible, count samples."""
+def role_sink(
+    impl: str, port: int, workdir: Path, warmup: float, duration: float, cost_us: float = 0.0
+) -> None:
+    """Trainer side of the throughput run: retrieve as fast as possible, count samples. With
+    ``cost_us``, each retrieved sample then costs that many microseconds (a trainer that cannot
+    keep up with the workers), which shows where the backlog piles up."""
     iface = _trainer_interface(impl, port, workdir)
     t_first = t_measure = None
     count, next_rss = 0, 0.0
@@ -156,6 +160,8 @@ def role_sink(impl: str, port: int, workdir: Path, warmup: float, duration: floa
         buf = iface.retrieve_buffer()
         n = len(buf)
         del buf
+        if n and cost_us:
+            time.sleep(n * cost_us * 1e-6)
         now = time.monotonic()
         if t_first is None and n:
             t_first = now
@@ -358,13 +364,20 @@ def _lines(p: subprocess.Popen, timeout: float):
 
 
 def measure_throughput(
-    impl: str, python: str, home: str | None, workers: int, warmup: float, duration: float, keep: bool
+    impl: str,
+    python: str,
+    home: str | None,
+    workers: int,
+    warmup: float,
+    duration: float,
+    keep: bool,
+    cost_us: float = 0.0,
 ) -> dict:
     run = Run(impl, python, home)
     try:
         run.start("server")
         run.wait_listening()
-        sink = run.start("sink", str(warmup), str(duration), pipe=True)
+        sink = run.start("sink", str(warmup), str(duration), str(cost_us), pipe=True)
         for _ in range(workers):
             run.start("worker")
         res: dict = {"rss": []}
@@ -429,6 +442,12 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--broadcast-timeout", type=float, default=400.0)
     ap.add_argument("--skip-broadcast", action="store_true")
+    ap.add_argument(
+        "--sink-cost-us",
+        type=float,
+        default=0.0,
+        help="microseconds of work per retrieved sample at the trainer (a trainer slower than the workers)",
+    )
     ap.add_argument("--python", default=sys.executable)
     ap.add_argument("--anchor-python", default="/tmp/tmrl-anchor/venv/bin/python")
     ap.add_argument("--anchor-home", default="/tmp/tmrl-anchor/home")
@@ -445,7 +464,7 @@ def main() -> None:
             if role == "server":
                 role_server(args.impl, args.port)
             elif role == "sink":
-                role_sink(args.impl, args.port, wd, float(rest[0]), float(rest[1]))
+                role_sink(args.impl, args.port, wd, float(rest[0]), float(rest[1]), float(rest[2]))
             elif role == "worker":
                 role_worker(args.impl, args.port, wd)
             elif role == "bytes":
@@ -469,7 +488,9 @@ def main() -> None:
         r["bytes"] = measure_bytes(impl, python, home)
         print(f"{impl}: {r['bytes']:.1f} bytes/sample", flush=True)
         for k in [int(x) for x in args.workers.split(",")]:
-            res = measure_throughput(impl, python, home, k, args.warmup, args.duration, args.keep)
+            res = measure_throughput(
+                impl, python, home, k, args.warmup, args.duration, args.keep, args.sink_cost_us
+            )
             r[f"sps{k}"] = res.get("samples_per_s")
             r[f"rss{k}"] = res.get("rss_end")
             r[f"rss_series{k}"] = res.get("rss", [])
