@@ -454,7 +454,10 @@ def test_run_with_wandb_without_wandb_names_the_extra(tmp_path, port_factory, mo
         trainer.interface.close()
 
 
-def test_cli_server_exits_cleanly_on_ctrl_c_and_frees_port(tmp_path, port_factory, _isolated_data_folder):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_cli_server_exits_cleanly_on_ctrl_c_and_frees_port(
+    tmp_path, port_factory, _isolated_data_folder, sig
+):
     port = port_factory()
     env = dict(os.environ, TMRL_CONFIG_OVERRIDE=json.dumps({"PORT": port, "TLS": False, "PASSWORD": PW}))
     proc = subprocess.Popen(
@@ -476,7 +479,7 @@ def test_cli_server_exits_cleanly_on_ctrl_c_and_frees_port(tmp_path, port_factor
             what="the server to run",
         )
         assert proc.poll() is None
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         proc.wait(20)
         reader.join(10)
     finally:
@@ -531,10 +534,7 @@ def _child(role: str, args: dict) -> None:
         if args.get("wait_weights"):
             w.update_actor_weights(verbose=False, blocking=True)
             _say({"bias": w.actor.bias})
-        for _ in range(args["episodes"]):
-            w.collect_train_episode()
-            w.send_and_clear_buffer()
-            w.update_actor_weights(verbose=False)
+        w.run(test_episode_interval=0, nb_episodes=args["episodes"], verbose=False)
         w.close()
         while True:
             time.sleep(1)

@@ -1215,7 +1215,7 @@ class RolloutWorker:
             test_episode_interval: run a test episode before every ``test_episode_interval``-th
                 train episode (0: never; never in CRC debug mode).
             nb_episodes: number of train episodes.
-            verbose: log each phase at INFO level.
+            verbose: log one line per episode at INFO level (DEBUG otherwise).
             expert: send samples but never load weights nor run test episodes.
         """
         log = logger.info if verbose else logger.debug
@@ -1226,15 +1226,22 @@ class RolloutWorker:
                 and episode % test_episode_interval == 0
                 and not self.crc_debug
             ):
-                log("running a test episode")
-                self.run_episode(self.max_samples_per_episode, train=False)
-            log("collecting a %s episode", "expert" if expert else "train")
+                ret = self.run_episode(self.max_samples_per_episode, train=False)
+                log("test episode: return %.1f in %d steps", ret, self.buffer.stat_test_steps)
             self.collect_train_episode(self.max_samples_per_episode)
+            n = len(self.buffer)
             self.send_and_clear_buffer()
-            if expert:
-                self.ignore_actor_weights()
-            else:
-                self.update_actor_weights(verbose=verbose)
+            loaded = self.ignore_actor_weights() if expert else self.update_actor_weights(verbose=False)
+            # one line per episode (not per phase): readable at INFO level for short episodes too
+            log(
+                "%s episode %d: return %.1f in %d steps; %d samples sent%s",
+                "expert" if expert else "train",
+                episode,
+                self.buffer.stat_train_return,
+                self.buffer.stat_train_steps,
+                n,
+                f"; new weights (version {self.weights_version})" if loaded and not expert else "",
+            )
 
     def run_synchronous(
         self,

@@ -29,6 +29,17 @@ WORKER_MODES = ("train", "expert", "test")
 INTERRUPTED = 130
 
 
+def _interrupt_on_sigterm() -> None:
+    """Make SIGTERM (``kill``, a service manager) stop a role like Ctrl-C: cleanly."""
+    import signal
+
+    def handler(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, handler)
+
+
 def _say(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
@@ -57,6 +68,7 @@ def run_server(cfg: Mapping[str, Any] | None = None, stop_event: threading.Event
     """
     from tmrl.networking import Server
 
+    _interrupt_on_sigterm()
     server = Server()
     stop_event = stop_event or threading.Event()
     logger.info("server running on port %d; Ctrl-C to stop", server.port)
@@ -106,6 +118,7 @@ def trainer_from_config() -> Any:
 def run_trainer(cfg: Mapping[str, Any] | None = None, wandb: bool = False) -> int:
     """Run the trainer (with Weights & Biases logging when ``wandb``) until its last epoch or
     Ctrl-C. Returns the exit code."""
+    _interrupt_on_sigterm()
     cc = _constants()
     trainer = trainer_from_config()
     if getattr(cc, "RESET_TRAINING", False) and trainer.checkpoint_exists():
@@ -172,6 +185,7 @@ def run_worker(cfg: Mapping[str, Any] | None = None, mode: str = "train") -> int
     """
     if mode not in WORKER_MODES:
         raise UserError(f"unknown worker mode {mode!r}: use one of {', '.join(WORKER_MODES)}")
+    _interrupt_on_sigterm()
     worker = worker_from_config(standalone=mode == "test")
     try:
         if mode == "train":
