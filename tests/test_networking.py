@@ -109,6 +109,7 @@ class RecordingTraining:
         self.samples_per_epoch = samples_per_epoch
         self.obs_dim = obs_dim
         self.poll = poll
+        self.stop = False  # set to end every remaining epoch at once
         env = CountingEnv(obs_dim)
         self.actor = JsonActor(env.observation_space, env.action_space)
 
@@ -117,7 +118,7 @@ class RecordingTraining:
 
         got = 0
         with open(self.log_path, "a") as log:
-            while got < self.samples_per_epoch:
+            while got < self.samples_per_epoch and not self.stop:
                 buf = interface.retrieve_buffer()
                 if len(buf):
                     seqs: dict[str, list[int]] = {}

@@ -203,6 +203,36 @@ def test_trainer_and_two_workers_exchange_samples_and_weights(tmp_path, port_fac
     assert read_log(log)[-1]["ret"] == pytest.approx(-150.0)
 
 
+def test_run_synchronous_keeps_pace_with_the_trainer(tmp_path, port_factory, closing):
+    port = port_factory()
+    closing.append(Server(port=port, password=PW, security=None))
+    log = tmp_path / "log.jsonl"
+    trainer = Trainer(
+        training_cls=lambda: RecordingTraining(str(log), epochs=100, samples_per_epoch=11),
+        server_ip="127.0.0.1",
+        server_port=port,
+        password=PW,
+        security=None,
+        model_path=str(tmp_path / "trainer.json"),
+        checkpoint_path=None,
+    )
+    thread = threading.Thread(target=trainer.run, daemon=True)
+    thread.start()
+    w = worker(tmp_path, port, "sync")
+    closing.append(w)
+    # one model per 11 samples at the trainer; the worker may run at most 15 steps per model
+    w.run_synchronous(initial_steps=5, nb_steps=40, max_steps_per_update=15, end_episodes=True)
+    # 1 initial episode + 4 episodes of 11 samples, all received
+    wait_for(
+        lambda: len(received_seqs(log).get(str(w.source_id), [])) == 55, what="55 samples at the trainer"
+    )
+    assert sorted(received_seqs(log)[str(w.source_id)]) == list(range(55))
+    assert w.weights_version >= 2  # it had to wait for models to go on (ratio 23/1 > 15)
+    trainer.run_instance.stop = True
+    thread.join(20)
+    assert not thread.is_alive()
+
+
 def test_worker_with_other_spaces_gets_clear_error(tmp_path, port_factory, closing):
     port = port_factory()
     closing.append(Server(port=port, password=PW, security=None))
