@@ -251,7 +251,7 @@ def _roundtrip(buf: Buffer, src: int = 9) -> Buffer:
 def test_pack_roundtrip_uniform_samples_with_reset_none_actions_is_exact_and_small():
     b = Buffer(maxlen=10_000)
     for i in range(1000):
-        b.append_sample(_sample(i, act=None if i % 100 == 0 else "arr"))
+        b.append_sample(_sample(i, act=None if i % 100 == 5 else "arr"))  # resets mid-buffer
     b.source_id = 9
     b.stat_test_return = 3.5
     data = wire.encode(pack_buffer(b, 9, 0))
