@@ -255,6 +255,27 @@ def _tm_memory(side: str, case: str, memory_size: int):
     return memory, parts["sample_compressor"], f"tmrl.driving.memories.{type(memory).__name__}"
 
 
+def _conv_bf16_cnn(observation_space, action_space, **kwargs):
+    """Experimental, not in the library: our CNN actor-critic whose convolutions run under
+    bfloat16 autocast (weights, optimizer state, the MLPs and every loss stay float32). Fast on
+    CPUs with native bfloat16 (AVX512-BF16, AMX), slow where it is emulated."""
+    import torch
+
+    from tmrl.driving.models import CNNActorCritic, ImageEncoder
+
+    class BF16Encoder(ImageEncoder):
+        def forward(self, imgs):
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                x = self.convs(imgs)
+            return x.flatten(1).float()
+
+    model = CNNActorCritic(observation_space, action_space, **kwargs)
+    for module in model.modules():
+        if type(module) is ImageEncoder:
+            module.__class__ = BF16Encoder
+    return model
+
+
 def _build_tm(side: str, case: str, variant: str = ""):
     obs_space, act_space = _tm_spaces(case)
     memory, compressor, memory_name = _tm_memory(side, case, 1_000_000)
@@ -270,8 +291,9 @@ def _build_tm(side: str, case: str, variant: str = ""):
         from tmrl.sim.interfaces import pipeline_parts
 
         parts = pipeline_parts("TM20FULL" if case == "tmfull" else "TM20LIDAR")
+        model_cls = _conv_bf16_cnn if variant == "convbf16" else parts["model_cls"]
         agent = SACAgent(observation_space=obs_space, action_space=act_space, device="cpu",
-                         model_cls=parts["model_cls"], **TM_ALG)
+                         model_cls=model_cls, **TM_ALG)
     memory.append(_PlainBuffer(_tm_samples(case, TM_SAMPLES[case], compressor)))
     return memory, agent, memory_name
 
@@ -430,6 +452,11 @@ def main() -> None:
     parser.add_argument("--no-anchor", action="store_true", help="measure ours only")
     parser.add_argument("--bf16", action="store_true", help="also measure ours with critic_dtype='bfloat16' (pendulum)")
     parser.add_argument(
+        "--conv-bf16",
+        action="store_true",
+        help="also measure ours (tmfull) with the convolutions under bfloat16 autocast (experimental, bench only)",
+    )
+    parser.add_argument(
         "--loop",
         action="store_true",
         help="also measure ours with a Python loop over separate critics (before; pendulum)",
@@ -469,8 +496,10 @@ def main() -> None:
     if args.loop:
         pendulum_runs.append(("ours-loop", "ours", "loop"))
 
+    tmfull_runs = base_runs + ([("ours-convbf16", "ours", "convbf16")] if args.conv_bf16 else [])
+
     def runs_of(case: str) -> list[tuple[str, str, str]]:
-        return pendulum_runs if case == "pendulum" else base_runs
+        return {"pendulum": pendulum_runs, "tmfull": tmfull_runs}.get(case, base_runs)
 
     results: dict[tuple[str, str, str, str], list[dict[str, Any]]] = {}
     print(f"batch {BATCH}; {args.rounds} rounds of {args.seconds:.0f} s per measurement, interleaved; cases:")
@@ -495,7 +524,7 @@ def main() -> None:
                         share = f", sampling {100 * res['sample_share']:.1f}%" if mode == "full" else ""
                         label = algo if case == "pendulum" else case
                         print(
-                            f"  {side:9s} {label:7s} {mode:6s} {res['updates_per_s']:7.1f} updates/s"
+                            f"  {side:13s} {label:7s} {mode:6s} {res['updates_per_s']:8.2f} updates/s"
                             f" ({res['cpu_per_update_ms']:.1f} ms CPU/update, {res['threads']} threads{share})",
                             flush=True,
                         )
@@ -524,14 +553,14 @@ def main() -> None:
                     line += f" sampling {100 * statistics.median(shares):4.1f}%"
             if "tmrl" in med:
                 line += f"  ratio {med['ours'] / med['tmrl']:.2f}x"
-                for other in ("ours-bf16", "ours-loop"):
+                for other in ("ours-bf16", "ours-loop", "ours-convbf16"):
                     if other in med:
                         line += f" ({other[5:]} {med[other] / med['tmrl']:.2f}x)"
             print(line)
             if "tmrl" in cpu:
                 parts = ", ".join(f"{side} {ms:.1f}" for side, ms in cpu.items())
-                ratio = cpu["tmrl"] / cpu["ours"]
-                print(f"  {'':14s} CPU ms per update: {parts}  (tmrl/ours {ratio:.2f}x)")
+                ratios = ", ".join(f"tmrl/{side} {cpu['tmrl'] / ms:.2f}x" for side, ms in cpu.items() if side != "tmrl")
+                print(f"  {'':14s} CPU ms per update: {parts}  ({ratios})")
         first = results[(case, "ours", algo, modes[0])][0]["memory"]
         theirs = results.get((case, "tmrl", algo, modes[0]))
         print(f"  {'':14s} memories: ours = {first}" + (f", theirs = {theirs[0]['memory']}" if theirs else ""))
