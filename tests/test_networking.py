@@ -477,3 +477,19 @@ def test_run_worker_rejects_unknown_mode():
 
     with pytest.raises(UserError, match="train, expert, test"):
         run_worker({}, "play")
+
+
+def test_payload_order_drops_second_copies_and_keeps_late_payloads():
+    from tmrl.networking import PayloadOrder
+
+    order = PayloadOrder()
+    assert [order.accept(7, s) for s in (0, 1, 2)] == [True, True, True]
+    assert order.accept(7, 1) is False  # re-sent after a dropped connection
+    assert order.accept(7, 5) is True  # 3 and 4 are missing for now
+    assert order.lost == 2
+    assert order.accept(7, 4) is True  # re-queued by the relay, arrives late: still new
+    assert order.lost == 1
+    assert order.accept(7, 4) is False
+    assert order.accept(8, 1) is True  # another worker has its own numbering
+    assert order.accept(8, None) is True  # unnumbered payloads are not checked
+    assert order.duplicates == 2

@@ -48,6 +48,7 @@ __all__ = [
     "SpacesMismatchError",
     "Trainer",
     "TrainerInterface",
+    "PayloadOrder",
     "describe_spaces",
     "pack_buffer",
     "unpack_buffer",
@@ -633,6 +634,53 @@ class Server:
 # Trainer side
 
 
+class PayloadOrder:
+    """Per-worker bookkeeping of payload sequence numbers on the trainer side.
+
+    The transport delivers sample payloads at least once: after a dropped connection the relay
+    re-sends what the trainer did not acknowledge, possibly after newer payloads. A payload is
+    taken when its number is new for its worker, including a late one that fills a gap; a
+    second copy is refused. Gaps still open are counted as lost and logged.
+
+    Args:
+        max_gaps: how many open gaps are remembered per worker (the oldest are forgotten).
+    """
+
+    def __init__(self, max_gaps: int = 10_000):
+        self.max_gaps = max_gaps
+        self._last: dict[Any, int] = {}
+        self._gaps: dict[Any, dict[int, None]] = {}
+        self.lost = 0
+        self.duplicates = 0
+
+    def accept(self, src: Any, seq: Any) -> bool:
+        """Whether payload ``seq`` of worker ``src`` should be used (``False``: a duplicate)."""
+        if not isinstance(seq, int):
+            return True  # a peer that does not number its payloads: nothing to check
+        last = self._last.get(src)
+        gaps = self._gaps.setdefault(src, {})
+        if last is None or seq == last + 1:
+            self._last[src] = seq
+            return True
+        if seq > last + 1:
+            missing = seq - last - 1
+            for k in range(max(last + 1, seq - self.max_gaps), seq):
+                gaps[k] = None
+            while len(gaps) > self.max_gaps:
+                del gaps[next(iter(gaps))]
+            self.lost += missing
+            logger.warning("worker %s: %d sample payloads missing so far (%d in total)", src, missing, self.lost)
+            self._last[src] = seq
+            return True
+        if seq in gaps:  # late, but new
+            del gaps[seq]
+            self.lost -= 1
+            return True
+        self.duplicates += 1
+        logger.debug("worker %s: dropped a second copy of payload %d", src, seq)
+        return False
+
+
 class TrainerInterface:
     """The trainer's side of the network, as ``TrainingOffline.run_epoch`` sees it:
     :meth:`retrieve_buffer` and :meth:`broadcast_model`.
@@ -681,8 +729,7 @@ class TrainerInterface:
             **_link_options(),
         )
         self._stats: dict[int | None, dict[str, float]] = {}
-        self._last_seq: dict[int, int] = {}
-        self.lost_payloads = 0
+        self._order = PayloadOrder()
         self.rejected_payloads = 0
         self.received_samples = 0
         self.weights_version = 0
@@ -694,6 +741,16 @@ class TrainerInterface:
         )
         self._watcher.start()
         logger.info("trainer connecting to the server at %s", self.server_ip)
+
+    @property
+    def lost_payloads(self) -> int:
+        """Sample payloads that some worker sent and that never arrived (so far)."""
+        return self._order.lost
+
+    @property
+    def duplicate_payloads(self) -> int:
+        """Second copies of payloads, dropped (the transport delivers at least once)."""
+        return self._order.duplicates
 
     @property
     def connected(self) -> bool:
@@ -733,18 +790,8 @@ class TrainerInterface:
                 self.rejected_payloads += 1
                 logger.warning("dropped a payload from the server: %s", err)
                 continue
-            src, seq = payload["src"], payload.get("seq")
-            if isinstance(seq, int):
-                last = self._last_seq.get(src)
-                if last is not None and seq > last + 1:
-                    self.lost_payloads += seq - last - 1
-                    logger.warning(
-                        "worker %d: %d sample payloads never arrived (%d in total)",
-                        src,
-                        seq - last - 1,
-                        self.lost_payloads,
-                    )
-                self._last_seq[src] = seq
+            if not self._order.accept(payload["src"], payload.get("seq")):
+                continue  # a second copy of a payload already taken (at-least-once delivery)
             for key, values in buf.stats.items():
                 self._stats.setdefault(key, {}).update(values)
             res += buf
