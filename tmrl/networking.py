@@ -43,12 +43,12 @@ from tmrl.errors import UserError
 
 __all__ = [
     "Buffer",
+    "PayloadOrder",
     "RolloutWorker",
     "Server",
     "SpacesMismatchError",
     "Trainer",
     "TrainerInterface",
-    "PayloadOrder",
     "describe_spaces",
     "pack_buffer",
     "unpack_buffer",
@@ -634,6 +634,34 @@ class Server:
 # Trainer side
 
 
+def _make_link(
+    link_cls: Any,
+    server_ip: str,
+    server_port: int | None,
+    password: str | None,
+    local_port: int | None,
+    header_size: int | None,
+    security: str | None,
+    keys_dir: str | os.PathLike[str] | None,
+    hostname: str | None,
+) -> Any:
+    """A transport link (``WorkerLink`` or ``TrainerLink``) with every unset argument taken from
+    the config, as the worker and the trainer both need."""
+    security = _cfg_keep_none("SECURITY", security, "TLS")
+    keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
+    return link_cls(
+        server_ip,
+        int(_cfg("PORT", server_port, 55555)),
+        _cfg("PASSWORD", password, ""),
+        local_port=local_port,
+        header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
+        security=security,
+        keys_dir=str(keys_dir) if keys_dir is not None else None,
+        hostname=_cfg("HOSTNAME", hostname, "default"),
+        **_link_options(),
+    )
+
+
 class PayloadOrder:
     """Per-worker bookkeeping of payload sequence numbers on the trainer side.
 
@@ -669,7 +697,9 @@ class PayloadOrder:
             while len(gaps) > self.max_gaps:
                 del gaps[next(iter(gaps))]
             self.lost += missing
-            logger.warning("worker %s: %d sample payloads missing so far (%d in total)", src, missing, self.lost)
+            logger.warning(
+                "worker %s: %d sample payloads missing so far (%d in total)", src, missing, self.lost
+            )
             self._last[src] = seq
             return True
         if seq in gaps:  # late, but new
@@ -715,18 +745,16 @@ class TrainerInterface:
         self.model_path = Path(_cfg("MODEL_PATH_TRAINER", model_path, "model_trainer.tmod"))
         self.server_ip = _cfg("SERVER_IP_FOR_TRAINER", server_ip, "127.0.0.1")
         self.maxlen = int(_cfg("BUFFERS_MAXLEN", None, 500_000))
-        security = _cfg_keep_none("SECURITY", security, "TLS")
-        keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
-        self._link = TrainerLink(
+        self._link = _make_link(
+            TrainerLink,
             self.server_ip,
-            int(_cfg("PORT", server_port, 55555)),
-            _cfg("PASSWORD", password, ""),
-            local_port=local_com_port,
-            header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
-            security=security,
-            keys_dir=str(keys_dir) if keys_dir is not None else None,
-            hostname=_cfg("HOSTNAME", hostname, "default"),
-            **_link_options(),
+            server_port,
+            password,
+            local_com_port,
+            header_size,
+            security,
+            keys_dir,
+            hostname,
         )
         self._stats: dict[int | None, dict[str, float]] = {}
         self._order = PayloadOrder()
@@ -1115,18 +1143,16 @@ class RolloutWorker:
         if not standalone:
             from tmrl.transport import WorkerLink
 
-            security = _cfg_keep_none("SECURITY", security, "TLS")
-            keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
-            self._link = WorkerLink(
+            self._link = _make_link(
+                WorkerLink,
                 self.server_ip,
-                int(_cfg("PORT", server_port, 55555)),
-                _cfg("PASSWORD", password, ""),
-                local_port=local_port,
-                header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
-                security=security,
-                keys_dir=str(keys_dir) if keys_dir is not None else None,
-                hostname=_cfg("HOSTNAME", hostname, "default"),
-                **_link_options(),
+                server_port,
+                password,
+                local_port,
+                header_size,
+                security,
+                keys_dir,
+                hostname,
             )
             logger.info("worker %d connecting to the server at %s", self.source_id, self.server_ip)
 
