@@ -201,6 +201,9 @@ def test_generated_files_are_up_to_date_and_valid():
             loader.load_config(REPO / rel)
     lidar = loader.load_config(REPO / "config" / "config_tm20lidar.json")
     assert lidar["ENV"]["RTGYM_INTERFACE"] == "TM20LIDAR" and lidar["ENV"]["WINDOW_WIDTH"] == 958
+    for name in ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL"):
+        sim = loader.load_config(REPO / "config" / f"config_{name.lower()}.json")
+        assert sim["ENV"]["RTGYM_INTERFACE"] == name and sim["ENV"]["SIM_FAST_MODE"] is True
 
 
 def test_config_reference_doc_is_generated_from_schema():
@@ -502,14 +505,32 @@ def test_config_constants_bad_config_is_a_config_error(_isolated_data_folder):
     assert out.stdout.startswith("CE ") and 'PORT must be an integer from 1 to 65535, got "x"' in out.stdout
 
 
-def test_config_objects_on_an_interface_not_available_is_a_user_error():
+def test_config_objects_refuses_an_unknown_interface_keyword_in_one_line():
     out = run_python(
-        "from tmrl.errors import UserError\n"
-        "try:\n    import tmrl.config.config_objects\nexcept UserError as e:\n    print('UE', e)\n",
-        {loader.OVERRIDE_ENV: '{"ENV": {"RTGYM_INTERFACE": "TM20FULL"}}'},
+        "from tmrl.config.loader import ConfigError\n"
+        "try:\n    import tmrl.config.config_objects\nexcept ConfigError as e:\n    print('CE', e)\n",
+        {loader.OVERRIDE_ENV: '{"ENV": {"RTGYM_INTERFACE": "DRONE", "RTGYM_CONFIG": {"interface_kwargs": {"x": 1}}}}'},
     )
     assert out.returncode == 0, out.stderr
-    assert out.stdout.startswith("UE ") and "not available yet" in out.stdout
+    assert out.stdout.startswith("CE ") and "interface_kwargs.x" in out.stdout and out.stdout.count("\n") == 1
+
+
+@pytest.mark.parametrize("name", ["SIMLIDAR", "SIMFULL", "TM20LIDARPROGRESS"])
+def test_driving_interfaces_need_the_action_buffer_in_observations(name):
+    with pytest.raises(ConfigError, match="ENV.RTGYM_CONFIG.act_in_obs must be true"):
+        loader.validate({"ENV": {"RTGYM_INTERFACE": name, "RTGYM_CONFIG": {"act_in_obs": False}}})
+    assert loader.validate({"ENV": {"RTGYM_INTERFACE": "DRONE", "RTGYM_CONFIG": {"act_in_obs": False}}})
+
+
+def test_simfull_needs_grayscale_images():
+    with pytest.raises(ConfigError, match="ENV.IMG_GRAYSCALE must be true"):
+        loader.validate({"ENV": {"RTGYM_INTERFACE": "SIMFULL", "IMG_GRAYSCALE": False}})
+    assert loader.validate({"ENV": {"RTGYM_INTERFACE": "TM20FULL", "IMG_GRAYSCALE": False}})
+
+
+def test_sim_fast_mode_defaults_to_true():
+    assert loader.default_config()["ENV"]["SIM_FAST_MODE"] is True
+    assert loader.validate({"ENV": {"SIM_FAST_MODE": False}})["ENV"]["SIM_FAST_MODE"] is False
 
 
 def _modules_present(*names: str) -> bool:

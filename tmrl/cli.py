@@ -12,7 +12,9 @@ flag                        calls
 ``--worker``                ``tmrl.roles.run_worker(cfg, "train")``
 ``--expert``                ``tmrl.roles.run_worker(cfg, "expert")``
 ``--test``                  ``tmrl.roles.run_worker(cfg, "test")``
-``--benchmark``             ``tmrl.roles.run_benchmark(cfg)``
+``--benchmark``             ``tmrl.roles.run_benchmark(cfg)`` (SIM* interfaces: in real time,
+                            ``ENV.SIM_FAST_MODE`` off); ``tmrl.tm.tools.benchmark(cfg, steps=500)``
+                            for TM20* interfaces
 ``--demo [ARGS...]``        ``tmrl.sim.demo.main(argv)`` (the arguments after ``--demo``)
 ``--check-environment``     ``tmrl.tm.tools.check_environment(cfg)``
                             (``tmrl.sim.tools.check_environment(cfg)`` for SIM* interfaces)
@@ -46,7 +48,7 @@ from typing import Any
 from tmrl.config.schema import PASSWORD_PLACEHOLDER
 from tmrl.errors import UserError
 
-__all__ = ["HOOKS", "SIM_HOOKS", "build_parser", "main"]
+__all__ = ["HOOKS", "SIM_HOOKS", "TM_HOOKS", "build_parser", "main"]
 
 logger = logging.getLogger(__name__)
 
@@ -73,6 +75,14 @@ HOOKS: dict[str, tuple[str, str]] = {
 SIM_HOOKS: dict[str, tuple[str, str]] = {
     "check_environment": ("tmrl.sim.tools", "check_environment"),
 }
+
+#: Replacements of :data:`HOOKS` when ``ENV.RTGYM_INTERFACE`` is one of TrackMania's.
+TM_HOOKS: dict[str, tuple[str, str]] = {
+    "benchmark": ("tmrl.tm.tools", "benchmark"),
+}
+
+#: Steps of ``--benchmark`` in TrackMania.
+TM_BENCHMARK_STEPS = 500
 
 _SECRET_KEYS = ("PASSWORD", "WANDB_KEY")
 
@@ -166,7 +176,11 @@ class _NotLanded(UserError):
 
 
 def _resolve_hook(command: str, flag: str, interface: str | None = None) -> Callable[..., Any]:
-    table = SIM_HOOKS if interface is not None and interface.startswith("SIM") else {}
+    table: dict[str, tuple[str, str]] = {}
+    if interface is not None and interface.startswith("SIM"):
+        table = SIM_HOOKS
+    elif interface is not None and interface.startswith("TM20"):
+        table = TM_HOOKS
     module_name, func_name = table.get(command) or HOOKS[command]
     try:
         module = importlib.import_module(module_name)
@@ -258,8 +272,7 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
     if command == "install":
         return _install()
     if command == "print_config":
-        print(json.dumps(_hidden(loader.load_config()), indent=2))
-        return 0
+        return _print_quietly(json.dumps(_hidden(loader.load_config()), indent=2))
 
     flag = _flag(command)
     if command == "demo":
@@ -275,6 +288,9 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
     if command == "benchmark":
         # Through the override, so that modules reading config_constants see it too.
         loader.set_override_env({"ENV": {"RTGYM_CONFIG": {"benchmark": True}}}, source="--benchmark")
+        if loader.load_config()["ENV"]["RTGYM_INTERFACE"].startswith("SIM"):
+            # The benchmark times the real-time clock: the fast simulator has none.
+            loader.set_override_env({"ENV": {"SIM_FAST_MODE": False}}, source="--benchmark")
     cfg = loader.load_config()  # a configuration mistake is reported before anything is created
     hook = _resolve_hook(command, flag, cfg["ENV"]["RTGYM_INTERFACE"])
     loader.ensure_data_folder()
@@ -290,9 +306,27 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
         result = hook(cfg, {"worker": "train", "expert": "expert", "test": "test"}[command])
     elif command == "record_reward":
         result = hook(cfg, use_keyboard=args.use_keyboard)
+    elif command == "benchmark" and cfg["ENV"]["RTGYM_INTERFACE"].startswith("TM20"):
+        result = hook(cfg, steps=TM_BENCHMARK_STEPS)
     else:
         result = hook(cfg)
     return int(result or 0)
+
+
+def _print_quietly(text: str) -> int:
+    """Print ``text``; a reader that stops early (``| head``) ends the command quietly, with
+    code 0, instead of a BrokenPipeError traceback."""
+    try:
+        print(text)
+        sys.stdout.flush()
+    except BrokenPipeError:
+        # Point stdout at /dev/null so that the interpreter's final flush does not fail again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, sys.stdout.fileno())
+        finally:
+            os.close(devnull)
+    return 0
 
 
 def _check_combinations(parser: argparse.ArgumentParser, args: argparse.Namespace, extra: list[str]) -> None:

@@ -81,6 +81,7 @@ LINUX_Y_OFFSET: int = ENV_CONFIG["LINUX_Y_OFFSET"]
 IMG_SCALE_CHECK_ENV: float = ENV_CONFIG["IMG_SCALE_CHECK_ENV"]
 GYM_ID: str = ENV_CONFIG["GYM_ID"]
 GYM_KWARGS: dict[str, Any] = ENV_CONFIG["GYM_KWARGS"]
+SIM_FAST_MODE: bool = ENV_CONFIG["SIM_FAST_MODE"]
 
 # --- algorithm -----------------------------------------------------------------------------------
 

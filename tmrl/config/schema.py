@@ -542,6 +542,8 @@ _ENV = Section(
                                       min_open=True),
         "GYM_ID": Str("Pendulum-v1", "Gymnasium id used when RTGYM_INTERFACE is GYM"),
         "GYM_KWARGS": AnyDict({}, "keyword arguments of gymnasium.make when RTGYM_INTERFACE is GYM"),
+        "SIM_FAST_MODE": Bool(True, "SIM* interfaces: step the simulator as fast as the CPU allows (false: in real "
+                                    "time through tmrl.realtime, like the game)"),
         "RTGYM_CONFIG": _RTGYM,
         "REWARD_CONFIG": _REWARD,
     },
@@ -626,7 +628,20 @@ def check_consistency(cfg: Mapping[str, Any]) -> None:
             f"ALG.REDQ_M must be at most ALG.REDQ_N ({alg['REDQ_N']}), got {alg['REDQ_M']}",
         )
     env = cfg["ENV"]
-    if env["RTGYM_INTERFACE"] == "GYM" and not env["GYM_ID"].strip():
+    name = env["RTGYM_INTERFACE"]
+    if name.startswith(("SIM", "TM20")) and not env["RTGYM_CONFIG"]["act_in_obs"]:
+        raise SchemaViolation(
+            "ENV.RTGYM_CONFIG.act_in_obs",
+            f"ENV.RTGYM_CONFIG.act_in_obs must be true when ENV.RTGYM_INTERFACE is {show(name)} (its replay "
+            "memory rebuilds the action buffer of the observations), got false",
+        )
+    if name == "SIMFULL" and not env["IMG_GRAYSCALE"]:
+        raise SchemaViolation(
+            "ENV.IMG_GRAYSCALE",
+            'ENV.IMG_GRAYSCALE must be true when ENV.RTGYM_INTERFACE is "SIMFULL" (the simulator renders '
+            "grayscale images), got false",
+        )
+    if name == "GYM" and not env["GYM_ID"].strip():
         raise SchemaViolation(
             "ENV.GYM_ID",
             'ENV.GYM_ID must name a Gymnasium environment (e.g. "Pendulum-v1") when ENV.RTGYM_INTERFACE is '
@@ -666,6 +681,40 @@ _GENERIC_ALG: dict[str, Any] = {
     "BETAS_CRITIC": [0.9, 0.999],
 }
 
+# The simulator's files: the demo's settings (tmrl.sim.demo.DEMO_SETTINGS), under which a server,
+# a trainer and a worker on one machine learn to drive the default track within minutes on a CPU.
+_SIM_TRAINING: dict[str, Any] = {
+    **_GENERIC_TRAINING,
+    "RW_MAX_SAMPLES_PER_EPISODE": 1000,
+    "MAX_EPOCHS": 10000,
+    "ROUNDS_PER_EPOCH": 10,
+    "TRAINING_STEPS_PER_ROUND": 200,
+    "UPDATE_MODEL_INTERVAL": 20,
+    "UPDATE_BUFFER_INTERVAL": 20,
+    "MEMORY_SIZE": 200000,
+}
+_SIM_RTGYM: dict[str, Any] = {
+    "time_step_duration": 0.05,
+    "start_obs_capture": 0.04,
+    "time_step_timeout_factor": 1.0,
+    "act_buf_len": 2,
+    "benchmark": False,
+    "wait_on_done": True,
+    "ep_max_length": 1000,
+    "interface_kwargs": {"track": "classic"},
+}
+
+
+def _sim_example(interface: str, **env: Any) -> dict[str, Any]:
+    return {
+        "RUN_NAME": f"{interface.lower()}_sac",
+        **_SIM_TRAINING,
+        "ALG": _GENERIC_ALG,
+        "ENV": {"RTGYM_INTERFACE": interface, "SIM_FAST_MODE": True, "IMG_HIST_LEN": 4, **env,
+                "RTGYM_CONFIG": _SIM_RTGYM},
+    }
+
+
 EXAMPLES: dict[str, dict[str, Any]] = {
     "config_tm20lidar.json": {
         "RUN_NAME": "SAC_4_LIDAR_pretrained",
@@ -687,6 +736,9 @@ EXAMPLES: dict[str, dict[str, Any]] = {
                              "wait_on_done": False, "ep_max_length": 100, "interface_kwargs": {}},
         },
     },
+    "config_simlidar.json": _sim_example("SIMLIDAR"),
+    "config_simlidarprogress.json": _sim_example("SIMLIDARPROGRESS"),
+    "config_simfull.json": _sim_example("SIMFULL", IMG_WIDTH=64, IMG_HEIGHT=64, IMG_GRAYSCALE=True),
 }
 """Example files shipped beside the default ``config/config.json``: the defaults with these keys
 changed (starting points: copy one over your ``config.json``)."""
