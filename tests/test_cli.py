@@ -263,7 +263,8 @@ def test_worker_modes_and_exit_codes(hooked, flag, mode, code):
 
 
 def test_benchmark_turns_on_rtgym_benchmark(hooked):
-    out = tmrl(hooked, "--benchmark", code=RUN_WITH_HOOKS)
+    # GYM: the TrackMania interfaces route --benchmark to tmrl.tm.tools (test_config_objects.py)
+    out = tmrl(hooked, "--benchmark", "-d", '{"ENV": {"RTGYM_INTERFACE": "GYM"}}', code=RUN_WITH_HOOKS)
     assert out.returncode == 0, out.stderr
     assert hook_output(out) == {"benchmark": True}
 
