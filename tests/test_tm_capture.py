@@ -4,13 +4,13 @@ titled "Trackmania", painted with a known image, on an Xvfb server started by th
 from __future__ import annotations
 
 import os
-import select
 import shutil
 import subprocess
 import time
 
 import numpy as np
 import pytest
+from xvfb_support import xvfb_display
 
 from tmrl.tm.capture import (
     CaptureUnavailable,
@@ -38,37 +38,8 @@ def known_image(w: int = W, h: int = H) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def xvfb():
-    if not shutil.which("Xvfb"):
-        pytest.skip("Xvfb is not installed (apt-get install xvfb): cannot test capture without a display")
-    pytest.importorskip("Xlib", reason="python-xlib is not installed (pip install python-xlib)")
-    pytest.importorskip("mss", reason="mss is not installed (pip install mss)")
-    r, w = os.pipe()
-    proc = subprocess.Popen(
-        ["Xvfb", "-displayfd", str(w), "-screen", "0", "640x480x24", "-nolisten", "tcp", "-noreset"],
-        pass_fds=(w,),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    os.close(w)
-    # Xvfb writes "<display number>\n" to the fd once it accepts connections: that is the event.
-    # The read end stays open until Xvfb ends: closing it early makes Xvfb die of EPIPE.
-    line = b""
-    deadline = time.monotonic() + 20
-    while not line.endswith(b"\n") and time.monotonic() < deadline:
-        ready, _, _ = select.select([r], [], [], max(deadline - time.monotonic(), 0))
-        chunk = os.read(r, 64) if ready else b""
-        if not chunk:
-            break
-        line += chunk
-    if not line.endswith(b"\n"):
-        proc.kill()
-        proc.wait()
-        os.close(r)
-        pytest.skip("Xvfb did not start within 20 s on this machine")
-    yield f":{line.decode().strip()}"
-    proc.terminate()
-    proc.wait(timeout=10)
-    os.close(r)
+    with xvfb_display() as name:
+        yield name
 
 
 class PaintedWindow:
@@ -227,7 +198,6 @@ def test_numpy_resize_agrees_with_opencv_when_installed():
 
 
 def test_importing_tmrl_tm_imports_no_optional_package():
-    import subprocess
     import sys
 
     code = (
@@ -242,7 +212,6 @@ def test_importing_tmrl_tm_imports_no_optional_package():
 
 
 def test_generic_pipeline_does_not_import_tmrl_tm():
-    import subprocess
     import sys
 
     code = (

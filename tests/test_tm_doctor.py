@@ -6,16 +6,14 @@ from __future__ import annotations
 
 import io
 import os
-import select
-import shutil
 import socket
 import subprocess
 import sys
 import threading
-import time
 
 import numpy as np
 import pytest
+from xvfb_support import xvfb_display
 
 from tmrl.tm import doctor
 from tmrl.tm.doctor import CheckResult, format_report, run_checks, run_doctor
@@ -191,59 +189,31 @@ def test_openplanet_check_passes_against_the_fake_plugin(plugin):
 
 @pytest.fixture
 def xvfb_window(monkeypatch):
-    if not shutil.which("Xvfb"):
-        pytest.skip("Xvfb is not installed (apt-get install xvfb)")
-    pytest.importorskip("Xlib", reason="python-xlib is not installed")
-    pytest.importorskip("mss", reason="mss is not installed")
-    from Xlib import X, display
+    with xvfb_display() as name:
+        from Xlib import X, display
 
-    r, w = os.pipe()
-    proc = subprocess.Popen(
-        ["Xvfb", "-displayfd", str(w), "-screen", "0", "640x480x24", "-nolisten", "tcp", "-noreset"],
-        pass_fds=(w,),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    os.close(w)
-    line = b""
-    deadline = time.monotonic() + 20
-    while not line.endswith(b"\n") and time.monotonic() < deadline:
-        ready, _, _ = select.select([r], [], [], max(deadline - time.monotonic(), 0))
-        chunk = os.read(r, 64) if ready else b""
-        if not chunk:
-            break
-        line += chunk
-    if not line.endswith(b"\n"):
-        proc.kill()
-        proc.wait()
-        os.close(r)
-        pytest.skip("Xvfb did not start within 20 s")
-    name = f":{line.decode().strip()}"
-    monkeypatch.setenv("DISPLAY", name)
-    d = display.Display(name)
-    screen = d.screen()
-    win = screen.root.create_window(
-        30,
-        40,
-        256,
-        128,
-        0,
-        screen.root_depth,
-        X.InputOutput,
-        X.CopyFromParent,
-        background_pixel=0x336699,
-        event_mask=X.StructureNotifyMask,
-    )
-    win.set_wm_name("Trackmania")
-    win.map()
-    while not (lambda ev: ev.type == X.MapNotify)(d.next_event()):
-        pass
-    d.sync()
-    yield name
-    d.close()
-    proc.terminate()
-    proc.wait(timeout=10)
-    os.close(r)
+        monkeypatch.setenv("DISPLAY", name)
+        d = display.Display(name)
+        screen = d.screen()
+        win = screen.root.create_window(
+            30,
+            40,
+            256,
+            128,
+            0,
+            screen.root_depth,
+            X.InputOutput,
+            X.CopyFromParent,
+            background_pixel=0x336699,
+            event_mask=X.StructureNotifyMask,
+        )
+        win.set_wm_name("Trackmania")
+        win.map()
+        while not (lambda ev: ev.type == X.MapNotify)(d.next_event()):
+            pass
+        d.sync()
+        yield name
+        d.close()
 
 
 def test_window_and_capture_checks_pass_on_xvfb(xvfb_window, plugin, port_factory):

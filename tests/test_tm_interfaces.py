@@ -4,17 +4,13 @@ code, and a gamepad backend that records calls."""
 
 from __future__ import annotations
 
-import os
-import select
-import shutil
 import socket
-import subprocess
 import threading
-import time
 import warnings
 
 import numpy as np
 import pytest
+from xvfb_support import xvfb_display
 
 from tmrl.errors import UserError
 from tmrl.tm.capture import preprocess
@@ -82,35 +78,8 @@ def client(plugin):
 
 @pytest.fixture(scope="module")
 def xvfb():
-    if not shutil.which("Xvfb"):
-        pytest.skip("Xvfb is not installed (apt-get install xvfb): the capture needs a display")
-    pytest.importorskip("Xlib", reason="python-xlib is not installed")
-    pytest.importorskip("mss", reason="mss is not installed")
-    r, w = os.pipe()
-    proc = subprocess.Popen(
-        ["Xvfb", "-displayfd", str(w), "-screen", "0", "640x480x24", "-nolisten", "tcp", "-noreset"],
-        pass_fds=(w,),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    os.close(w)
-    line = b""
-    deadline = time.monotonic() + 20
-    while not line.endswith(b"\n") and time.monotonic() < deadline:
-        ready, _, _ = select.select([r], [], [], max(deadline - time.monotonic(), 0))
-        chunk = os.read(r, 64) if ready else b""
-        if not chunk:
-            break
-        line += chunk
-    if not line.endswith(b"\n"):
-        proc.kill()
-        proc.wait()
-        os.close(r)
-        pytest.skip("Xvfb did not start within 20 s")
-    yield f":{line.decode().strip()}"
-    proc.terminate()
-    proc.wait(timeout=10)
-    os.close(r)
+    with xvfb_display() as name:
+        yield name
 
 
 def paint_window(display_name, image, title="Trackmania"):

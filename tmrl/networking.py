@@ -113,6 +113,15 @@ def _cfg_keep_none(name: str, value: Any, fallback: Any = None) -> Any:
 _STAT_NAMES = ("stat_train_return", "stat_test_return", "stat_train_steps", "stat_test_steps")
 
 
+def _stat_property(name: str, cast: Callable[[Any], Any], what: str) -> property:
+    """A ``Buffer`` statistic: set for the buffer's own worker, read as the mean over workers."""
+    return property(
+        lambda self: self._get_stat(name),
+        lambda self, v: self._set_stat(name, cast(v)),
+        doc=f"{what} (mean over sources).",
+    )
+
+
 class Buffer:
     """Samples on their way from a worker to the trainer, with episode statistics.
 
@@ -156,26 +165,10 @@ class Buffer:
     def _set_stat(self, name: str, value: float) -> None:
         self.stats.setdefault(self.source_id, {})[name] = value
 
-    stat_train_return = property(
-        lambda self: self._get_stat("stat_train_return"),
-        lambda self, v: self._set_stat("stat_train_return", float(v)),
-        doc="Return of the latest train episode (mean over sources).",
-    )
-    stat_test_return = property(
-        lambda self: self._get_stat("stat_test_return"),
-        lambda self, v: self._set_stat("stat_test_return", float(v)),
-        doc="Return of the latest test episode (mean over sources).",
-    )
-    stat_train_steps = property(
-        lambda self: self._get_stat("stat_train_steps"),
-        lambda self, v: self._set_stat("stat_train_steps", int(v)),
-        doc="Length of the latest train episode (mean over sources).",
-    )
-    stat_test_steps = property(
-        lambda self: self._get_stat("stat_test_steps"),
-        lambda self, v: self._set_stat("stat_test_steps", int(v)),
-        doc="Length of the latest test episode (mean over sources).",
-    )
+    stat_train_return = _stat_property("stat_train_return", float, "Return of the latest train episode")
+    stat_test_return = _stat_property("stat_test_return", float, "Return of the latest test episode")
+    stat_train_steps = _stat_property("stat_train_steps", int, "Length of the latest train episode")
+    stat_test_steps = _stat_property("stat_test_steps", int, "Length of the latest test episode")
 
     # --- samples ---------------------------------------------------------------------------------
 
