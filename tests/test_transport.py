@@ -345,15 +345,17 @@ def test_links_need_no_local_ports_and_survive_a_relay_restart(net):
         _wait_for(lambda w=w, seen=seen: seen.append(w.latest_weights()) or b"w2" in seen, what="w2")
 
 
-def test_relay_bounds_pending_batches_and_counts_drops(net, caplog):
-    net.relay(max_consumables=3)
+def test_relay_holds_workers_back_instead_of_dropping_when_the_trainer_lags(net, caplog):
+    caplog.set_level(logging.INFO, logger="tmrl.transport")
+    net.relay(max_consumables=4)  # the relay stops reading workers at 3 pending batches
     worker = net.worker()
-    for i in range(10):
+    assert worker.wait_connected(30)
+    for i in range(20):
         worker.send_samples(i)
-    worker.close()  # flushes: every batch reached the relay before the close completes
-    _wait_for(lambda: "(7 dropped so far" in _log_text(caplog), what="the drop count")
+    _wait_for(lambda: "workers wait until it catches up" in _log_text(caplog), what="the back-pressure log line")
     trainer = net.trainer()
-    assert _receive(trainer, 3) == [7, 8, 9]  # oldest dropped, newest kept
+    assert _receive(trainer, 20) == list(range(20))  # nothing dropped, in order
+    assert "dropped" not in _log_text(caplog)
 
 
 def test_trainer_link_memory_is_bounded_by_its_credit(net):

@@ -214,6 +214,16 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self.connections: set[Any] = set()
             self._refusal_log: dict[tuple[str, str], float] = {}
             self.closing = False
+            # Back-pressure: worker connections whose reading is paused while the samples
+            # waiting for the trainer are above the high-water mark (3/4 of the bounds); read
+            # again once they are back under the low-water mark (1/2).
+            self.held: set[Any] = set()
+            self._release_scheduled = False
+            self._last_hold_log = -math.inf
+            self.high_count = max(1, (3 * max_consumables) // 4)
+            self.low_count = max_consumables // 2
+            self.high_bytes = (3 * max_consumable_bytes) // 4
+            self.low_bytes = max_consumable_bytes // 2
 
         def log_refusal(self, peer: str, line: str, reason: str) -> None:
             # A refused link retries every few seconds: one warning per host and reason a minute.
@@ -311,6 +321,52 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 while pending[cid] > 0 and queue:
                     pending[cid] -= 1
                     self.to_clients[cid].deliver(group, *queue.popleft())
+            self.maybe_release()
+
+        def backlog(self) -> int:
+            return len(self.group_info["trainers"]["to_consume"])
+
+        def hold(self, conn: Any) -> bool:
+            """Whether ``conn`` (a worker) must stop reading for now; pauses it if so."""
+            if conn.held:
+                return True
+            if "workers" not in conn._groups or (
+                self.backlog() < self.high_count and self.queued_bytes < self.high_bytes
+            ):
+                return False
+            conn.held = True
+            conn.transport.pauseProducing()
+            self.held.add(conn)
+            now = time.monotonic()
+            level = logging.INFO if now - self._last_hold_log > 60.0 else logging.DEBUG
+            if level == logging.INFO:
+                self._last_hold_log = now
+            log_relay.log(
+                level,
+                "the trainer is behind (%d sample batches waiting): workers wait until it catches up",
+                self.backlog(),
+            )
+            return True
+
+        def maybe_release(self) -> None:
+            if (
+                self.held
+                and not self._release_scheduled
+                and self.backlog() <= self.low_count
+                and self.queued_bytes <= self.low_bytes
+            ):
+                # Later, not here: reading frames again may add samples and dispatch them.
+                self._release_scheduled = True
+                reactor.callLater(0, self.release)
+
+        def release(self) -> None:
+            self._release_scheduled = False
+            held, self.held = self.held, set()
+            for conn in held:
+                conn.held = False
+                if conn._state not in (_KILLED, _CLOSED, "DEAD"):
+                    conn.transport.resumeProducing()
+                    conn.process_frames()
 
         def shutdown(self) -> None:
             if self.closing:
@@ -348,6 +404,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self._handshake_timer: Any = None
             self.stale: set[str] = set()
             self.unacked: dict[tuple, tuple[str, list[bytes]]] = {}
+            self.held = False  # reading paused by the relay's back-pressure
 
         def connectionMade(self) -> None:
             self._server.connections.add(self)
@@ -378,6 +435,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self._partial = None
             self._cancel_handshake_timer()
             self._server.connections.discard(self)
+            self._server.held.discard(self)
             self._server.maybe_stop()
 
         def _kill(self, reason: str) -> None:
@@ -395,8 +453,11 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             if self._state in (_KILLED, _CLOSED):
                 return
             self._reader.feed(data)
+            self.process_frames()
+
+        def process_frames(self) -> None:
             try:
-                while self._state not in (_KILLED, _CLOSED):
+                while self._state not in (_KILLED, _CLOSED) and not self._server.hold(self):
                     body = self._reader.next_frame()
                     if body is None:
                         break
@@ -553,6 +614,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     queue = info["to_consume"]
                     while queue:
                         self.deliver(g, *queue.popleft())
+                    self._server.maybe_release()
 
         def deliver(self, group: str, key: tuple, frames: list[bytes]) -> None:
             # Kept until the link acknowledges it: if this connection drops first, the object goes

@@ -40,8 +40,10 @@ class RelayServer:
             has no effect here.
         allow_plain_tcp: with ``security=None``, listen on every interface (otherwise only on
             127.0.0.1).
-        max_consumables: pending sample batches kept for the trainer; beyond it the oldest is
-            dropped and counted.
+        max_consumables: pending sample batches kept for the trainer. At 3/4 of it (or of
+            ``max_consumable_bytes``) the relay stops reading from workers, whose sends then
+            block, until the backlog is down to half; the oldest batch is dropped and counted
+            only if the bound is still reached.
         max_consumable_bytes: the same bound in bytes (all pending batches together).
         max_object_bytes: largest object (sum of its frames) accepted.
         start_timeout: seconds to wait for the relay process to start.
