@@ -148,17 +148,37 @@ def _trainer_interface(impl: str, port: int, workdir: Path):
 
 
 def role_sink(
-    impl: str, port: int, workdir: Path, warmup: float, duration: float, cost_us: float = 0.0
+    impl: str,
+    port: int,
+    workdir: Path,
+    warmup: float,
+    duration: float,
+    cost_us: float = 0.0,
+    into_memory: bool = False,
 ) -> None:
     """Trainer side of the throughput run: retrieve as fast as possible, count samples. With
     ``cost_us``, each retrieved sample then costs that many microseconds (a trainer that cannot
-    keep up with the workers), which shows where the backlog piles up."""
+    keep up with the workers), which shows where the backlog piles up. With ``into_memory``, each
+    retrieved buffer is also stored in the implementation's own replay memory (its
+    GenericTorchMemory, 1M samples), as its trainer does between training steps."""
     iface = _trainer_interface(impl, port, workdir)
+    memory = None
+    if into_memory:
+        if impl == "ours":
+            from tmrl.memory import GenericTorchMemory
+
+            memory = GenericTorchMemory(device="cpu", nb_steps=1, memory_size=1_000_000, batch_size=256)
+        else:
+            from tmrl.custom.custom_memories import GenericTorchMemory
+
+            memory = GenericTorchMemory(memory_size=1e6, batch_size=256, nb_steps=1, device="cpu")
     t_first = t_measure = None
     count, next_rss = 0, 0.0
     while True:
         buf = iface.retrieve_buffer()
         n = len(buf)
+        if memory is not None and n:
+            memory.append(buf)
         del buf
         if n and cost_us:
             time.sleep(n * cost_us * 1e-6)
@@ -372,12 +392,13 @@ def measure_throughput(
     duration: float,
     keep: bool,
     cost_us: float = 0.0,
+    into_memory: bool = False,
 ) -> dict:
     run = Run(impl, python, home)
     try:
         run.start("server")
         run.wait_listening()
-        sink = run.start("sink", str(warmup), str(duration), str(cost_us), pipe=True)
+        sink = run.start("sink", str(warmup), str(duration), str(cost_us), str(int(into_memory)), pipe=True)
         for _ in range(workers):
             run.start("worker")
         res: dict = {"rss": []}
@@ -448,6 +469,11 @@ def main() -> None:
         default=0.0,
         help="microseconds of work per retrieved sample at the trainer (a trainer slower than the workers)",
     )
+    ap.add_argument(
+        "--sink-memory",
+        action="store_true",
+        help="the trainer side also stores every retrieved buffer in its replay memory (GenericTorchMemory)",
+    )
     ap.add_argument("--python", default=sys.executable)
     ap.add_argument("--anchor-python", default="/tmp/tmrl-anchor/venv/bin/python")
     ap.add_argument("--anchor-home", default="/tmp/tmrl-anchor/home")
@@ -464,7 +490,9 @@ def main() -> None:
             if role == "server":
                 role_server(args.impl, args.port)
             elif role == "sink":
-                role_sink(args.impl, args.port, wd, float(rest[0]), float(rest[1]), float(rest[2]))
+                role_sink(
+                    args.impl, args.port, wd, float(rest[0]), float(rest[1]), float(rest[2]), rest[3] == "1"
+                )
             elif role == "worker":
                 role_worker(args.impl, args.port, wd)
             elif role == "bytes":
@@ -489,7 +517,7 @@ def main() -> None:
         print(f"{impl}: {r['bytes']:.1f} bytes/sample", flush=True)
         for k in [int(x) for x in args.workers.split(",")]:
             res = measure_throughput(
-                impl, python, home, k, args.warmup, args.duration, args.keep, args.sink_cost_us
+                impl, python, home, k, args.warmup, args.duration, args.keep, args.sink_cost_us, args.sink_memory
             )
             r[f"sps{k}"] = res.get("samples_per_s")
             r[f"rss{k}"] = res.get("rss_end")

@@ -296,9 +296,87 @@ def test_pack_roundtrip_non_tuple_samples_and_empty_buffer():
     assert len(_roundtrip(Buffer(maxlen=10))) == 0
 
 
+def _episode_buffer(src: int, n: int, offset: float) -> Buffer:
+    """Samples with a structured observation (a dict of an image and a tuple of a vector and a
+    float), ``None`` as the action after each reset, episodes of 7 steps, an info per sample."""
+    b = Buffer(maxlen=10_000)
+    b.source_id = src
+    for i in range(n):
+        k = offset + i
+        obs = {
+            "img": np.full((2, 3), i % 255, np.uint8),
+            "rest": (np.array([k, -k], np.float32), float(k)),
+        }
+        act = None if i % 7 == 0 else np.array([k / 10, 1.0], np.float32)
+        b.append_sample((act, obs, float(i), i % 7 == 6, False, {"i": i}))
+    return b
+
+
+def test_received_buffers_reach_the_memory_as_columns_and_store_the_same_as_tuples():
+    from tmrl.memory import GenericTorchMemory
+
+    sent = [_episode_buffer(3, 30, 0.0), _episode_buffer(4, 20, 100.0)]
+    received = Buffer(maxlen=10_000)
+    received.sources = []
+    for b in sent:
+        received += _roundtrip(b, src=b.source_id)
+    assert len(received) == 50 and received.sources == [3] * 30 + [4] * 20
+    cols = received.as_columns()
+    assert cols is not None and received._memory == []  # no tuple built so far
+    act, obs, rew, term, trunc = cols
+    assert act.shape == (50, 2) and not act[0].any() and act[1, 0] == pytest.approx(0.1)
+    assert obs["img"].shape == (50, 2, 3) and obs["rest"][0].shape == (50, 2)
+    assert rew.tolist() == [float(i) for i in range(30)] + [float(i) for i in range(20)]
+
+    fast, slow = (GenericTorchMemory(memory_size=40, batch_size=8) for _ in range(2))
+    fast.append_buffer(received)
+    assert received._memory == []  # the memory took the columns: still no tuples
+    reference = Buffer(maxlen=10_000)
+    reference.sources = []
+    for b in sent:
+        reference += b  # plain tuples: the per-sample path
+    slow.append_buffer(reference)
+    assert fast.total == slow.total == 50
+    for name, ring in slow.ring_arrays().items():
+        assert np.array_equal(fast.ring_arrays()[name], ring), name
+    assert fast.obs_spec == slow.obs_spec
+    assert np.array_equal(fast.valid_slots(), slow.valid_slots())
+    for slot in fast.valid_slots()[:5].tolist():
+        assert all(_same(x, y) for x, y in zip(fast.get_transition(slot)[:6], slow.get_transition(slot)[:6]))
+    # reading `memory` still gives every sample, in order, as tuples
+    assert [s[5]["i"] for s in received.memory] == list(range(30)) + list(range(20))
+
+
+def test_received_columns_mixed_with_local_samples_keep_their_order():
+    local = _episode_buffer(1, 3, 50.0)
+    received = _roundtrip(_episode_buffer(2, 4, 0.0), src=2)
+    received += Buffer(maxlen=10)  # merging nothing keeps the columns
+    assert received.as_columns() is not None
+    local += received
+    local.append_sample(_sample(99))
+    assert len(local) == 8 and local.as_columns() is None
+    assert [s[5].get("i", s[5].get("seq")) for s in local.memory] == [0, 1, 2, 0, 1, 2, 3, 99]
+    assert local.sources == [1, 1, 1, 2, 2, 2, 2, 1]
+
+
+def test_memory_reports_a_structure_change_in_received_columns():
+    from tmrl.memory import GenericTorchMemory
+
+    mem = GenericTorchMemory(memory_size=40, batch_size=8)
+    mem.append_buffer(_roundtrip(_episode_buffer(2, 8, 0.0), src=2))
+    other = Buffer(maxlen=10)
+    for i in range(3):
+        other.append_sample((np.zeros(2, np.float32), (np.zeros(2), 1.0), 0.0, False, False, {}))
+    with pytest.raises(UserError, match="changed structure"):
+        mem.append_buffer(_roundtrip(other, src=5))
+    assert mem.total == 8  # the good samples are still there
+
+
 @pytest.mark.parametrize(
     "payload",
     [
+        {"kind": "samples", "v": 1, "n": 1, "src": 1, "cols": [("T", [("A", np.zeros(3))])] * 6},
+        {"kind": "samples", "v": 1, "n": 2, "src": 1, "cols": [("N", np.array([True, False]), ("F", np.zeros(2)))] * 6},
         None,
         {"kind": "samples"},
         {"kind": "samples", "v": 1, "n": 2, "src": 1, "cols": [("R", [1])] * 6},

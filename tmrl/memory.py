@@ -458,6 +458,37 @@ def _columns(spec: list, objs: list[Any], out: list[list[Any]], path: str) -> No
         _columns(child, [o[i] for o in objs], out, f"{path}[{i}]")
 
 
+def _tree_leaves(spec: list, tree: Any, out: list[Any], path: str) -> None:
+    """Append the leaves of ``tree`` (one observation's structure) in ``spec``'s order; raise
+    the error of :func:`_columns` when the structure differs."""
+    kind = spec[0]
+    if kind == "leaf":
+        if isinstance(tree, (Mapping, tuple, list)):
+            raise UserError(
+                f"observation element {path} changed structure between samples (expected an array, "
+                f"got {type(tree).__name__}): observations must keep one structure"
+            )
+        out.append(tree)
+        return
+    if kind == "dict":
+        if not isinstance(tree, Mapping) or any(k not in tree for k in spec[1]):
+            raise UserError(
+                f"observation element {path} changed structure between samples (keys differ): "
+                "observations must keep one structure"
+            )
+        for key, child in zip(spec[1], spec[2]):
+            _tree_leaves(child, tree[key], out, f"{path}[{key!r}]")
+        return
+    children = spec[1]
+    if not isinstance(tree, (tuple, list)) or len(tree) != len(children):
+        raise UserError(
+            f"observation element {path} changed structure between samples (expected a sequence "
+            f"of {len(children)}, got {type(tree).__name__}): observations must keep one structure"
+        )
+    for i, child in enumerate(children):
+        _tree_leaves(child, tree[i], out, f"{path}[{i}]")
+
+
 def _unflatten(spec: list, leaves: Sequence[Any]) -> Any:
     kind = spec[0]
     if kind == "leaf":
@@ -634,21 +665,33 @@ class GenericTorchMemory(TorchMemory):
             UserError: a sample is not a 6-tuple, or observations/actions change structure, shape
                 or become non-numeric.
         """
-        samples = buffer.memory
-        n = len(samples)
-        if n == 0:
-            return
-        if not isinstance(samples[0], (tuple, list)) or len(samples[0]) != 6:
-            raise UserError(
-                "a sample must be (act, new_obs, rew, terminated, truncated, info): check that the "
-                "sample_compressor returns these six values"
-            )
+        # A buffer received from the network can hand its columns over as arrays (no tuple per
+        # sample); infos are kept only in CRC debug mode, which therefore reads the samples.
+        as_columns = getattr(buffer, "as_columns", None)
+        columns = as_columns() if self._infos is None and callable(as_columns) else None
+        if columns is not None:
+            acts, obs, rew, terminated, truncated = columns
+            n = len(rew)
+            rew = np.asarray(rew, dtype=np.float32)
+            terminated = np.asarray(terminated, dtype=bool)
+            truncated = np.asarray(truncated, dtype=bool)
+            samples = None
+        else:
+            samples = buffer.memory
+            n = len(samples)
+            if n == 0:
+                return
+            if not isinstance(samples[0], (tuple, list)) or len(samples[0]) != 6:
+                raise UserError(
+                    "a sample must be (act, new_obs, rew, terminated, truncated, info): check that the "
+                    "sample_compressor returns these six values"
+                )
+            acts = [s[0] for s in samples]
+            obs = [s[1] for s in samples]
+            rew = np.asarray([s[2] for s in samples], dtype=np.float32)
+            terminated = np.asarray([bool(s[3]) for s in samples], dtype=bool)
+            truncated = np.asarray([bool(s[4]) for s in samples], dtype=bool)
         sources = getattr(buffer, "sources", None)
-        acts = [s[0] for s in samples]
-        obs = [s[1] for s in samples]
-        rew = np.asarray([s[2] for s in samples], dtype=np.float32)
-        terminated = np.asarray([bool(s[3]) for s in samples], dtype=bool)
-        truncated = np.asarray([bool(s[4]) for s in samples], dtype=bool)
 
         # Stream bookkeeping: the prev pointer of each sample, per worker.
         counters = self.total + np.arange(n, dtype=np.int64)
@@ -679,8 +722,12 @@ class GenericTorchMemory(TorchMemory):
         # Only the newest `capacity` samples of an oversized buffer can be kept.
         keep = slice(max(0, n - self.memory_size), n)
         start = self.total + keep.start
-        obs_leaves = self._prepare_obs(obs[keep])
-        act_rows = self._prepare_actions(acts[keep])
+        if samples is None:
+            obs_leaves = self._obs_arrays(obs, keep)
+            act_rows = self._action_array(acts, keep)
+        else:
+            obs_leaves = self._prepare_obs(obs[keep])
+            act_rows = self._prepare_actions(acts[keep])
         for buf, rows in zip(self._obs, obs_leaves):
             self._ring_write(buf, start, rows)
         if act_rows is not None:
@@ -703,7 +750,10 @@ class GenericTorchMemory(TorchMemory):
         columns: list[list[Any]] = []
         _columns(spec, obs, columns, "obs")
         paths = _leaf_paths(spec)
-        arrays = [_stack(col, path) for col, path in zip(columns, paths)]
+        return self._check_obs([_stack(col, path) for col, path in zip(columns, paths)], spec)
+
+    def _check_obs(self, arrays: list[np.ndarray], spec: list) -> list[np.ndarray]:
+        paths = _leaf_paths(spec)
         if self._obs_spec is None:
             # Lazy allocation: shapes and dtypes come from the first sample.
             self._obs = [
@@ -719,6 +769,28 @@ class GenericTorchMemory(TorchMemory):
             if arr.dtype == object:
                 _storage_dtype(arr)
         return arrays
+
+    def _obs_arrays(self, tree: Any, keep: slice) -> list[np.ndarray]:
+        """:meth:`_prepare_obs` for observations already stacked leaf by leaf (``tree`` has the
+        structure of one observation, an array of all samples at each leaf)."""
+        spec = _make_spec(tree, [0]) if self._obs_spec is None else self._obs_spec
+        leaves: list[Any] = []
+        _tree_leaves(spec, tree, leaves, "obs")
+        return self._check_obs([leaf[keep] for leaf in leaves], spec)
+
+    def _action_array(self, act: np.ndarray | None, keep: slice) -> np.ndarray | None:
+        """:meth:`_prepare_actions` for actions already stacked (zeros where they were ``None``)."""
+        if act is None:
+            return None
+        act = act[keep]
+        if self._act is None:
+            self._act = np.zeros((self.memory_size, *act.shape[1:]), dtype=_storage_dtype(act))
+        if act.shape[1:] != self._act.shape[1:]:
+            raise UserError(
+                f"an action has shape {act.shape[1:]} but earlier actions had {self._act.shape[1:]}: "
+                "actions must keep one shape"
+            )
+        return act
 
     def _prepare_actions(self, acts: list[Any]) -> np.ndarray | None:
         first = next((a for a in acts if a is not None), None)

@@ -147,11 +147,77 @@ class Buffer:
         self.maxlen = int(_cfg("BUFFERS_MAXLEN", maxlen, 500_000))
         if self.maxlen <= 0:
             raise UserError(f"Buffer maxlen must be positive, got {self.maxlen}: set BUFFERS_MAXLEN > 0")
-        self.memory: list[Any] = []
+        self._memory: list[Any] = []
+        # Received payloads not yet turned into sample tuples, in order after `_memory`: each is
+        # (n, the six validated columns of unpack_buffer). See `memory` and `as_columns`.
+        self._chunks: list[tuple[int, list[Any]]] = []
+        self._pending = 0
         self.sources: list[int] | None = None
         self.stats: dict[int | None, dict[str, float]] = {}
         self.source_id: int | None = None
         self.dropped = 0
+
+    @property
+    def memory(self) -> list[Any]:
+        """The list of samples, oldest first (samples received from the network become tuples on
+        first access: a trainer whose memory reads :meth:`as_columns` never builds them)."""
+        if self._chunks:
+            self._materialize()
+        return self._memory
+
+    @memory.setter
+    def memory(self, value: list[Any]) -> None:
+        self._memory = value
+        self._chunks = []
+        self._pending = 0
+
+    def _materialize(self) -> None:
+        rows = self._memory
+        for n, cols in self._chunks:
+            rows += zip(*[_unpack_column(c, n) for c in cols])
+        self._chunks = []
+        self._pending = 0
+
+    def as_columns(self) -> tuple[Any, Any, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The samples as stacked arrays ``(act, obs, rew, terminated, truncated)``, without
+        building one tuple per sample, or ``None`` when they are not all in that form (then read
+        :attr:`memory`).
+
+        ``act`` is an array of shape ``(n, *action_shape)`` with zeros where a sample's action is
+        ``None``, or ``None`` when every action is ``None``; ``obs`` has the structure of one
+        observation (nested tuples, lists and dicts) with an array of shape ``(n, *leaf_shape)``
+        at each leaf; the three others are 1-D arrays. Infos are not part of it.
+        """
+        if self._memory or not self._chunks:
+            return None
+        parts = []
+        for n, cols in self._chunks:
+            part = _chunk_arrays(n, cols)
+            if part is None:
+                return None
+            parts.append(part)
+        if len(parts) == 1:
+            return parts[0]
+        act_parts = [p[0] for p in parts]
+        known = [a for a in act_parts if a is not None]
+        if not known:
+            act = None
+        else:
+            shape, dtype = known[0].shape[1:], known[0].dtype
+            if any(a.shape[1:] != shape or a.dtype != dtype for a in known):
+                return None
+            act = np.concatenate(
+                [np.zeros((len(p[2]), *shape), dtype) if a is None else a for a, p in zip(act_parts, parts)]
+            )
+        skeleton = _skeleton(parts[0][1])
+        if any(_skeleton(p[1]) != skeleton for p in parts[1:]):
+            return None
+        try:
+            obs = _tree_concat([p[1] for p in parts])
+        except ValueError:  # leaves of different shapes: let the memory report it
+            return None
+        rew, term, trunc = (np.concatenate([p[i] for p in parts]) for i in (2, 3, 4))
+        return act, obs, rew, term, trunc
 
     # --- statistics, kept per source -------------------------------------------------------------
 
@@ -189,10 +255,12 @@ class Buffer:
 
     def append_sample(self, sample: Any) -> None:
         """Append one sample ``(act, new_obs, rew, terminated, truncated, info)``."""
-        self.memory.append(sample)
+        if self._chunks:
+            self._materialize()
+        self._memory.append(sample)
         if self.sources is not None:
             self.sources.append(-1 if self.source_id is None else self.source_id)
-        if len(self.memory) > self.maxlen:
+        if len(self._memory) > self.maxlen:
             self.clip_to_maxlen()
 
     def clear(self) -> None:
@@ -201,32 +269,36 @@ class Buffer:
         self.sources = None
 
     def __len__(self) -> int:
-        return len(self.memory)
+        return len(self._memory) + self._pending
 
     def _sources_or_default(self) -> list[int] | None:
         if self.sources is not None:
             return self.sources
         if self.source_id is not None:
-            return [self.source_id] * len(self.memory)
+            return [self.source_id] * len(self)
         return None
 
     def __iadd__(self, other: Buffer) -> Buffer:
         mine = self._sources_or_default()
         theirs = other._sources_or_default()
         if mine is not None or theirs is not None:
-            mine = list(mine) if mine is not None else [-1] * len(self.memory)
-            theirs = theirs if theirs is not None else [-1] * len(other.memory)
+            mine = list(mine) if mine is not None else [-1] * len(self)
+            theirs = theirs if theirs is not None else [-1] * len(other)
             self.sources = mine + list(theirs)
-        self.memory += other.memory
+        if other._chunks and not other._memory:
+            self._chunks += other._chunks  # still columns: stays so until someone reads `memory`
+            self._pending += other._pending
+        elif len(other):
+            self.memory += other.memory
         for key, values in other.stats.items():
             self.stats.setdefault(key, {}).update(values)
         self.dropped += other.dropped
-        if len(self.memory) > self.maxlen:
+        if len(self) > self.maxlen:
             self.clip_to_maxlen()
         return self
 
     def __repr__(self) -> str:
-        return f"Buffer({len(self.memory)} samples, maxlen={self.maxlen}, sources={len(self.stats)})"
+        return f"Buffer({len(self)} samples, maxlen={self.maxlen}, sources={len(self.stats)})"
 
 
 # ================================================================================================
@@ -362,6 +434,116 @@ def _unpack_column(col: Any, n: int, depth: int = 0) -> list[Any]:
     return out
 
 
+def _check_column(col: Any, n: int, depth: int = 0) -> None:
+    """Raise :class:`PayloadError` where :func:`_unpack_column` would, without building the values
+    (a received payload is checked whole when it arrives, and unpacked later if ever)."""
+    if depth > 22 or not isinstance(col, tuple) or not col or not isinstance(col[0], str):
+        raise PayloadError("malformed sample column in a received payload")
+    tag = col[0]
+    if tag == "R":
+        ok = len(col) == 2 and isinstance(col[1], list) and len(col[1]) == n
+    elif tag == "A":
+        arr = col[1] if len(col) == 2 else None
+        ok = isinstance(arr, np.ndarray) and arr.ndim >= 2 and len(arr) == n
+    elif tag in ("B", "F", "f", "I"):
+        arr = col[1] if len(col) == 2 else None
+        ok = isinstance(arr, np.ndarray) and arr.ndim == 1 and len(arr) == n
+    elif tag == "0":
+        ok = True
+    elif tag == "N":
+        if (
+            len(col) != 3
+            or not isinstance(col[1], np.ndarray)
+            or col[1].dtype != np.bool_
+            or col[1].shape != (n,)
+        ):
+            raise PayloadError("malformed None mask in a received payload")
+        _check_column(col[2], int(n - col[1].sum()), depth + 1)
+        ok = True
+    elif tag in ("T", "L"):
+        if len(col) != 2 or not isinstance(col[1], list):
+            raise PayloadError("malformed tuple column in a received payload")
+        for c in col[1]:
+            _check_column(c, n, depth + 1)
+        ok = True
+    elif tag == "D":
+        if (
+            len(col) != 3
+            or not isinstance(col[1], list)
+            or not isinstance(col[2], list)
+            or len(col[1]) != len(col[2])
+        ):
+            raise PayloadError("malformed dict column in a received payload")
+        for c in col[2]:
+            _check_column(c, n, depth + 1)
+        ok = True
+    else:
+        raise PayloadError(f"unknown column tag {tag!r} in a received payload")
+    if not ok:
+        raise PayloadError("sample column of the wrong length in a received payload")
+
+
+def _array_tree(col: tuple) -> Any:
+    """A checked column as arrays (``None`` where it holds something else than stacked numbers):
+    the leaves are the arrays themselves, containers become tuples, lists and dicts."""
+    tag = col[0]
+    if tag in ("A", "B", "F", "f", "I"):
+        return col[1]
+    if tag in ("T", "L"):
+        subs = [_array_tree(c) for c in col[1]]
+        if any(x is None for x in subs):
+            return None
+        return tuple(subs) if tag == "T" else subs
+    if tag == "D":
+        subs = [_array_tree(c) for c in col[2]]
+        if any(x is None for x in subs):
+            return None
+        return dict(zip(col[1], subs))
+    return None
+
+
+def _skeleton(tree: Any) -> Any:
+    if isinstance(tree, dict):
+        return ("D", tuple((k, _skeleton(v)) for k, v in tree.items()))
+    if isinstance(tree, (tuple, list)):
+        return (type(tree).__name__, tuple(_skeleton(v) for v in tree))
+    return None
+
+
+def _tree_concat(trees: list[Any]) -> Any:
+    first = trees[0]
+    if isinstance(first, dict):
+        return {k: _tree_concat([t[k] for t in trees]) for k in first}
+    if isinstance(first, (tuple, list)):
+        items = [_tree_concat([t[i] for t in trees]) for i in range(len(first))]
+        return tuple(items) if isinstance(first, tuple) else items
+    return np.concatenate(trees)
+
+
+def _chunk_arrays(n: int, cols: list[Any]) -> tuple[Any, Any, np.ndarray, np.ndarray, np.ndarray] | None:
+    """One checked payload's columns for :meth:`Buffer.as_columns` (``None``: not arrays)."""
+    act_col, obs_col, rew_col, term_col, trunc_col = cols[:5]
+    if act_col[0] == "0":
+        act = None
+    elif act_col[0] == "A":
+        act = act_col[1]
+    elif act_col[0] == "N" and act_col[2][0] == "A":
+        mask, known = act_col[1], act_col[2][1]
+        act = np.zeros((n, *known.shape[1:]), known.dtype)
+        act[~mask] = known
+    else:
+        return None
+    obs = _array_tree(obs_col)
+    if obs is None:
+        return None
+    scalars = []
+    for c in (rew_col, term_col, trunc_col):
+        if c[0] not in ("B", "F", "f", "I"):
+            return None
+        scalars.append(c[1])
+    return act, obs, scalars[0], scalars[1], scalars[2]
+
+
 def pack_buffer(buffer: Buffer, source_id: int, seq: int) -> dict[str, Any]:
     """Describe ``buffer`` as a data-only dict for :mod:`tmrl.wire`, column by column.
 
@@ -408,15 +590,17 @@ def unpack_buffer(payload: Any, maxlen: int | None = None) -> Buffer:
     n, src, cols = payload.get("n"), payload.get("src"), payload.get("cols")
     if type(n) is not int or n < 0 or type(src) is not int:
         raise PayloadError("malformed sample payload header")
+    buf = Buffer(maxlen=max(maxlen or 0, n, 1))
     if isinstance(cols, list):
         if len(cols) != 6:
             raise PayloadError("sample payload does not have 6 columns")
-        columns = [_unpack_column(c, n) for c in cols]
-        memory = list(zip(*columns)) if n else []
+        for c in cols:
+            _check_column(c, n)
+        if n:  # kept as columns: tuples are built only if someone reads `memory`
+            buf._chunks = [(n, cols)]
+            buf._pending = n
     else:
-        memory = _unpack_column(cols, n)
-    buf = Buffer(maxlen=max(maxlen or 0, n, 1))
-    buf.memory = memory
+        buf.memory = _unpack_column(cols, n)
     buf.sources = [src] * n
     stats = payload.get("stats")
     if isinstance(stats, dict):
