@@ -84,6 +84,9 @@ OURS = dict(
     start_training=1000,
     worker_steps_per_update=40,
 )
+# Settings to try without editing this file: BENCH_OURS='{"batch_size": 128}' (JSON, keys of OURS;
+# the role processes inherit it).
+OURS.update(json.loads(os.environ.get("BENCH_OURS", "{}")))
 
 
 def _ours_training_cls(workdir: Path):
