@@ -375,68 +375,35 @@ def _pack_column(values: Sequence[Any], depth: int = 0) -> tuple:
     return ("R", list(values))
 
 
-def _unpack_column(col: Any, n: int, depth: int = 0) -> list[Any]:
-    """Inverse of :func:`_pack_column`; raises :class:`PayloadError` on a malformed column."""
-    if depth > 22 or not isinstance(col, tuple) or not col or not isinstance(col[0], str):
-        raise PayloadError("malformed sample column in a received payload")
+def _unpack_column(col: Any, n: int) -> list[Any]:
+    """Inverse of :func:`_pack_column`, for a column that :func:`_check_column` accepted."""
     tag = col[0]
     if tag == "R":
-        out = col[1] if len(col) == 2 and isinstance(col[1], list) else None
-    elif tag == "A":
-        arr = col[1] if len(col) == 2 else None
-        out = list(arr) if isinstance(arr, np.ndarray) and arr.ndim >= 2 else None
-    elif tag in "BFfI":
-        arr = col[1] if len(col) == 2 else None
-        if not isinstance(arr, np.ndarray) or arr.ndim != 1:
-            out = None
-        elif tag == "f":
-            out = list(arr)
-        else:
-            out = arr.tolist()
-    elif tag == "0":
-        out = [None] * n
-    elif tag == "N":
-        if (
-            len(col) != 3
-            or not isinstance(col[1], np.ndarray)
-            or col[1].dtype != np.bool_
-            or len(col[1]) != n
-        ):
-            raise PayloadError("malformed None mask in a received payload")
+        return col[1]
+    if tag in ("A", "f"):
+        return list(col[1])  # rows (or NumPy scalars) as they were packed
+    if tag in ("B", "F", "I"):
+        return col[1].tolist()
+    if tag == "0":
+        return [None] * n
+    if tag == "N":
         mask = col[1]
-        rest = iter(_unpack_column(col[2], int(n - mask.sum()), depth + 1))
-        out = [None if m else next(rest) for m in mask.tolist()]
-    elif tag in ("T", "L"):
-        if len(col) != 2 or not isinstance(col[1], list):
-            raise PayloadError("malformed tuple column in a received payload")
-        subs = [_unpack_column(c, n, depth + 1) for c in col[1]]
+        rest = iter(_unpack_column(col[2], int(n - mask.sum())))
+        return [None if m else next(rest) for m in mask.tolist()]
+    if tag in ("T", "L"):
+        subs = [_unpack_column(c, n) for c in col[1]]
         if not subs:
-            out = [() if tag == "T" else [] for _ in range(n)]
-        elif tag == "T":
-            out = list(zip(*subs))
-        else:
-            out = [list(x) for x in zip(*subs)]
-    elif tag == "D":
-        if (
-            len(col) != 3
-            or not isinstance(col[1], list)
-            or not isinstance(col[2], list)
-            or len(col[1]) != len(col[2])
-        ):
-            raise PayloadError("malformed dict column in a received payload")
-        keys = col[1]
-        subs = [_unpack_column(c, n, depth + 1) for c in col[2]]
-        out = [dict(zip(keys, vals)) for vals in zip(*subs)] if keys else [{} for _ in range(n)]
-    else:
-        raise PayloadError(f"unknown column tag {tag!r} in a received payload")
-    if out is None or len(out) != n:
-        raise PayloadError("sample column of the wrong length in a received payload")
-    return out
+            return [() if tag == "T" else [] for _ in range(n)]
+        return list(zip(*subs)) if tag == "T" else [list(x) for x in zip(*subs)]
+    keys = col[1]  # "D"
+    subs = [_unpack_column(c, n) for c in col[2]]
+    return [dict(zip(keys, vals)) for vals in zip(*subs)] if keys else [{} for _ in range(n)]
 
 
 def _check_column(col: Any, n: int, depth: int = 0) -> None:
-    """Raise :class:`PayloadError` where :func:`_unpack_column` would, without building the values
-    (a received payload is checked whole when it arrives, and unpacked later if ever)."""
+    """Raise :class:`PayloadError` unless ``col`` is a well-formed column of ``n`` values, as
+    :func:`_pack_column` makes them (a received payload is checked whole when it arrives, and
+    unpacked later if ever)."""
     if depth > 22 or not isinstance(col, tuple) or not col or not isinstance(col[0], str):
         raise PayloadError("malformed sample column in a received payload")
     tag = col[0]
@@ -600,6 +567,7 @@ def unpack_buffer(payload: Any, maxlen: int | None = None) -> Buffer:
             buf._chunks = [(n, cols)]
             buf._pending = n
     else:
+        _check_column(cols, n)
         buf.memory = _unpack_column(cols, n)
     buf.sources = [src] * n
     stats = payload.get("stats")

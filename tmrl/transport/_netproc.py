@@ -210,7 +210,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self.partial: dict[str, list[Any]] = {}
             self.dropped = 0
             self.queued_bytes = 0  # bytes of frames in the consumable queues
-            self._last_drop_log = -math.inf
+            self._last_log: dict[str, float] = {}
             self.connections: set[Any] = set()
             self._refusal_log: dict[tuple[str, str], float] = {}
             self.closing = False
@@ -219,7 +219,6 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             # again once they are back under the low-water mark (1/2).
             self.held: set[Any] = set()
             self._release_scheduled = False
-            self._last_hold_log = -math.inf
             self.high_count = max(1, (3 * max_consumables) // 4)
             self.low_count = max_consumables // 2
             self.high_bytes = (3 * max_consumable_bytes) // 4
@@ -298,12 +297,10 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             ):
                 self.queued_bytes -= sum(len(f) for f in queue.popleft()[1])
                 self.dropped += 1
-                now = time.monotonic()
-                level = logging.WARNING if now - self._last_drop_log > 5.0 else logging.DEBUG
-                if level == logging.WARNING:
-                    self._last_drop_log = now
-                log_relay.log(
-                    level,
+                self.log_every(
+                    "drop",
+                    5.0,
+                    logging.WARNING,
                     "the trainer is falling behind: dropped the oldest pending sample batch "
                     "(%d dropped so far, max_consumables=%d, max_consumable_bytes=%d)",
                     self.dropped,
@@ -323,6 +320,15 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     self.to_clients[cid].deliver(group, *queue.popleft())
             self.maybe_release()
 
+        def log_every(self, key: str, interval: float, level: int, msg: str, *args: Any) -> None:
+            """Log at ``level`` at most once per ``interval`` seconds for ``key``; at DEBUG between."""
+            now = time.monotonic()
+            if now - self._last_log.get(key, -math.inf) > interval:
+                self._last_log[key] = now
+            else:
+                level = logging.DEBUG
+            log_relay.log(level, msg, *args)
+
         def backlog(self) -> int:
             return len(self.group_info["trainers"]["to_consume"])
 
@@ -337,12 +343,10 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             conn.held = True
             conn.transport.pauseProducing()
             self.held.add(conn)
-            now = time.monotonic()
-            level = logging.INFO if now - self._last_hold_log > 60.0 else logging.DEBUG
-            if level == logging.INFO:
-                self._last_hold_log = now
-            log_relay.log(
-                level,
+            self.log_every(
+                "hold",
+                60.0,
+                logging.INFO,
                 "the trainer is behind (%d sample batches waiting): workers wait until it catches up",
                 self.backlog(),
             )
