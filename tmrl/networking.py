@@ -151,7 +151,6 @@ class Buffer:
         # Received payloads not yet turned into sample tuples, in order after `_memory`: each is
         # (n, the six validated columns of unpack_buffer). See `memory` and `as_columns`.
         self._chunks: list[tuple[int, list[Any]]] = []
-        self._pending = 0
         self.sources: list[int] | None = None
         self.stats: dict[int | None, dict[str, float]] = {}
         self.source_id: int | None = None
@@ -169,14 +168,12 @@ class Buffer:
     def memory(self, value: list[Any]) -> None:
         self._memory = value
         self._chunks = []
-        self._pending = 0
 
     def _materialize(self) -> None:
         rows = self._memory
         for n, cols in self._chunks:
             rows += zip(*[_unpack_column(c, n) for c in cols])
         self._chunks = []
-        self._pending = 0
 
     def as_columns(self) -> tuple[Any, Any, np.ndarray, np.ndarray, np.ndarray] | None:
         """The samples as stacked arrays ``(act, obs, rew, terminated, truncated)``, without
@@ -269,7 +266,7 @@ class Buffer:
         self.sources = None
 
     def __len__(self) -> int:
-        return len(self._memory) + self._pending
+        return len(self._memory) + sum(n for n, _ in self._chunks)
 
     def _sources_or_default(self) -> list[int] | None:
         if self.sources is not None:
@@ -287,7 +284,6 @@ class Buffer:
             self.sources = mine + list(theirs)
         if other._chunks and not other._memory:
             self._chunks += other._chunks  # still columns: stays so until someone reads `memory`
-            self._pending += other._pending
         elif len(other):
             self.memory += other.memory
         for key, values in other.stats.items():
@@ -565,7 +561,6 @@ def unpack_buffer(payload: Any, maxlen: int | None = None) -> Buffer:
             _check_column(c, n)
         if n:  # kept as columns: tuples are built only if someone reads `memory`
             buf._chunks = [(n, cols)]
-            buf._pending = n
     else:
         _check_column(cols, n)
         buf.memory = _unpack_column(cols, n)
