@@ -29,10 +29,15 @@ compressor (ours ``compress_full_sample``/``compress_lidar_sample``; theirs
 preprocessed observations. ``--memory-bytes`` also prints the bytes each side's memory holds per
 stored sample (tracemalloc, ``--memory-bytes-samples`` samples, memory sized to fit them).
 
+Allocator: our worker calls :func:`tmrl.util.reuse_freed_memory`, as our trainer does when its
+``TorchTrainingOffline`` is built (glibc keeps freed blocks for the next update instead of
+page-faulting them in again; it matters for the CNN, whose activations are tens of MiB).
+``--malloc-both`` gives tmrl 0.7.1 the same settings, to separate that gain from the rest.
+
 Usage::
 
     /work/venv/bin/python bench/trainer_speed.py [--rounds 3] [--seconds 4] [--threads N]
-        [--cases pendulum,tmfull,tmlidar] [--memory-bytes]
+        [--cases pendulum,tmfull,tmlidar] [--memory-bytes] [--malloc-both]
         [--anchor-python /tmp/tmrl-anchor/venv/bin/python] [--anchor-home /tmp/tmrl-anchor/home]
 
 The original is run as ``HOME=<anchor-home> <anchor-python> bench/trainer_speed.py --worker tmrl``
@@ -353,11 +358,29 @@ def _measure(memory, agent, mode: str, seconds: float, warmup: int = 3, min_upda
     }
 
 
-def worker_main(side: str, threads: int | None) -> None:
+def _glibc_reuse_freed_memory() -> bool:
+    """The mallopt settings of ``tmrl.util.reuse_freed_memory``, for the tmrl 0.7.1 side
+    (``--malloc-both``), whose interpreter imports the original tmrl."""
+    import ctypes
+
+    mallopt = ctypes.CDLL(None).mallopt
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    return all(mallopt(p, v) == 1 for p, v in ((-3, 256 << 20), (-1, 1 << 30), (-2, 64 << 20)))
+
+
+def worker_main(side: str, threads: int | None, malloc: bool = False) -> None:
     import torch
 
     if threads:
         torch.set_num_threads(threads)
+    if side == "ours":
+        # What our trainer does when TorchTrainingOffline is built (the agents are built directly
+        # here): keep freed blocks for reuse instead of page-faulting them in at every update.
+        from tmrl.util import reuse_freed_memory
+
+        reuse_freed_memory()
+    elif malloc:
+        _glibc_reuse_freed_memory()
     torch.manual_seed(0)
     built: dict[str, tuple] = {}
     for line in sys.stdin:
@@ -387,10 +410,13 @@ def worker_main(side: str, threads: int | None) -> None:
 
 
 class _Worker:
-    def __init__(self, side: str, python: str, env: dict[str, str], cwd: str, threads: int | None) -> None:
+    def __init__(self, side: str, python: str, env: dict[str, str], cwd: str, threads: int | None,
+                 malloc: bool = False) -> None:
         args = [python, str(Path(__file__).resolve()), "--worker", side]
         if threads:
             args += ["--threads", str(threads)]
+        if malloc:
+            args += ["--malloc-both"]
         self.side = side
         self.proc = subprocess.Popen(
             args,
@@ -457,13 +483,18 @@ def main() -> None:
         help="also measure ours (tmfull) with the convolutions under bfloat16 autocast (experimental, bench only)",
     )
     parser.add_argument(
+        "--malloc-both",
+        action="store_true",
+        help="give tmrl 0.7.1 the allocator settings our trainer uses (tmrl.util.reuse_freed_memory)",
+    )
+    parser.add_argument(
         "--loop",
         action="store_true",
         help="also measure ours with a Python loop over separate critics (before; pendulum)",
     )
     args = parser.parse_args()
     if args.worker:
-        worker_main(args.worker, args.threads)
+        worker_main(args.worker, args.threads, args.malloc_both)
         return
     cases = [c for c in args.cases.split(",") if c]
     unknown = sorted(set(cases) - set(CASES))
@@ -482,7 +513,7 @@ def main() -> None:
                 f"no tmrl 0.7.1 at {args.anchor_python}: run shared/anchors/setup-tmrl-0.7.1.sh or pass --no-anchor"
             )
         # Outside the repository, so that `import tmrl` finds the installed 0.7.1.
-        sides["tmrl"] = _Worker("tmrl", args.anchor_python, env_tmrl, "/tmp", args.threads)
+        sides["tmrl"] = _Worker("tmrl", args.anchor_python, env_tmrl, "/tmp", args.threads, args.malloc_both)
 
     # (case, algo) jobs; per job the runs (label, worker, variant). "ours-bf16" and "ours-loop"
     # run in the same worker process as "ours".
@@ -503,6 +534,8 @@ def main() -> None:
 
     results: dict[tuple[str, str, str, str], list[dict[str, Any]]] = {}
     print(f"batch {BATCH}; {args.rounds} rounds of {args.seconds:.0f} s per measurement, interleaved; cases:")
+    print("  allocator: ours keeps freed memory for reuse (tmrl.util.reuse_freed_memory); tmrl 0.7.1 "
+          + ("gets the same settings (--malloc-both)" if args.malloc_both else "runs with glibc's defaults"))
     for case in cases:
         print(f"  {case}: {CASE_TITLES[case]}")
     load_start = os.getloadavg()

@@ -6,6 +6,8 @@ from __future__ import annotations
 import functools
 import os
 import pickle
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -254,3 +256,60 @@ def test_dump_load_round_trip_gives_writable_arrays(tmp_path):
     np.testing.assert_array_equal(back["a"], obj["a"])
     back["a"][0] = 5.0  # a read-only view would raise here
     assert back["a"].flags.writeable
+
+
+_FAULTS_CHILD = r"""
+import resource, sys
+import numpy as np
+import torch
+tune = sys.argv[1]
+if tune == "util":
+    from tmrl.util import reuse_freed_memory
+    assert reuse_freed_memory() and reuse_freed_memory()
+elif tune == "trainer":
+    import gymnasium
+    from tmrl import util
+    from tmrl.memory import GenericTorchMemory
+    from tmrl.training import TrainingAgent
+    from tmrl.training_offline import TorchTrainingOffline
+    from tmrl.util import partial
+    assert not util._malloc_tuned
+    space = gymnasium.spaces.Box(-1, 1, (2,), np.float32)
+    class Agent(TrainingAgent):
+        def train(self, batch): return {}
+        def get_actor(self): return None
+    TorchTrainingOffline(env_cls=(space, space), memory_cls=partial(GenericTorchMemory),
+                         training_agent_cls=Agent, device="cpu")
+    assert util._malloc_tuned
+def faults():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(10):  # the heap settles: freed blocks coalesce into ones the next request fits
+    a = torch.ones(12 << 20)
+    del a
+f0 = faults()
+for _ in range(10):
+    a = torch.ones(12 << 20)  # 48 MiB (as one CNN activation), every page written
+    del a
+print(faults() - f0)
+"""
+
+
+@pytest.mark.skipif(not (sys.platform.startswith("linux") and os.confstr("CS_GNU_LIBC_VERSION")),
+                    reason="the allocator settings exist with glibc on Linux only")
+def test_reuse_freed_memory_stops_page_faults_of_repeated_large_allocations_and_the_trainer_applies_it():
+    def faults(mode: str) -> int:
+        out = subprocess.run([sys.executable, "-c", _FAULTS_CHILD, mode], capture_output=True, text=True,
+                             timeout=120, check=True)
+        return int(out.stdout.split()[-1])
+
+    default, tuned, trainer = faults("none"), faults("util"), faults("trainer")
+    # glibc's default maps blocks above 32 MiB afresh: each round faults its 12,288 pages in again.
+    assert default > 10 * 12_288 * 0.9
+    assert tuned < default / 20
+    assert trainer < default / 20
+
+
+def test_reuse_freed_memory_is_not_applied_on_import():
+    out = subprocess.run([sys.executable, "-c", "import tmrl, tmrl.util, tmrl.training_offline; "
+                          "print(tmrl.util._malloc_tuned)"], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "False"

@@ -24,6 +24,7 @@ import torch
 
 from tmrl.errors import UserError
 from tmrl.metrics import MetricsLogger
+from tmrl.util import reuse_freed_memory
 
 __all__ = ["TorchTrainingOffline", "TrainingOffline"]
 
@@ -335,4 +336,5 @@ class TorchTrainingOffline(TrainingOffline):
     def __post_init__(self) -> None:
         if self.device is None:
             self.device = "cuda" if torch.cuda.is_available() else "cpu"
+        reuse_freed_memory()  # each update's large tensors reuse the last one's memory (Linux)
         super().__post_init__()

@@ -118,14 +118,19 @@ class ImageEncoder(nn.Module):
                     f"images of {image_shape[1]}x{image_shape[2]} are too small for the CNN layers "
                     f"(kernels {list(kernels)}, strides {list(strides)}): use larger images or fewer layers"
                 )
-            layers += [nn.Conv2d(in_ch, int(out_ch), int(k), stride=int(s)), nn.ReLU()]
+            # In-place ReLU: a convolution's backward needs its input, not its output, so the
+            # activation can overwrite the output instead of allocating another tensor that size.
+            layers += [nn.Conv2d(in_ch, int(out_ch), int(k), stride=int(s)), nn.ReLU(inplace=True)]
             in_ch = int(out_ch)
-        self.convs = nn.Sequential(*layers)
+        # Channels-last (NHWC) weights and activations: oneDNN's convolutions run about 1.5x faster
+        # forward and 1.7x forward plus backward in that layout on CPU (docs/trackmania.md).
+        self.convs = nn.Sequential(*layers).to(memory_format=torch.channels_last)
         self.out_dim = in_ch * h * w
 
     def forward(self, imgs: torch.Tensor) -> torch.Tensor:
         """``(B, hist, h, w)`` float images -> ``(B, out_dim)`` features."""
-        return self.convs(imgs).flatten(1)
+        x = self.convs(imgs.contiguous(memory_format=torch.channels_last))
+        return x.flatten(1)  # NHWC strides: flatten copies into the NCHW order of the features
 
 
 class SquashedGaussianCNNActor(TorchActorModule):
