@@ -129,3 +129,47 @@ def test_lidar_wiring_scales_speed_and_lidar_only():
     assert torch.allclose(plain.actor(pre, test=True)[0], a, atol=1e-6)
     assert torch.allclose(plain.qs(pre, a), model.qs(obs, a), atol=1e-5)
     assert lidar_actor_critic(space, ACT, n=10).n == 10
+
+
+@pytest.mark.parametrize("algo", ["sac", "redq"])
+def test_critics_read_the_images_once_for_both_losses_with_the_same_result(algo):
+    # Q(o, a) and Q(o, pi) share the critics' convolution pass over o; the update must be the
+    # one computed with two passes (the generic path), and the encoders run fewer times.
+    from tmrl.algorithms.redq import REDQSACAgent
+    from tmrl.algorithms.sac import SACAgent
+
+    space = full_space(hist=2, h=32, w=32, act_buf_len=1)
+    small = dict(channels=(8, 8), kernels=(4, 4), strides=(2, 2), hidden_sizes=(32,))
+    g = torch.Generator().manual_seed(4)
+    b = 16
+    obs = (torch.rand(b, 1, generator=g), torch.rand(b, 1, generator=g), torch.rand(b, 1, generator=g),
+           torch.rand(b, 2, 32, 32, generator=g), torch.rand(b, 3, generator=g) * 2 - 1)
+    obs2 = tuple(o.roll(1, 0) for o in obs)
+    batch = (obs, torch.rand(b, 3, generator=g) * 2 - 1, torch.rand(b, generator=g), obs2,
+             (torch.rand(b, generator=g) < 0.2).float(), torch.zeros(b))
+
+    def run(shared: bool):
+        torch.manual_seed(0)
+        if algo == "sac":
+            agent = SACAgent(space, ACT, device="cpu", model_cls=lambda o, a, n=2: CNNActorCritic(o, a, n=n, **small))
+        else:
+            agent = REDQSACAgent(space, ACT, device="cpu", n=4, m=2, q_updates_per_policy_update=2,
+                                 model_cls=lambda o, a, n=4: CNNActorCritic(o, a, n=n, **small))
+        assert agent.critics._split
+        agent.critics._split = shared
+        calls = []
+        for module in agent.model.modules():
+            if isinstance(module, ImageEncoder):
+                module.register_forward_hook(lambda *_: calls.append(1))
+        stats = [agent.train(batch) for _ in range(3)]
+        return [p.detach().clone() for p in agent.model.parameters()], stats, len(calls)
+
+    params_shared, stats_shared, calls_shared = run(True)
+    params_generic, stats_generic, calls_generic = run(False)
+    n = 2 if algo == "sac" else 4
+    policy_updates = 3 if algo == "sac" else 1  # REDQ: a policy update every 2nd critic update
+    assert calls_generic - calls_shared == n * policy_updates
+    for p1, p2 in zip(params_shared, params_generic):
+        assert torch.allclose(p1, p2, atol=1e-6)
+    for s1, s2 in zip(stats_shared, stats_generic):
+        assert torch.allclose(s1["loss_actor"], s2["loss_actor"]) and torch.allclose(s1["loss_critic"], s2["loss_critic"])

@@ -123,15 +123,17 @@ class REDQSACAgent(SACAgent):
             # Bootstrap unless terminated; truncated transitions keep their future value.
             backup = r + self.gamma * (1.0 - d) * (q_targ - alpha * logp_a2)
 
-        q = self.critics(o, a)  # (n, B)
+        pi = logp_pi = None
+        if update_policy:
+            pi, logp_pi = self.actor(o)
+        # q (n, B); on policy updates also Q(o, pi) with the critic weights detached.
+        q, q_pi_all = self.critics.with_policy_values(o, a, pi)
         loss_critic = (q - backup).square().mean()  # mean over critics: homogeneous with SAC
         loss = loss_critic
 
-        logp_pi = None
-        if update_policy:
-            pi, logp_pi = self.actor(o)
-            # Mean over all n critics, weights detached: this loss moves the actor only.
-            q_pi = self.critics(o, pi, detach_params=True).mean(0)
+        if q_pi_all is not None and logp_pi is not None:
+            # Mean over all n critics: this loss moves the actor only.
+            q_pi = q_pi_all.mean(0)
             loss_actor = (alpha * logp_pi - q_pi).mean()
             loss = loss + loss_actor
             self.loss_pi = loss_actor.detach()

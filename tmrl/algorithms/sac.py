@@ -17,11 +17,12 @@ Pendulum (bench/pendulum_learning.py).
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import inspect
 import logging
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any, cast
 
 import numpy as np
@@ -123,6 +124,11 @@ class CriticSet:
                 "(tmrl.models.EnsembleQFunction or a ModuleList) or `q1` and `q2`"
             )
         self._params = [p for m in self.modules for p in m.parameters()]
+        # Critics split into observation features and a head on (features, action) (the CNN
+        # critics) let Q(obs, act) and Q(obs, pi) share one pass over the observation.
+        self._split = bool(self.modules) and all(
+            callable(getattr(m, "features", None)) and callable(getattr(m, "head", None)) for m in self.modules
+        )
 
     def __len__(self) -> int:
         return self.ensemble.n if self.ensemble is not None else len(self.modules)
@@ -145,14 +151,40 @@ class CriticSet:
         chosen = self.modules if members is None else [self.modules[int(i)] for i in members]
         if not detach_params:
             return torch.stack([q(obs, act) for q in chosen])
+        with self._frozen():
+            return torch.stack([q(obs, act) for q in chosen])
+
+    @contextlib.contextmanager
+    def _frozen(self) -> Iterator[None]:
         flags = [p.requires_grad for p in self._params]
         for p in self._params:
             p.requires_grad_(False)
         try:
-            return torch.stack([q(obs, act) for q in chosen])
+            yield
         finally:
             for p, f in zip(self._params, flags):
                 p.requires_grad_(f)
+
+    def with_policy_values(
+        self, obs: Any, act: torch.Tensor, pi: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``(self(obs, act), self(obs, pi, detach_params=True))`` in one go (the second is None
+        when ``pi`` is None).
+
+        Critics that expose ``features(obs)`` and ``head(features, act)`` (the CNN critics)
+        compute the features of ``obs`` once for both: same values and gradients, one image pass
+        per critic instead of two. The policy values see the features detached, which is exact:
+        the features depend on the critic's own parameters and ``obs`` only, never on ``pi``.
+        """
+        if pi is None:
+            return self(obs, act), None
+        if not self._split:
+            return self(obs, act), self(obs, pi, detach_params=True)
+        feats = [m.features(obs) for m in self.modules]
+        q = torch.stack([m.head(f, act) for m, f in zip(self.modules, feats)])
+        with self._frozen():
+            q_pi = torch.stack([m.head(f.detach(), pi) for m, f in zip(self.modules, feats)])
+        return q, q_pi
 
 
 def _build_model(
@@ -327,11 +359,11 @@ class SACAgent(TrainingAgent):
             # so its last transition keeps its future value.
             backup = r + self.gamma * (1.0 - d) * (q_targ - alpha * logp_a2)
 
-        q = self.critics(o, a)  # (2, B)
+        # q (2, B) for the critic loss; Q(o, pi) with the critic weights detached, so that the
+        # actor loss moves the actor only.
+        q, q_pi_all = self.critics.with_policy_values(o, a, pi)
         loss_critic = (q - backup).square().mean()  # mean of the two critics' MSE
-
-        # Critic weights detached: this loss moves the actor only.
-        q_pi = self.critics(o, pi, detach_params=True).min(0).values
+        q_pi = cast(torch.Tensor, q_pi_all).min(0).values
         loss_actor = (alpha * logp_pi - q_pi).mean()
 
         loss = loss_critic + loss_actor

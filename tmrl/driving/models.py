@@ -200,11 +200,20 @@ class CNNQFunction(nn.Module):
         dim_act = int(np.prod(action_space.shape))
         self.net = mlp([self.encoder.out_dim + others + dim_act, *hidden_sizes, 1], nn.ReLU)
 
+    def features(self, obs: Any) -> torch.Tensor:
+        """The convolution features of the images and the other observation elements, ``(B, F)``."""
+        imgs, scalars = _split_obs(obs, self.image_index)
+        return torch.cat((self.encoder(imgs), scalars), dim=-1)
+
+    def head(self, features: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """Q values ``(B,)`` from :meth:`features` and actions (SAC uses the split to read the
+        images once for ``Q(o, a)`` and ``Q(o, pi)``)."""
+        x = torch.cat((features, act.reshape(act.shape[0], -1).to(torch.float32)), dim=-1)
+        return self.net(x).squeeze(-1)
+
     def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
         """Q values of shape ``(B,)``."""
-        imgs, scalars = _split_obs(obs, self.image_index)
-        x = torch.cat((self.encoder(imgs), scalars, act.reshape(act.shape[0], -1).to(torch.float32)), dim=-1)
-        return self.net(x).squeeze(-1)
+        return self.head(self.features(obs), act)
 
 
 class CNNActorCritic(nn.Module):
