@@ -61,20 +61,24 @@ def test_sizes_come_from_the_space_and_arguments():
         CNNActorCritic(spaces.Tuple([spaces.Box(0, 1, (1,))] * 3 + [spaces.Box(0, 1, (4, 64, 64, 3))]), ACT)
 
 
-def test_encoder_features_and_gradients_match_a_plain_nchw_convolution_stack():
-    # The encoder runs channels-last with in-place ReLUs; its features must still come out in the
-    # NCHW order of the original (weights trained before stay valid) and its gradients be the same.
+@pytest.mark.parametrize("n", [3, ImageEncoder.CHANNELS_LAST_FROM])
+def test_encoder_features_and_gradients_match_a_plain_nchw_convolution_stack(n):
+    # Large batches run channels-last, all with in-place ReLUs; the features must still come out
+    # in the NCHW order of the original (weights trained before stay valid), gradients the same.
     enc = ImageEncoder((2, 32, 48), channels=(8, 16), kernels=(4, 3), strides=(2, 2))
-    assert enc.convs[0].weight.is_contiguous(memory_format=torch.channels_last)
-    imgs = torch.rand(3, 2, 32, 48, generator=torch.Generator().manual_seed(2))
+    seen = []
+    enc.convs[0].register_forward_pre_hook(
+        lambda _, args: seen.append(args[0].is_contiguous(memory_format=torch.channels_last)))
+    imgs = torch.rand(n, 2, 32, 48, generator=torch.Generator().manual_seed(2))
     convs = [m for m in enc.convs if isinstance(m, torch.nn.Conv2d)]
     weights = [(c.weight.detach().contiguous().requires_grad_(), c.bias.detach().clone().requires_grad_()) for c in convs]
     x = imgs
     for (w, b), conv in zip(weights, convs):
         x = torch.nn.functional.conv2d(x, w, b, stride=conv.stride).relu()
-    reference = x.reshape(3, -1)
+    reference = x.reshape(n, -1)
     features = enc(imgs)
-    assert features.shape == (3, 16 * 7 * 11) and features.is_contiguous()
+    assert seen == [n >= ImageEncoder.CHANNELS_LAST_FROM]
+    assert features.shape == (n, 16 * 7 * 11) and features.is_contiguous()
     assert torch.allclose(features, reference, atol=1e-5)
     probe = torch.rand(features.shape, generator=torch.Generator().manual_seed(3))
     (features * probe).sum().backward()
