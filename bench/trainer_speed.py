@@ -569,7 +569,7 @@ def main() -> None:
         f"\nsummary (median over rounds; best in brackets), load average at start "
         f"{load_start[0]:.2f}/{load_start[1]:.2f}/{load_start[2]:.2f}, now {os.getloadavg()[0]:.2f}"
     )
-    for case, algo in jobs:
+    for case, algo in jobs if args.rounds > 0 else []:  # --rounds 0: memory bytes only
         runs = runs_of(case)
         label = algo if case == "pendulum" else case
         for mode in modes:
