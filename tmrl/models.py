@@ -281,8 +281,11 @@ class EnsembleQFunction(nn.Module):
             biases = [b.to(low) for b in biases[:-1]] + biases[-1:]
         # The input is shared by all members: broadcast it instead of copying it k times.
         h = torch.baddbmm(biases[0], x.unsqueeze(0).expand(k, -1, -1), weights[0])
+        # A plain ReLU overwrites each layer's output (baddbmm's backward needs its inputs only):
+        # one pass less over (k, B, width) activations, which outgrow the L2 cache for REDQ.
+        relu_inplace = type(self.activation) is nn.ReLU
         for w, b in zip(weights[1:], biases[1:]):
-            h = self.activation(h)
+            h = torch.relu_(h) if relu_inplace else self.activation(h)
             if h.dtype != w.dtype:
                 h = h.to(w.dtype)
             h = torch.baddbmm(b, h, w)
