@@ -750,10 +750,9 @@ class GenericTorchMemory(TorchMemory):
         columns: list[list[Any]] = []
         _columns(spec, obs, columns, "obs")
         paths = _leaf_paths(spec)
-        return self._check_obs([_stack(col, path) for col, path in zip(columns, paths)], spec)
+        return self._check_obs([_stack(col, path) for col, path in zip(columns, paths)], spec, paths)
 
-    def _check_obs(self, arrays: list[np.ndarray], spec: list) -> list[np.ndarray]:
-        paths = _leaf_paths(spec)
+    def _check_obs(self, arrays: list[np.ndarray], spec: list, paths: list[str]) -> list[np.ndarray]:
         if self._obs_spec is None:
             # Lazy allocation: shapes and dtypes come from the first sample.
             self._obs = [
@@ -776,7 +775,7 @@ class GenericTorchMemory(TorchMemory):
         spec = _make_spec(tree, [0]) if self._obs_spec is None else self._obs_spec
         leaves: list[Any] = []
         _tree_leaves(spec, tree, leaves, "obs")
-        return self._check_obs([leaf[keep] for leaf in leaves], spec)
+        return self._check_obs([leaf[keep] for leaf in leaves], spec, _leaf_paths(spec))
 
     def _action_array(self, act: np.ndarray | None, keep: slice) -> np.ndarray | None:
         """:meth:`_prepare_actions` for actions already stacked (zeros where they were ``None``)."""
@@ -796,20 +795,13 @@ class GenericTorchMemory(TorchMemory):
         first = next((a for a in acts if a is not None), None)
         if first is None:
             return None  # only None actions: the zeros already in the ring stand for them
-        first_arr = np.asarray(first)
-        if self._act is None:
-            self._act = np.zeros((self.memory_size, *first_arr.shape), dtype=_storage_dtype(first_arr))
-        shape = self._act.shape[1:]
         if any(a is None for a in acts):
-            zeros = np.zeros(shape, dtype=self._act.dtype)
+            ref = np.asarray(first) if self._act is None else self._act[0]
+            zeros = np.zeros(ref.shape, dtype=_storage_dtype(ref))
             acts = [zeros if a is None else a for a in acts]
         arr = _stack(acts, "the action")
-        if arr.shape[1:] != shape or arr.dtype == object:
-            raise UserError(
-                f"an action has shape {arr.shape[1:]} but earlier actions had {shape}: actions must "
-                "keep one shape"
-            )
-        return arr
+        _storage_dtype(arr)  # refuses non-numeric actions with the one-line error
+        return self._action_array(arr, slice(None))
 
     # --- validity and histories ----------------------------------------------------------------
 

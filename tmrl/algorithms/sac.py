@@ -149,9 +149,7 @@ class CriticSet:
         if self.ensemble is not None:
             return self.ensemble(obs, act, members=members, detach_params=detach_params)
         chosen = self.modules if members is None else [self.modules[int(i)] for i in members]
-        if not detach_params:
-            return torch.stack([q(obs, act) for q in chosen])
-        with self._frozen():
+        with self._frozen() if detach_params else contextlib.nullcontext():
             return torch.stack([q(obs, act) for q in chosen])
 
     @contextlib.contextmanager
