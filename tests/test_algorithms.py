@@ -409,6 +409,45 @@ def test_ensemble_matches_independent_mlps():
     assert a.grad is not None and all(p.grad is None for p in ens.parameters())
 
 
+@pytest.mark.parametrize("members", [None, [3, 1]])
+def test_ensemble_output_layer_gradients_equal_a_batched_matrix_product(members):
+    # The last layer (width -> 1) runs as vector operations instead of baddbmm; values and every
+    # gradient must be those of the plain batched product.
+    torch.manual_seed(0)
+    ens = EnsembleQFunction(OBS3, ACT2, hidden_sizes=(16, 8), n=4)
+    gen = torch.Generator().manual_seed(11)
+    o, a, *_ = random_batch(gen, size=7)
+    a.requires_grad_(True)
+    q = ens(o, a, members=members)
+    weight = torch.randn(q.shape, generator=gen)
+    (q * weight).sum().backward()
+    got = [p.grad.clone() for p in ens.parameters()] + [a.grad.clone()]
+
+    for p in ens.parameters():
+        p.grad = None
+    a.grad = None
+    idx = torch.arange(4) if members is None else torch.tensor(members)
+    h = torch.cat((*o, a), -1).unsqueeze(0).expand(len(idx), -1, -1)
+    for layer, (w, b) in enumerate(zip(ens.weights, ens.biases)):
+        h = torch.baddbmm(b[idx], h, w[idx])
+        if layer < len(ens.weights) - 1:
+            h = torch.relu(h)
+    expected_q = h.squeeze(-1)
+    (expected_q * weight).sum().backward()
+    expected = [p.grad for p in ens.parameters()] + [a.grad]
+
+    torch.testing.assert_close(q, expected_q)
+    for g, e in zip(got, expected):
+        torch.testing.assert_close(g, e)
+    # Weights used as constants: the action still gets its gradient through the output layer.
+    a.grad = None
+    for p in ens.parameters():
+        p.grad = None
+    ens(o, a, members=members, detach_params=True).sum().backward()
+    assert a.grad is not None and a.grad.abs().sum() > 0
+    assert all(p.grad is None for p in ens.parameters())
+
+
 def test_actor_respects_asymmetric_bounds_and_log_prob_is_finite():
     model = MLPActorCritic(OBS3, ACT2, hidden_sizes=(8, 8))
     o, *_ = random_batch(torch.Generator().manual_seed(10), size=64)

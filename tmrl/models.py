@@ -284,12 +284,15 @@ class EnsembleQFunction(nn.Module):
         # A plain ReLU overwrites each layer's output (baddbmm's backward needs its inputs only):
         # one pass less over (k, B, width) activations, which outgrow the L2 cache for REDQ.
         relu_inplace = type(self.activation) is nn.ReLU
-        for w, b in zip(weights[1:], biases[1:]):
+        last = len(weights) - 1
+        for i, (w, b) in enumerate(zip(weights[1:], biases[1:]), start=1):
             h = torch.relu_(h) if relu_inplace else self.activation(h)
             if h.dtype != w.dtype:
                 h = h.to(w.dtype)
+            if i == last:
+                return _ScalarOutput.apply(h, w, b)
             h = torch.baddbmm(b, h, w)
-        return h.squeeze(-1)
+        return h.squeeze(-1)  # no hidden layer: the input layer is the output layer
 
     def __len__(self) -> int:
         return self.n
@@ -301,6 +304,33 @@ class EnsembleQFunction(nn.Module):
 
     def __iter__(self) -> Iterator[QMember]:  # type: ignore[override]
         return (QMember(self, i) for i in range(self.n))
+
+
+class _ScalarOutput(torch.autograd.Function):
+    """The output layer of an ensemble: ``q[k, b] = h[k, b, :] . w[k, :, 0] + bias[k]``.
+
+    The same numbers as ``baddbmm(bias, h, w).squeeze(-1)``, computed with vector operations:
+    a batched matrix product with a single output column is a slow case for CPU BLAS (about
+    0.45 ms forward and 1 ms backward for 10 critics at batch 256, against 0.08 and 0.08 ms).
+    """
+
+    @staticmethod
+    def forward(ctx: Any, h: torch.Tensor, w: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(h, w)
+        return torch.linalg.vecdot(h, w.transpose(1, 2)) + bias.reshape(-1, 1)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        h, w = ctx.saved_tensors
+        grad_h = grad_w = grad_bias = None
+        if ctx.needs_input_grad[0]:
+            grad_h = grad.unsqueeze(-1) * w.transpose(1, 2)
+        if ctx.needs_input_grad[1]:
+            grad_w = torch.bmm(grad.unsqueeze(1).to(h.dtype), h).transpose(1, 2)
+        if ctx.needs_input_grad[2]:
+            grad_bias = grad.sum(1).reshape(-1, 1, 1)
+        return grad_h, grad_w, grad_bias
 
 
 class QMember:
