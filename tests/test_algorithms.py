@@ -448,6 +448,24 @@ def test_ensemble_output_layer_gradients_equal_a_batched_matrix_product(members)
     assert all(p.grad is None for p in ens.parameters())
 
 
+def test_ensemble_runs_under_bfloat16_autocast_like_a_batched_matrix_product():
+    # Under autocast the hidden layers come out in bfloat16 while the output weights are
+    # float32: the output layer must accept that mix and give float32 gradients.
+    torch.manual_seed(0)
+    ens = EnsembleQFunction(OBS3, ACT2, hidden_sizes=(16, 8), n=3)
+    o, a, *_ = random_batch(torch.Generator().manual_seed(12), size=6)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        q = ens(o, a)
+        h = torch.cat((*o, a), -1).unsqueeze(0).expand(3, -1, -1)
+        for layer, (w, b) in enumerate(zip(ens.weights, ens.biases)):
+            h = torch.baddbmm(b, h, w)
+            if layer < len(ens.weights) - 1:
+                h = torch.relu(h)
+    torch.testing.assert_close(q.float(), h.squeeze(-1).float(), atol=0.02, rtol=0.02)
+    q.float().sum().backward()
+    assert all(p.grad is not None and p.grad.dtype == torch.float32 for p in ens.parameters())
+
+
 def test_actor_respects_asymmetric_bounds_and_log_prob_is_finite():
     model = MLPActorCritic(OBS3, ACT2, hidden_sizes=(8, 8))
     o, *_ = random_batch(torch.Generator().manual_seed(10), size=64)
