@@ -409,6 +409,17 @@ def test_ensemble_matches_independent_mlps():
     assert a.grad is not None and all(p.grad is None for p in ens.parameters())
 
 
+def baddbmm_ensemble(ens: EnsembleQFunction, x: torch.Tensor, members=None) -> torch.Tensor:
+    """Q values ``(k, B)`` of the selected members, every layer a plain ``baddbmm``."""
+    idx = torch.arange(ens.n) if members is None else torch.tensor(members)
+    h = x.unsqueeze(0).expand(len(idx), -1, -1)
+    for layer, (w, b) in enumerate(zip(ens.weights, ens.biases)):
+        h = torch.baddbmm(b[idx], h, w[idx])
+        if layer < len(ens.weights) - 1:
+            h = torch.relu(h)
+    return h.squeeze(-1)
+
+
 @pytest.mark.parametrize("members", [None, [3, 1]])
 def test_ensemble_output_layer_gradients_equal_a_batched_matrix_product(members):
     # The last layer (width -> 1) runs as vector operations instead of baddbmm; values and every
@@ -426,13 +437,7 @@ def test_ensemble_output_layer_gradients_equal_a_batched_matrix_product(members)
     for p in ens.parameters():
         p.grad = None
     a.grad = None
-    idx = torch.arange(4) if members is None else torch.tensor(members)
-    h = torch.cat((*o, a), -1).unsqueeze(0).expand(len(idx), -1, -1)
-    for layer, (w, b) in enumerate(zip(ens.weights, ens.biases)):
-        h = torch.baddbmm(b[idx], h, w[idx])
-        if layer < len(ens.weights) - 1:
-            h = torch.relu(h)
-    expected_q = h.squeeze(-1)
+    expected_q = baddbmm_ensemble(ens, torch.cat((*o, a), -1), members)
     (expected_q * weight).sum().backward()
     expected = [p.grad for p in ens.parameters()] + [a.grad]
 
@@ -456,12 +461,8 @@ def test_ensemble_runs_under_bfloat16_autocast_like_a_batched_matrix_product():
     o, a, *_ = random_batch(torch.Generator().manual_seed(12), size=6)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         q = ens(o, a)
-        h = torch.cat((*o, a), -1).unsqueeze(0).expand(3, -1, -1)
-        for layer, (w, b) in enumerate(zip(ens.weights, ens.biases)):
-            h = torch.baddbmm(b, h, w)
-            if layer < len(ens.weights) - 1:
-                h = torch.relu(h)
-    torch.testing.assert_close(q.float(), h.squeeze(-1).float(), atol=0.02, rtol=0.02)
+        expected = baddbmm_ensemble(ens, torch.cat((*o, a), -1))
+    torch.testing.assert_close(q.float(), expected.float(), atol=0.02, rtol=0.02)
     q.float().sum().backward()
     assert all(p.grad is not None and p.grad.dtype == torch.float32 for p in ens.parameters())
 

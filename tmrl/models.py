@@ -311,7 +311,7 @@ class _ScalarOutput(torch.autograd.Function):
 
     The same numbers as ``baddbmm(bias, h, w).squeeze(-1)``, computed with vector operations:
     a batched matrix product with a single output column is a slow case for CPU BLAS (about
-    0.45 ms forward and 1 ms backward for 10 critics at batch 256, against 0.08 and 0.08 ms).
+    0.42 ms forward and 1 ms backward for 10 critics at batch 256, against 0.08 and 0.08 ms).
     """
 
     @staticmethod
