@@ -327,7 +327,7 @@ class _ScalarOutput(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             grad_h = grad.unsqueeze(-1) * w.transpose(1, 2)
         if ctx.needs_input_grad[1]:
-            grad_w = torch.bmm(grad.unsqueeze(1).to(h.dtype), h).transpose(1, 2)
+            grad_w = torch.bmm(grad.unsqueeze(1), h).transpose(1, 2)
         if ctx.needs_input_grad[2]:
             grad_bias = grad.sum(1).reshape(-1, 1, 1)
         return grad_h, grad_w, grad_bias
