@@ -342,6 +342,11 @@ def answer(obj: dict[str, Any]) -> None:
     print(RESULT + json.dumps(obj), flush=True)
 
 
+def print_json(obj: dict[str, Any]) -> None:
+    """Print one JSON object on one line (what :class:`JsonLines` reads)."""
+    print(json.dumps(obj), flush=True)
+
+
 def free_port() -> int:
     """A TCP port of 127.0.0.1 that was free a moment ago."""
     with socket.socket() as s:
