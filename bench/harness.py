@@ -224,7 +224,7 @@ class Recorder:
         self.records.append(rec)
         self._write(rec)
         if echo:
-            shown = "-" if value is None else f"{value:.4g}"
+            shown = fmt(value)
             print(f"  [{case}] {side:18s} {metric} = {shown} {unit}  (round {round}, load {rec['load1']:.2f})",
                   flush=True)
 
@@ -260,8 +260,8 @@ class Recorder:
             med = {}
             for row in figure:
                 med[row["side"]] = row["median"]
-                spread = "" if row["median"] is None else f"[{row['min']:.4g} .. {row['max']:.4g}]"
-                shown = "-" if row["median"] is None else f"{row['median']:.4g}"
+                spread = "" if row["median"] is None else f"[{fmt(row['min'])} .. {fmt(row['max'])}]"
+                shown = fmt(row["median"])
                 count = f"n={row['n']}" + (f" of {row['of']}" if row["of"] != row["n"] else "")
                 print(f"    {row['side']:18s} {shown:>10} {row['unit']:6s} {spread:24s} {count:10s}"
                       f" load {row['load_min']:.2f}-{row['load_max']:.2f}")
@@ -278,6 +278,13 @@ class Recorder:
         """Close the JSON lines file and say where it is."""
         self._file.close()
         print(f"\nresults: {self.path}")
+
+
+def fmt(value: float | None) -> str:
+    """A figure for the table: 4 significant digits, thousands as whole numbers, ``-`` for None."""
+    if value is None:
+        return "-"
+    return f"{value:,.0f}" if abs(value) >= 1e4 else f"{value:.4g}"
 
 
 def _loads() -> str:
