@@ -266,10 +266,16 @@ class Recorder:
                 print(f"    {row['side']:18s} {shown:>10} {row['unit']:6s} {spread:24s} {count:10s}"
                       f" load {row['load_min']:.2f}-{row['load_max']:.2f}")
             for a, b in ratios:
-                if med.get(a) and med.get(b):
+                if med.get(a) is None or med.get(b) is None:
+                    continue
+                if med[a] > 0 and med[b] > 0:
                     r = med[a] / med[b] if figure[0]["higher_is_better"] else med[b] / med[a]
                     print(f"    {a} vs {b}: {r:.2f}x (above 1: {a} better)")
                     self._write({"kind": "ratio", "case": case, "metric": metric, "a": a, "b": b, "ratio": r})
+                else:  # a ratio of negative figures (returns) reads backwards: the difference instead
+                    print(f"    {a} - {b}: {fmt(med[a] - med[b])}")
+                    self._write({"kind": "difference", "case": case, "metric": metric, "a": a, "b": b,
+                                 "difference": med[a] - med[b]})
         for row in rows:
             self._write(row)
         return rows
