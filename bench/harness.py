@@ -42,7 +42,7 @@ RESULT = "@@RESULT "
 
 DEFAULT_ANCHOR_DIR = "/tmp/tmrl-anchor"
 DEFAULT_SB3_DIR = "/tmp/sb3-anchor"
-DEFAULT_RTGYM_PYTHON = "/tmp/rtgym-venv/bin/python"
+DEFAULT_RTGYM_PYTHON = DEFAULT_ANCHOR_DIR + "/venv/bin/python"  # install_tmrl.sh installs rtgym beside tmrl 0.7.1
 
 T = TypeVar("T")
 
@@ -125,8 +125,8 @@ def rtgym_side(python: str) -> Side:
     """
     if not Path(python).exists():
         raise SystemExit(
-            f"{python} not found: python3 -m venv /tmp/rtgym-venv && /tmp/rtgym-venv/bin/pip install "
-            "rtgym==0.16, or pass --rtgym-python"
+            f"{python} not found: run `bash bench/anchors/install_tmrl.sh` (it installs rtgym too), "
+            "or pass --rtgym-python"
         )
     return Side("rtgym", python, _other_env(), str(Path(python).parent))
 
