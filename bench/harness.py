@@ -456,3 +456,13 @@ def read_int(path: Path) -> int:
         return int(path.read_text())
     except (OSError, ValueError):
         return 0
+
+
+def child_main(argv: list[str]) -> None:
+    """Diagnostic child (``python bench/_child.py harness``): prints, as JSON, where this
+    interpreter imports ``tmrl`` and ``bench`` from, to check what a side really runs."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("tmrl")
+    print_json({"tmrl": spec.origin if spec else None, "bench": str(Path(__file__).resolve().parent),
+                "python": sys.executable})
