@@ -205,7 +205,8 @@ def _evaluate(impl: str, s: dict[str, Any], workdir: Path, episodes: int, every:
             while not done:
                 with torch.no_grad():
                     act = actor.act_(np.asarray(obs, np.float32), test=True)
-                obs, rew, terminated, truncated, _ = env.step(np.asarray(act, np.float32).reshape(env.action_space.shape))
+                act = np.asarray(act, np.float32).reshape(env.action_space.shape)
+                obs, rew, terminated, truncated, _ = env.step(act)
                 ret += float(rew)
                 done = terminated or truncated
             returns.append(ret)

@@ -295,7 +295,8 @@ def measure(args: argparse.Namespace, busy: bool, rec: harness.Recorder) -> None
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m bench realtime_jitter", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m bench realtime_jitter", description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=10)

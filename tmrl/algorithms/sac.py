@@ -273,7 +273,8 @@ class SACAgent(TrainingAgent):
     ) -> None:
         if update_order not in UPDATE_ORDERS:
             raise UserError(
-                f"update_order={update_order!r} is not known: set ALG.UPDATE_ORDER to one of {', '.join(UPDATE_ORDERS)}"
+                f"update_order={update_order!r} is not known: set ALG.UPDATE_ORDER to one of "
+                f"{', '.join(UPDATE_ORDERS)}"
             )
         self.update_order = update_order
         device = _resolve_device(device)
