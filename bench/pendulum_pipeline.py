@@ -58,7 +58,7 @@ PROFILES: dict[str, dict[str, Any]] = {
 }
 """Each profile is applied to both sides."""
 
-TIMEOUTS = {"tutorial": 100.0, "recommended": 60.0}
+TIMEOUTS = {"tutorial": 90.0, "recommended": 50.0}
 """Default seconds per run, per profile: both profiles, 5 seeds per side, fit in 25 minutes."""
 
 
