@@ -1,191 +1,181 @@
-"""Learning speed: SAC on Pendulum-v1, a plain synchronous loop (one environment step, one update).
+"""Learning check: SAC in a plain synchronous loop (one environment step, one update) on
+Pendulum-v1 or on the built-in simulator, with the two update orders side by side.
 
-Prints the test curve (mean return of deterministic test episodes every ``--eval-every`` steps)
-and the wall time; the goal is a mean test return above -200 within 15k environment steps.
-Samples go through ``tmrl.memory.GenericTorchMemory`` (the trainer's memory) when it is
-available, else through a small local ring buffer.
+    python -m bench pendulum_learning                        # Pendulum, both orders, 5 seeds each
+    python -m bench pendulum_learning --env simlidar --steps 20000
 
-Usage::
+``simultaneous`` (our default: the actor loss reads the critics before their step, one backward
+pass) against ``sequential`` (the original tmrl SAC: after it), ``ALG.UPDATE_ORDER``. Each run is
+a fresh process; seeds alternate the order of the two. Printed per order: medians and spread of
+the environment steps until the mean test return exceeds the threshold (Pendulum: -200), the best
+and last test returns, the updates per second inside ``train()`` and the wall time.
 
-    /work/venv/bin/python bench/pendulum_learning.py [--steps 15000] [--seed 0] [--threads 1]
+The loop: ``--start-steps`` uniformly random actions, then the policy; samples go through a
+standalone :class:`tmrl.networking.RolloutWorker` (the simulator's preprocessor and compressor
+included) into the trainer's replay memory every ``--append-every`` steps; one update per step
+once the memory holds a batch; ``--eval-episodes`` deterministic test episodes every
+``--eval-every`` steps.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
+import sys
 import time
 from typing import Any
 
-import gymnasium
-import numpy as np
-import torch
+from bench import harness
 
-from tmrl.algorithms import SACAgent
-from tmrl.models import MLPActorCritic
-from tmrl.util import partial
+ORDERS = ("simultaneous", "sequential")
+ENVS = ("pendulum", "simlidar")
+THRESHOLDS = {"pendulum": -200.0, "simlidar": None}
 
 
-class _RingBuffer:
-    """Fallback replay memory with the same ``append`` / ``sample`` surface as tmrl's."""
-
-    def __init__(self, size: int, batch_size: int, obs_dim: int, act_dim: int) -> None:
-        self.o = np.zeros((size, obs_dim), np.float32)
-        self.a = np.zeros((size, act_dim), np.float32)
-        self.r = np.zeros(size, np.float32)
-        self.o2 = np.zeros((size, obs_dim), np.float32)
-        self.d = np.zeros(size, np.float32)
-        self.n = 0
-        self.i = 0
-        self.size = size
-        self.batch_size = batch_size
-        self.rng = np.random.default_rng(0)
-        self.last_obs: np.ndarray | None = None
-
-    def append(self, buffer: Any) -> None:
-        for act, obs, rew, terminated, truncated, _ in buffer.memory:
-            if act is not None and self.last_obs is not None:
-                j = self.i
-                self.o[j], self.a[j], self.r[j], self.o2[j], self.d[j] = (
-                    self.last_obs,
-                    act,
-                    rew,
-                    obs[0],
-                    terminated,
-                )
-                self.i = (self.i + 1) % self.size
-                self.n = min(self.n + 1, self.size)
-            self.last_obs = None if (terminated or truncated) else obs[0]
-
-    def __len__(self) -> int:
-        return self.n
-
-    def sample(self) -> tuple:
-        idx = self.rng.integers(0, self.n, self.batch_size)
-        t = torch.from_numpy
-        return (
-            (t(self.o[idx]),),
-            t(self.a[idx]),
-            t(self.r[idx]),
-            (t(self.o2[idx]),),
-            t(self.d[idx]),
-            torch.zeros(len(idx)),
-        )
+# --- one run (child process) ----------------------------------------------------------------------
 
 
-class _Samples:
-    def __init__(self) -> None:
-        self.memory: list = []
-        self.sources = None
-        self.stat_train_return = 0.0
-        self.stat_test_return = 0.0
-        self.stat_train_steps = 0
-        self.stat_test_steps = 0
+class _UniformActor:
+    """Uniformly random actions (the first ``--start-steps``)."""
 
-    def __len__(self) -> int:
-        return len(self.memory)
+    def __init__(self, action_space: Any) -> None:
+        self.action_space = action_space
+
+    def act_(self, obs: Any, test: bool = False) -> Any:
+        return self.action_space.sample()
 
 
-def _memory(batch_size: int, env: gymnasium.Env) -> tuple[Any, str]:
-    try:
-        from tmrl.memory import GenericTorchMemory
-    except ImportError:
-        dims = int(np.prod(env.observation_space.shape)), int(np.prod(env.action_space.shape))
-        return _RingBuffer(100_000, batch_size, *dims), "local ring buffer"
-    return GenericTorchMemory(
-        device="cpu", nb_steps=1, memory_size=100_000, batch_size=batch_size
-    ), "tmrl.memory.GenericTorchMemory"
+def _parts(env_name: str, batch_size: int, memory_size: int) -> dict[str, Any]:
+    """Environment factory, memory, agent class and worker extras of ``env_name``."""
+    from tmrl.memory import GenericTorchMemory
+    from tmrl.models import MLPActorCritic, SquashedGaussianMLPActor
+    from tmrl.util import partial
+
+    if env_name == "pendulum":
+        from tmrl.envs import GenericGymEnv
+
+        return {"env_cls": partial(GenericGymEnv, id="Pendulum-v1"), "model_cls": MLPActorCritic,
+                "actor_cls": SquashedGaussianMLPActor,
+                "memory": GenericTorchMemory(device="cpu", nb_steps=1, memory_size=memory_size, batch_size=batch_size),
+                "worker": {}, "max_samples": 200}
+    from tmrl.sim.demo import DEMO_SETTINGS, _demo_config
+    from tmrl.sim.interfaces import fast_env, pipeline_parts
+
+    parts = pipeline_parts("SIMLIDAR")
+    cfg = _demo_config("SIMLIDAR", "classic")
+    memory = parts["memory_cls"](hist_len=DEMO_SETTINGS["img_hist_len"], act_buf_len=DEMO_SETTINGS["act_buf_len"],
+                                 device="cpu", nb_steps=1, memory_size=memory_size, batch_size=batch_size)
+    return {"env_cls": partial(fast_env, cfg), "model_cls": parts["model_cls"], "actor_cls": parts["actor_cls"],
+            "memory": memory,
+            "worker": {"obs_preprocessor": parts["obs_preprocessor"], "sample_compressor": parts["sample_compressor"]},
+            "max_samples": DEMO_SETTINGS["ep_max_length"]}
 
 
-def evaluate(actor: Any, episodes: int, seed: int) -> float:
-    env = gymnasium.make("Pendulum-v1")
-    returns = []
-    for k in range(episodes):
-        obs, _ = env.reset(seed=seed + k)
-        total, done = 0.0, False
-        while not done:
-            obs, rew, terminated, truncated, _ = env.step(actor.act_((obs,), test=True))
-            total += float(rew)
-            done = terminated or truncated
-        returns.append(total)
-    env.close()
-    return float(np.mean(returns))
+def run(env_name: str, order: str, seed: int, steps: int, start_steps: int, eval_every: int, eval_episodes: int,
+        batch_size: int, append_every: int, threads: int) -> dict[str, Any]:
+    """One learning run; returns its test curve and timings."""
+    import numpy as np
+    import torch
 
+    from tmrl.algorithms.sac import SACAgent
+    from tmrl.networking import Buffer, RolloutWorker
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--steps", type=int, default=15_000)
-    parser.add_argument("--start-steps", type=int, default=1_000, help="uniform random actions first")
-    parser.add_argument("--eval-every", type=int, default=1_000)
-    parser.add_argument("--eval-episodes", type=int, default=10)
-    parser.add_argument("--batch-size", type=int, default=256)
-    parser.add_argument("--append-every", type=int, default=10, help="env steps between memory appends")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--critic-dtype", default=None, help="None (float32) or bfloat16")
-    args = parser.parse_args()
-
-    torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
-    env = gymnasium.make("Pendulum-v1")
-    obs_space = gymnasium.spaces.Tuple((env.observation_space,))
-    # The original's defaults: lr 1e-3, gamma 0.99, polyak 0.995, alpha 0.2 learned.
-    model = partial(MLPActorCritic, critic_dtype=args.critic_dtype)
-    agent = SACAgent(obs_space, env.action_space, "cpu", model_cls=model)
-    actor = agent.get_actor()
-    memory, memory_name = _memory(args.batch_size, env)
-    print(
-        f"SAC on Pendulum-v1, {memory_name}, batch {args.batch_size}, MLP 256x256, "
-        f"critics in {args.critic_dtype or 'float32'}, "
-        f"{torch.get_num_threads()} torch thread(s), load average {os.getloadavg()[0]:.2f}"
-    )
-
-    rng = np.random.default_rng(args.seed)
-    env.action_space.seed(args.seed)
-    pending = _Samples()
-    obs, _ = env.reset(seed=args.seed)
-    pending.memory.append((None, (obs,), 0.0, False, False, {}))
-    curve: list[tuple[int, float]] = []
-    updates = 0
-    t_update = 0.0
+    torch.set_num_threads(threads)
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    p = _parts(env_name, batch_size, 100_000)
+    memory = p["memory"]
+    # The workers' own actors are replaced below (uniform, then the trained one).
+    worker_kwargs = dict(env_cls=p["env_cls"], actor_module_cls=p["actor_cls"], standalone=True, model_history=0,
+                         max_samples_per_episode=p["max_samples"], model_path=os.devnull + "_none", **p["worker"])
+    worker, tester = RolloutWorker(**worker_kwargs), RolloutWorker(**worker_kwargs)
+    agent = SACAgent(worker.env.observation_space, worker.env.action_space, "cpu", model_cls=p["model_cls"],
+                     update_order=order)
+    worker.env.action_space.seed(seed)
+    worker.actor, tester.actor = _UniformActor(worker.env.action_space), agent.get_actor()
+    curve, updates, t_update = [], 0, 0.0
     start = time.perf_counter()
-    for step in range(1, args.steps + 1):
-        if step <= args.start_steps:
-            act = env.action_space.sample()
-        else:
-            act = actor.act_((obs,), test=False)
-        obs, rew, terminated, truncated, _ = env.step(act)
-        pending.memory.append(
-            (np.asarray(act, np.float32), (obs,), float(rew), bool(terminated), bool(truncated), {})
-        )
+    obs, _ = worker.reset(collect_samples=True)
+    episode_step = 0
+    for step in range(1, steps + 1):
+        if step == start_steps + 1:
+            worker.actor = agent.get_actor()
+        episode_step += 1
+        obs, _, terminated, truncated, _ = worker.step(obs, test=False, collect_samples=True,
+                                                       last_step=episode_step == p["max_samples"])
         if terminated or truncated:
-            obs, _ = env.reset(seed=int(rng.integers(1 << 30)))
-            pending.memory.append((None, (obs,), 0.0, False, False, {}))
-        if len(pending.memory) >= args.append_every:
-            memory.append(pending)
-            pending = _Samples()
-        if step > args.start_steps and len(memory) >= args.batch_size:
+            obs, _ = worker.reset(collect_samples=True)
+            episode_step = 0
+        if len(worker.buffer) >= append_every:
+            memory.append(worker.buffer)
+            worker.buffer = Buffer()
+        if step > start_steps and len(memory) >= batch_size:
             t0 = time.perf_counter()
             agent.train(memory.sample())
             t_update += time.perf_counter() - t0
             updates += 1
-        if step % args.eval_every == 0:
-            ret = evaluate(actor, args.eval_episodes, seed=10_000 + step)
+        if step % eval_every == 0:
+            ret = float(np.mean([tester.run_episode() for _ in range(eval_episodes)]))
             curve.append((step, ret))
-            print(
-                f"  step {step:6d}  test return {ret:8.1f}  updates {updates:6d}  "
-                f"wall {time.perf_counter() - start:6.1f} s",
-                flush=True,
-            )
-    wall = time.perf_counter() - start
-    first = next((s for s, r in curve if r > -200), None)
-    print(
-        f"wall time {wall:.1f} s ({updates} updates, {updates / max(t_update, 1e-9):.0f} updates/s in train(); "
-        f"load average {os.getloadavg()[0]:.2f})"
-    )
-    print(f"first test return above -200 at step {first}" if first else "never above -200")
-    print(f"best test return {max(r for _, r in curve):.1f}, final {curve[-1][1]:.1f}")
+            print(f"    [{env_name} {order} seed {seed}] step {step:6d} test return {ret:8.1f} "
+                  f"({time.perf_counter() - start:.0f} s)", file=sys.stderr, flush=True)
+    return {"curve": curve, "wall_s": time.perf_counter() - start, "updates": updates,
+            "updates_per_s": updates / max(t_update, 1e-9)}
 
 
-if __name__ == "__main__":
-    main()
+def child_main(argv: list[str]) -> None:
+    """``--run JSON``: one run with those keyword arguments; prints its result as JSON."""
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--run", required=True)
+    harness.print_json(run(**json.loads(ap.parse_args(argv).run)))
+
+
+# --- driver ---------------------------------------------------------------------------------------
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m bench pendulum_learning", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--env", choices=ENVS, default="pendulum")
+    ap.add_argument("--orders", default=",".join(ORDERS), help="comma-separated among " + ", ".join(ORDERS))
+    ap.add_argument("--seeds", type=int, default=5, help="runs per order")
+    ap.add_argument("--steps", type=int, default=15_000)
+    ap.add_argument("--start-steps", type=int, default=1_000, help="uniformly random actions first")
+    ap.add_argument("--eval-every", type=int, default=1_000)
+    ap.add_argument("--eval-episodes", type=int, default=5)
+    ap.add_argument("--batch-size", type=int, default=256)
+    ap.add_argument("--append-every", type=int, default=10, help="env steps between memory appends")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threshold", type=float, default=None, help="test return to reach (Pendulum: -200)")
+    args = ap.parse_args(argv)
+    orders = [o for o in args.orders.split(",") if o]
+    if set(orders) - set(ORDERS):
+        ap.error(f"unknown order(s) {sorted(set(orders) - set(ORDERS))}: use {', '.join(ORDERS)}")
+    threshold = args.threshold if args.threshold is not None else THRESHOLDS[args.env]
+    settings = {k: v for k, v in vars(args).items() if k not in ("orders", "seeds")}
+    settings.update(threshold=threshold, algorithm="SAC, MLP 256x256, lr 1e-3, gamma 0.99, alpha 0.2 learned")
+    rec = harness.Recorder("pendulum_learning", settings)
+    side = harness.ours_side()
+    for seed, order in harness.alternate(orders, args.seeds):
+        kwargs = dict(env_name=args.env, order=order, seed=seed, steps=args.steps, start_steps=args.start_steps,
+                      eval_every=args.eval_every, eval_episodes=args.eval_episodes, batch_size=args.batch_size,
+                      append_every=args.append_every, threads=args.threads)
+        # A fresh process per run; its progress lines go to stderr, its result to stdout.
+        out = subprocess.run(side.command("pendulum_learning", "--run", json.dumps(kwargs)), env=side.env,
+                             cwd=side.cwd, stdout=subprocess.PIPE, text=True, check=False)
+        if out.returncode != 0:
+            raise SystemExit(f"the {order} run of seed {seed} failed (exit code {out.returncode})")
+        res = json.loads(out.stdout.strip().splitlines()[-1])
+        case = f"{args.env} SAC"
+        returns = [r for _, r in res["curve"]]
+        reached = next((s for s, r in res["curve"] if threshold is not None and r > threshold), None)
+        if threshold is not None:
+            rec.add(case, f"steps_to_{threshold:g}", order, reached, round=seed, higher_is_better=False,
+                    unit="steps", curve=res["curve"])
+        rec.add(case, "best_test_return", order, max(returns), round=seed)
+        rec.add(case, "last_test_return", order, returns[-1], round=seed)
+        rec.add(case, "updates_per_s_in_train", order, res["updates_per_s"], round=seed, unit="1/s")
+        rec.add(case, "wall_s", order, res["wall_s"], round=seed, higher_is_better=False, unit="s")
+    rec.print_table(ratios=[("simultaneous", "sequential")])
+    rec.close()

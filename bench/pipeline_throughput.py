@@ -1,37 +1,33 @@
-"""Throughput of the distributed pipeline, this tmrl beside the original tmrl 0.7.1:
+"""Throughput of the distributed pipeline, ours beside tmrl 0.7.1: samples per second reaching the
+trainer, bytes per sample on the wire, the trainer's memory, and weight-broadcast latency.
+
+    python -m bench pipeline_throughput                       # 3 rounds, 15 s per measurement
+    python -m bench pipeline_throughput --duration 60 --skip-broadcast
 
 - samples per second reaching the trainer with 1, 2 and 4 workers on a trivial environment
   (3-float observations, a constant policy, 1000-step episodes, each sent when it ends);
-- bytes per sample on the wire for that 3-float observation (one 1000-sample episode);
-- the trainer's memory (RSS of the trainer process and its network children) during and at the
-  end of the 4-worker run (``--duration`` seconds; the issue's figure uses 60);
-- weight broadcast latency (trainer's ``broadcast_model`` call to the worker having loaded them)
-  for 1M and 20M parameter actors.
+- bytes per sample on the wire for that observation (one 1000-sample episode);
+- the trainer's memory (PSS of the trainer process and its network children) at the end of the
+  run with the most workers;
+- weight broadcast latency (the trainer's ``broadcast_model`` call to the worker having loaded
+  them) for 1M and 20M parameter actors (the original's 20M case takes minutes).
 
-    python bench/pipeline_throughput.py                      # both, default 15 s per run
-    python bench/pipeline_throughput.py --duration 60 --impl ours
-    python bench/pipeline_throughput.py --skip-broadcast     # the original's 20M case takes minutes
-
-Every process is separate (server, trainer, workers), on 127.0.0.1, plain TCP for both (the
-original's default). The figures depend on the machine's load: ``uptime`` is printed with them.
+Every process is separate (server, trainer, workers), on 127.0.0.1, plain TCP on both sides (the
+original's default); rounds alternate the order of the sides.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
-import signal
-import socket
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve()
+from bench import harness
+
 PASSWORD = "bench-password"
 EPISODE = 1000
 
@@ -64,10 +60,7 @@ def _actor_cls(impl: str, n_params: int):
     import numpy as np
     import torch
 
-    if impl == "ours":
-        from tmrl.actor import TorchActorModule
-    else:
-        from tmrl.actor import TorchActorModule
+    from tmrl.actor import TorchActorModule  # the same module path on both sides
 
     class Actor(TorchActorModule):
         def __init__(self, observation_space, action_space, *args, **kwargs):
@@ -103,39 +96,15 @@ def _rss_tree(pid: int) -> int:
     return total
 
 
-def _out(obj: dict) -> None:
-    print(json.dumps(obj), flush=True)
-
-
 def role_server(impl: str, port: int) -> None:
-    if impl == "ours":
-        from tmrl.networking import Server
+    from tmrl.networking import Server
 
-        server = Server(port=port, password=PASSWORD, security=None, max_workers=None)
-        try:
-            while True:
-                time.sleep(1.0)
-        finally:
-            server.stop()
-    else:
-        from tmrl.networking import Server
-
-        server = Server(port=port, password=PASSWORD, security=None, max_workers=None)
-        while True:
-            time.sleep(1.0)
+    server = Server(port=port, password=PASSWORD, security=None, max_workers=None)  # noqa: F841 (kept alive)
+    while True:
+        time.sleep(1.0)
 
 
 def _trainer_interface(impl: str, port: int, workdir: Path):
-    if impl == "ours":
-        from tmrl.networking import TrainerInterface
-
-        return TrainerInterface(
-            server_ip="127.0.0.1",
-            server_port=port,
-            password=PASSWORD,
-            security=None,
-            model_path=str(workdir / "model_trainer.tmod"),
-        )
     from tmrl.networking import TrainerInterface
 
     return TrainerInterface(
@@ -191,10 +160,10 @@ def role_sink(
         else:
             count += n
             if now >= next_rss:
-                _out({"rss": _rss_tree(os.getpid()), "t": now - t_measure})
+                harness.print_json({"rss": _rss_tree(os.getpid()), "t": now - t_measure})
                 next_rss += 5.0
             if now - t_measure >= duration:
-                _out({"samples_per_s": count / (now - t_measure), "rss_end": _rss_tree(os.getpid())})
+                harness.print_json({"samples_per_s": count / (now - t_measure), "rss_end": _rss_tree(os.getpid())})
                 break
         if not n:
             time.sleep(0.001)
@@ -241,7 +210,7 @@ def role_bytes(impl: str) -> None:
         import pickle
 
         size = len(pickle.dumps(w.buffer))  # tlspyo's default serializer, as the original sends it
-    _out({"bytes_per_sample": size / n, "samples": n})
+    harness.print_json({"bytes_per_sample": size / n, "samples": n})
 
 
 def role_bcast_trainer(impl: str, port: int, workdir: Path, n_params: int, repeats: int) -> None:
@@ -257,7 +226,7 @@ def role_bcast_trainer(impl: str, port: int, workdir: Path, n_params: int, repea
         while not ack.exists() or int(ack.read_text() or -1) != i:
             time.sleep(0.01)
         t = time.monotonic()
-        _out({"sent": i, "t": t})
+        harness.print_json({"sent": i, "t": t})
         iface.broadcast_model(actor)
     time.sleep(1.0)
     while True:  # keep the link open until the driver stops us
@@ -285,274 +254,150 @@ def role_bcast_worker(impl: str, port: int, workdir: Path, n_params: int, repeat
         os.replace(tmp, ack)
         while w.update_actor_weights(verbose=False, blocking=True) == 0:
             pass
-        _out({"loaded": i, "t": time.monotonic()})
+        harness.print_json({"loaded": i, "t": time.monotonic()})
     while True:
         time.sleep(1.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# child entry
+
+
+def child_main(argv: list[str]) -> None:
+    """One role: ``--impl ours|tmrl --role NAME [ARGS...]``."""
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--impl", required=True)
+    ap.add_argument("--port", type=int, default=0)
+    ap.add_argument("--workdir", required=True)
+    ap.add_argument("--role", nargs="+", required=True)
+    args = ap.parse_args(argv)
+    role, *rest = args.role
+    wd = Path(args.workdir)
+    if role == "server":
+        role_server(args.impl, args.port)
+    elif role == "sink":
+        role_sink(args.impl, args.port, wd, float(rest[0]), float(rest[1]), float(rest[2]), rest[3] == "1")
+    elif role == "worker":
+        role_worker(args.impl, args.port, wd)
+    elif role == "bytes":
+        role_bytes(args.impl)
+    elif role == "bcast_trainer":
+        role_bcast_trainer(args.impl, args.port, wd, int(rest[0]), int(rest[1]))
+    elif role == "bcast_worker":
+        role_bcast_worker(args.impl, args.port, wd, int(rest[0]), int(rest[1]))
 
 
 # ------------------------------------------------------------------------------------------------
 # driver
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class Run:
-    """Processes of one measurement; stopped (with their children) at the end."""
+    """The processes of one measurement, in a work folder; all stopped (with their children) at
+    the end."""
 
-    def __init__(self, impl: str, python: str, home: str | None):
-        self.impl, self.python = impl, python
-        self.workdir = Path(tempfile.mkdtemp(prefix=f"throughput-{impl}-"))
-        self.port = _free_port()
-        self.env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
-        if home:
-            self.env["HOME"] = home
-        else:
+    def __init__(self, side: harness.Side) -> None:
+        self.side = side
+        self.workdir = Path(tempfile.mkdtemp(prefix=f"throughput-{side.name}-"))
+        self.port = harness.free_port()
+        self.env = dict(side.env, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+        if side.name == "ours":
             self.env["TMRL_DATA"] = str(self.workdir / "TmrlData")
-        self.procs: list[subprocess.Popen] = []
+        self.procs: list = []
 
-    def start(self, *role_args: str, pipe: bool = False) -> subprocess.Popen:
-        log = open(self.workdir / f"{role_args[0]}-{len(self.procs)}.log", "wb")
-        p = subprocess.Popen(
-            [
-                self.python,
-                str(HERE),
-                "--impl",
-                self.impl,
-                "--port",
-                str(self.port),
-                "--workdir",
-                str(self.workdir),
-                "--role",
-                *role_args,
-            ],
-            cwd=str(self.workdir),
-            env=self.env,
-            stdout=subprocess.PIPE if pipe else log,
-            stderr=log,
-            start_new_session=True,
-        )
+    def start(self, *role: str, pipe: bool = False):
+        cmd = self.side.command("pipeline_throughput", "--impl", self.side.name, "--port", str(self.port),
+                                "--workdir", str(self.workdir), "--role", *role)
+        p = harness.start_group(cmd, self.side, self.workdir / f"{role[0]}-{len(self.procs)}.log",
+                                stdout=-1 if pipe else None, env=self.env, cwd=str(self.workdir))
         self.procs.append(p)
         return p
 
-    def wait_listening(self, timeout: float = 60.0) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                with socket.create_connection(("127.0.0.1", self.port), timeout=0.5):
-                    return
-            except OSError:
-                time.sleep(0.1)
-        raise RuntimeError(f"server did not listen (see {self.workdir})")
+    def __enter__(self) -> Run:
+        return self
 
-    def stop(self, keep: bool = False) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + 5
-        for p in self.procs:
-            try:
-                p.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                pass
-            try:
-                os.killpg(p.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-            p.wait()
-        if not keep:
-            shutil.rmtree(self.workdir, ignore_errors=True)
+    def __exit__(self, *exc: object) -> None:
+        harness.stop_groups(self.procs, grace=5.0)
+        shutil.rmtree(self.workdir, ignore_errors=True)
 
 
-def _lines(p: subprocess.Popen, timeout: float):
-    deadline = time.monotonic() + timeout
-    os.set_blocking(p.stdout.fileno(), False)
-    pending = b""
-    while time.monotonic() < deadline:
-        chunk = p.stdout.read() or b""
-        pending += chunk
-        *lines, pending = pending.split(b"\n")
-        for line in lines:
-            if line.startswith(b"{"):  # the original prints other lines on stdout
-                yield json.loads(line)
-        if p.poll() is not None and not chunk:
-            return
-        time.sleep(0.05)
-
-
-def measure_throughput(
-    impl: str,
-    python: str,
-    home: str | None,
-    workers: int,
-    warmup: float,
-    duration: float,
-    keep: bool,
-    cost_us: float = 0.0,
-    into_memory: bool = False,
-) -> dict:
-    run = Run(impl, python, home)
-    try:
+def measure_throughput(side: harness.Side, workers: int, warmup: float, duration: float, cost_us: float,
+                       into_memory: bool) -> dict:
+    with Run(side) as run:
         run.start("server")
-        run.wait_listening()
+        harness.wait_listening(run.port, 60.0)
         sink = run.start("sink", str(warmup), str(duration), str(cost_us), str(int(into_memory)), pipe=True)
         for _ in range(workers):
             run.start("worker")
         res: dict = {"rss": []}
-        for rec in _lines(sink, warmup + duration + 120):
+        for rec in harness.JsonLines(sink).wait(warmup + duration + 120):
             if "rss" in rec:
                 res["rss"].append(rec["rss"])
             else:
                 res.update(rec)
                 break
         return res
-    finally:
-        run.stop(keep)
 
 
-def measure_bytes(impl: str, python: str, home: str | None) -> float | None:
-    run = Run(impl, python, home)
-    try:
-        p = run.start("bytes", pipe=True)
-        for rec in _lines(p, 120):
+def measure_bytes(side: harness.Side) -> float | None:
+    with Run(side) as run:
+        for rec in harness.JsonLines(run.start("bytes", pipe=True)).wait(120):
             return rec["bytes_per_sample"]
-    finally:
-        run.stop()
     return None
 
 
-def measure_broadcast(
-    impl: str, python: str, home: str | None, n_params: int, repeats: int, timeout: float
-) -> float | None:
-    run = Run(impl, python, home)
-    try:
+def measure_broadcast(side: harness.Side, n_params: int, repeats: int, timeout: float) -> float | None:
+    with Run(side) as run:
         run.start("server")
-        run.wait_listening()
-        tr = run.start("bcast_trainer", str(n_params), str(repeats), pipe=True)
-        wk = run.start("bcast_worker", str(n_params), str(repeats), pipe=True)
-        sent, lat = {}, []
-        os.set_blocking(tr.stdout.fileno(), False)
-        gen = _lines(wk, timeout)
-        pending = b""
-        for rec in gen:
-            pending += tr.stdout.read() or b""
-            *lines, pending = pending.split(b"\n")
-            for line in lines:
-                if line.startswith(b"{"):
-                    r = json.loads(line)
-                    sent[r["sent"]] = r["t"]
+        harness.wait_listening(run.port, 60.0)
+        trainer = harness.JsonLines(run.start("bcast_trainer", str(n_params), str(repeats), pipe=True))
+        worker = run.start("bcast_worker", str(n_params), str(repeats), pipe=True)
+        sent: dict[int, float] = {}
+        latencies = []
+        for rec in harness.JsonLines(worker).wait(timeout):
+            sent.update((r["sent"], r["t"]) for r in trainer.poll())
             if "loaded" in rec and rec["loaded"] in sent:
-                lat.append(rec["t"] - sent[rec["loaded"]])
-                if len(lat) == repeats:
+                latencies.append(rec["t"] - sent[rec["loaded"]])
+                if len(latencies) == repeats:
                     break
-        return statistics.median(lat) if lat else None
-    finally:
-        run.stop()
+        return statistics.median(latencies) if latencies else None
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--impl", default="ours,tmrl")
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m bench pipeline_throughput", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rounds", type=int, default=3, help="rounds (sides alternate their order)")
     ap.add_argument("--duration", type=float, default=15.0, help="measured seconds per throughput run")
     ap.add_argument("--warmup", type=float, default=3.0)
     ap.add_argument("--workers", default="1,2,4")
     ap.add_argument("--params", default="1000000,20000000", help="actor sizes for the broadcast latency")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=3, help="broadcasts per latency measurement (median)")
     ap.add_argument("--broadcast-timeout", type=float, default=400.0)
     ap.add_argument("--skip-broadcast", action="store_true")
-    ap.add_argument(
-        "--sink-cost-us",
-        type=float,
-        default=0.0,
-        help="microseconds of work per retrieved sample at the trainer (a trainer slower than the workers)",
-    )
-    ap.add_argument(
-        "--sink-memory",
-        action="store_true",
-        help="the trainer side also stores every retrieved buffer in its replay memory (GenericTorchMemory)",
-    )
-    ap.add_argument("--python", default=sys.executable)
-    ap.add_argument("--anchor-python", default="/tmp/tmrl-anchor/venv/bin/python")
-    ap.add_argument("--anchor-home", default="/tmp/tmrl-anchor/home")
-    ap.add_argument("--keep", action="store_true")
-    ap.add_argument("--role", nargs="+", help=argparse.SUPPRESS)
-    ap.add_argument("--port", type=int, help=argparse.SUPPRESS)
-    ap.add_argument("--workdir", help=argparse.SUPPRESS)
-    args = ap.parse_args()
-
-    if args.role:
-        role, *rest = args.role
-        wd = Path(args.workdir)
-        try:
-            if role == "server":
-                role_server(args.impl, args.port)
-            elif role == "sink":
-                role_sink(
-                    args.impl, args.port, wd, float(rest[0]), float(rest[1]), float(rest[2]), rest[3] == "1"
-                )
-            elif role == "worker":
-                role_worker(args.impl, args.port, wd)
-            elif role == "bytes":
-                role_bytes(args.impl)
-            elif role == "bcast_trainer":
-                role_bcast_trainer(args.impl, args.port, wd, int(rest[0]), int(rest[1]))
-            elif role == "bcast_worker":
-                role_bcast_worker(args.impl, args.port, wd, int(rest[0]), int(rest[1]))
-        except KeyboardInterrupt:
-            pass
-        return
-
-    def uptime() -> str:
-        return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-
-    print(f"uptime: {uptime()}", flush=True)
-    table: dict[str, dict] = {}
-    for impl in args.impl.split(","):
-        python, home = (args.python, None) if impl == "ours" else (args.anchor_python, args.anchor_home)
-        r = table.setdefault(impl, {})
-        r["bytes"] = measure_bytes(impl, python, home)
-        print(f"{impl}: {r['bytes']:.1f} bytes/sample", flush=True)
-        for k in [int(x) for x in args.workers.split(",")]:
-            res = measure_throughput(
-                impl, python, home, k, args.warmup, args.duration, args.keep, args.sink_cost_us, args.sink_memory
-            )
-            r[f"sps{k}"] = res.get("samples_per_s")
-            r[f"rss{k}"] = res.get("rss_end")
-            r[f"rss_series{k}"] = res.get("rss", [])
-            mb = [f"{x / 2**20:.0f}" for x in r[f"rss_series{k}"]]
-            print(
-                f"{impl}: {k} worker(s): {r[f'sps{k}'] or 0:,.0f} samples/s; trainer memory (PSS) every 5 s (MiB): "
-                f"{' '.join(mb)}; end {(r[f'rss{k}'] or 0) / 2**20:.0f} MiB   [{uptime()}]",
-                flush=True,
-            )
-        if not args.skip_broadcast:
-            for n in [int(x) for x in args.params.split(",")]:
-                lat = measure_broadcast(impl, python, home, n, args.repeats, args.broadcast_timeout)
-                r[f"bcast{n}"] = lat
-                print(
-                    f"{impl}: broadcast of a {n / 1e6:g}M-parameter actor: "
-                    f"{'timeout' if lat is None else f'{lat:.2f} s'} (median of {args.repeats})   [{uptime()}]",
-                    flush=True,
-                )
-    print(f"uptime: {uptime()}")
+    ap.add_argument("--sink-cost-us", type=float, default=0.0,
+                    help="microseconds of work per retrieved sample at the trainer (a trainer slower than the workers)")
+    ap.add_argument("--sink-memory", action="store_true",
+                    help="the trainer side also stores every retrieved buffer in its replay memory")
+    harness.add_side_arguments(ap, tmrl=True)
+    args = ap.parse_args(argv)
     ks = [int(x) for x in args.workers.split(",")]
-    head = " | ".join([f"{k} worker(s) samples/s" for k in ks] + ["B/sample", f"RSS end ({max(ks)} w)"])
-    print(f"{'impl':6} | {head}")
-    for impl, r in table.items():
-        cells = [f"{r.get(f'sps{k}') or 0:>20,.0f}" for k in ks]
-        cells.append(f"{r['bytes'] or 0:8.1f}")
-        cells.append(f"{(r.get(f'rss{max(ks)}') or 0) / 2**20:10.0f} MiB")
-        print(f"{impl:6} | " + " | ".join(cells))
-        if not args.skip_broadcast:
-            for n in [int(x) for x in args.params.split(",")]:
-                lat = r.get(f"bcast{n}")
-                print(
-                    f"{'':6} | broadcast {n / 1e6:g}M params: {'timeout' if lat is None else f'{lat:.2f} s'}"
-                )
-
-
-if __name__ == "__main__":
-    main()
+    params = [] if args.skip_broadcast else [int(x) for x in args.params.split(",")]
+    rec = harness.Recorder("pipeline_throughput", {
+        "workers": ks, "duration_s": args.duration, "warmup_s": args.warmup, "episode": EPISODE,
+        "transport": "plain TCP on 127.0.0.1", "sink_cost_us": args.sink_cost_us, "sink_memory": args.sink_memory,
+        "broadcast_params": params, "rounds": args.rounds})
+    for rnd, side in harness.alternate(harness.sides_from_args(args), args.rounds):
+        rec.add("one episode on the wire", "bytes_per_sample", side.name, measure_bytes(side), round=rnd,
+                higher_is_better=False, unit="B")
+        for k in ks:
+            res = measure_throughput(side, k, args.warmup, args.duration, args.sink_cost_us, args.sink_memory)
+            rec.add(f"{k} worker(s)", "samples_per_s", side.name, res.get("samples_per_s"), round=rnd, unit="1/s",
+                    rss_series=res["rss"])
+            if k == max(ks):
+                end = res.get("rss_end")
+                rec.add(f"{k} worker(s)", "trainer_pss_mib", side.name, end / 2**20 if end else None, round=rnd,
+                        higher_is_better=False, unit="MiB")
+        for n in params:
+            lat = measure_broadcast(side, n, args.repeats, args.broadcast_timeout)
+            rec.add(f"broadcast {n / 1e6:g}M params", "latency_s", side.name, lat, round=rnd,
+                    higher_is_better=False, unit="s")
+    rec.print_table()
+    rec.close()

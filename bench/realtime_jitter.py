@@ -8,18 +8,18 @@ and prints mean, standard deviation and 99th percentile of
 * the time-step duration (the interval between two send_control calls: what the device sees),
 
 for both implementations in the same run, and the ratios ours / rtgym (below 1 is better).
-Each implementation runs in its own subprocess: tmrl's with this Python, rtgym's with the
-interpreter of the separate venv where it is installed (``--rtgym-python``), e.g.::
+Each implementation runs in its own subprocess: ours with this Python, rtgym's with the
+interpreter of a venv where it is installed (``--rtgym-python``; by default the one
+``bench/anchors/install_tmrl.sh`` makes, which installs rtgym 0.16 beside tmrl 0.7.1)::
 
-    python3 -m venv /tmp/rtgym-venv && /tmp/rtgym-venv/bin/pip install rtgym==0.16
-    python bench/realtime_jitter.py                      # idle machine
-    python bench/realtime_jitter.py --busy               # a busy process on the other core
-    python bench/realtime_jitter.py --both               # both, one table each
-    python bench/realtime_jitter.py --semantics          # same episodes as rtgym? (no timing)
+    python -m bench realtime_jitter                      # idle machine
+    python -m bench realtime_jitter --busy               # a busy process on the other core
+    python -m bench realtime_jitter --both               # both, one table each
+    python -m bench realtime_jitter --semantics          # same episodes as rtgym? (no timing)
 
 Rounds alternate between the implementations in ABBA order, so that a change in the machine's load
-during the run favours neither; the intervals of all rounds are pooled.
-Figures are noisy on a shared machine: the script prints the load average beside them.
+during the run favours neither; the intervals of all rounds are pooled for the first table, and
+each round's figures go through the harness (medians over rounds, load average beside them).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import subprocess
 import sys
 import time
 
-HERE = os.path.abspath(__file__)
+from bench import harness
 
 
 # child: one implementation --------------------------------------------------------------------
@@ -189,17 +189,15 @@ def child_semantics(impl: str) -> None:
     print(json.dumps(out))
 
 
+def _sides(args: argparse.Namespace) -> dict[str, harness.Side]:
+    return {"tmrl": harness.ours_side(), "rtgym": harness.rtgym_side(args.rtgym_python)}
+
+
 def compare_semantics(args: argparse.Namespace) -> None:
     results = {}
-    for impl, python in (("tmrl", sys.executable), ("rtgym", args.rtgym_python)):
-        env = dict(os.environ)
-        if impl == "tmrl":
-            env["PYTHONPATH"] = (
-                os.path.dirname(os.path.dirname(HERE)) + os.pathsep + env.get("PYTHONPATH", "")
-            )
-        out = subprocess.run(
-            [python, HERE, "--child-semantics", impl], capture_output=True, text=True, env=env, check=True
-        )
+    for impl, side in _sides(args).items():
+        out = subprocess.run(side.command("realtime_jitter", "--child-semantics", impl), capture_output=True,
+                             text=True, env=side.env, cwd=side.cwd, check=True)
         results[impl] = json.loads(out.stdout.strip().splitlines()[-1])
     same = 0
     for ours, theirs in zip(results["tmrl"], results["rtgym"]):
@@ -228,11 +226,10 @@ def stats(values: list[float]) -> tuple[float, float, float]:
 
 
 def run_child(
-    python: str, impl: str, args: argparse.Namespace, cpus: set[int] | None
+    side: harness.Side, impl: str, args: argparse.Namespace, cpus: set[int] | None
 ) -> dict[str, list[float]]:
-    cmd = [
-        python,
-        HERE,
+    cmd = side.command(
+        "realtime_jitter",
         "--child",
         impl,
         "--steps",
@@ -243,12 +240,9 @@ def run_child(
         str(args.inference_ms),
         "--period",
         str(args.period),
-    ]
-    env = dict(os.environ)
-    repo = os.path.dirname(os.path.dirname(HERE))
-    if impl == "tmrl":
-        env["PYTHONPATH"] = repo + os.pathsep + env.get("PYTHONPATH", "")
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    )
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=side.env,
+                            cwd=side.cwd)
     if cpus:
         os.sched_setaffinity(proc.pid, cpus)
     out, err = proc.communicate()
@@ -257,7 +251,7 @@ def run_child(
     return json.loads(out.strip().splitlines()[-1])
 
 
-def measure(args: argparse.Namespace, busy: bool) -> None:
+def measure(args: argparse.Namespace, busy: bool, rec: harness.Recorder) -> None:
     ncpu = os.cpu_count() or 1
     hog = None
     cpus = None
@@ -271,20 +265,21 @@ def measure(args: argparse.Namespace, busy: bool) -> None:
         pooled: dict[str, dict[str, list[float]]] = {
             impl: {"returns": [], "controls": []} for impl in ("tmrl", "rtgym")
         }
-        pythons = {"tmrl": sys.executable, "rtgym": args.rtgym_python}
-        for r in range(args.rounds):
-            # ABBA order, so that a load that rises or falls during the run favours neither
-            for impl in ("tmrl", "rtgym") if r % 2 == 0 else ("rtgym", "tmrl"):
-                res = run_child(pythons[impl], impl, args, cpus)
-                for key in ("returns", "controls"):
-                    pooled[impl][key] += intervals(res[key])
+        sides = _sides(args)
+        title = "busy process on the other core" if busy else "no extra load"
+        for r, impl in harness.alternate(["tmrl", "rtgym"], args.rounds):
+            res = run_child(sides[impl], impl, args, cpus)
+            for key, label in (("returns", "step() return interval"), ("controls", "time-step duration")):
+                pooled[impl][key] += intervals(res[key])
+                for name, value in zip(("mean", "std", "p99"), stats(intervals(res[key]))):
+                    rec.add(f"{label}, {title}", f"{name}_ms", "ours" if impl == "tmrl" else impl, value,
+                            round=r, higher_is_better=False, unit="ms", echo=False)
         load_after = os.getloadavg()
     finally:
         if hog is not None:
             hog.kill()
             hog.wait()
 
-    title = "busy process on the other core" if busy else "no extra load"
     print(
         f"\n{1 / args.period:.0f} Hz, {args.steps} steps x {args.rounds} round(s), "
         f"inference {args.inference_ms} ms, {title}; load average {load_before[0]:.2f} -> {load_after[0]:.2f}"
@@ -298,9 +293,10 @@ def measure(args: argparse.Namespace, busy: bool) -> None:
             print(f"{label + ' ' + name:<34}{ours[i]:>10.3f}{theirs[i]:>10.3f}{ratio:>8.3f}")
 
 
-def main() -> None:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m bench realtime_jitter", description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=10)
@@ -311,7 +307,7 @@ def main() -> None:
     parser.add_argument("--inference-ms", type=float, default=5.0)
     parser.add_argument(
         "--rtgym-python",
-        default="/tmp/rtgym-venv/bin/python",
+        default=harness.DEFAULT_RTGYM_PYTHON,
         help="interpreter of the venv where rtgym==0.16 is installed",
     )
     parser.add_argument("--busy", action="store_true", help="run a busy process on the other core")
@@ -323,23 +319,26 @@ def main() -> None:
     )
     parser.add_argument("--child", choices=["tmrl", "rtgym"], help=argparse.SUPPRESS)
     parser.add_argument("--child-semantics", choices=["tmrl", "rtgym"], help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.child:
-        child(args.child, args.steps, args.warmup, args.inference_ms, args.period)
-        return
-    if args.child_semantics:
-        child_semantics(args.child_semantics)
-        return
-    if not os.path.exists(args.rtgym_python):
-        raise SystemExit(
-            f"{args.rtgym_python} not found: install rtgym==0.16 in a venv and pass --rtgym-python"
-        )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = _parser().parse_args(argv)
     if args.semantics:
         compare_semantics(args)
         return
+    rec = harness.Recorder("realtime_jitter", {k: v for k, v in vars(args).items() if k != "rtgym_python"})
     for busy in [False, True] if args.both else [args.busy]:
-        measure(args, busy)
+        measure(args, busy, rec)
+    rec.print_table(ratios=[("ours", "rtgym")])
+    rec.close()
 
 
-if __name__ == "__main__":
-    main()
+def child_main(argv: list[str]) -> None:
+    """``--child IMPL ...`` (one timing run) or ``--child-semantics IMPL``."""
+    args = _parser().parse_args(argv)
+    if args.child:
+        child(args.child, args.steps, args.warmup, args.inference_ms, args.period)
+    elif args.child_semantics:
+        child_semantics(args.child_semantics)
+

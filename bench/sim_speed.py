@@ -1,23 +1,24 @@
-"""Simulator steps per second, per observation type, in fast mode (no real-time clock).
+"""Simulator steps per second (ours), per observation type, in fast mode (no real-time clock).
 
-Usage: python bench/sim_speed.py [--seconds 3] [--track classic]
+    python -m bench sim_speed [--seconds 3] [--track classic] [--rounds 3]
 
-Prints one line per environment: steps per second with random actions (episodes reset as they
-end) and with the centre-line driver, and the physics-only rate of the race without
-observations. The full observation includes rendering the 64x64 image; the lidar ones render only
-the pixels along the 19 beams. Run it on an idle machine and report `uptime` beside the figures.
+One figure per environment: steps per second with random actions (episodes reset as they end)
+and with the centre-line driver, and the physics-only rate of the race without observations.
+The full observation includes rendering the 64x64 image; the lidar ones render only the pixels
+along the 19 beams.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import time
+from collections.abc import Callable
 
-import numpy as np
+from bench import harness
 
 
-def rate(step, reset, seconds: float) -> float:
+def rate(step: Callable[[], bool], reset: Callable[[], object], seconds: float) -> float:
+    """Steps per second of ``step`` (True when the episode ended) over ``seconds``."""
     reset()
     n = 0
     t0 = time.perf_counter()
@@ -31,36 +32,38 @@ def rate(step, reset, seconds: float) -> float:
             return n / elapsed
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=3.0, help="measuring time per case")
-    parser.add_argument("--track", default="classic", help="track name or seed")
-    args = parser.parse_args()
+def one_round(args: argparse.Namespace, rnd: int, rec: harness.Recorder) -> None:
+    import numpy as np
 
     from tmrl.sim.interfaces import SimEnv
     from tmrl.sim.race import Race, follow_centre_line
     from tmrl.sim.track import make_track
 
-    rng = np.random.default_rng(0)
-    print(f"load average: {os.getloadavg()[0]:.2f} (1 min), cpus: {os.cpu_count()}")
+    rng = np.random.default_rng(rnd)
     race = Race(make_track(args.track))
-    r = rate(lambda: (race.advance(rng.uniform(-1, 1, 3), 0.05), race.score())[1][1], race.reset, args.seconds)
-    print(f"{'race only (physics + reward)':34s} {r:9.0f} steps/s")
+    rec.add("race only (physics + reward)", "steps_per_s", "ours",
+            rate(lambda: (race.advance(rng.uniform(-1, 1, 3), 0.05), race.score())[1][1], race.reset, args.seconds),
+            round=rnd, unit="1/s")
     for name in ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL"):
         env = SimEnv(name, track=args.track, img_hist_len=4, act_buf_len=2)
+        drivers = {"random": lambda: rng.uniform(-1, 1, 3), "centre line": lambda: follow_centre_line(env.race)}
+        for label, driver in drivers.items():
+            def step() -> bool:
+                _, _, terminated, truncated, _ = env.step(driver())  # noqa: B023 (used in this iteration)
+                return terminated or truncated
 
-        def random_step() -> bool:
-            _, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 3))
-            return terminated or truncated
-
-        def driver_step() -> bool:
-            _, _, terminated, truncated, _ = env.step(follow_centre_line(env.race))
-            return terminated or truncated
-
-        r_rand = rate(random_step, env.reset, args.seconds)
-        r_drive = rate(driver_step, env.reset, args.seconds)
-        print(f"{name:34s} {r_rand:9.0f} steps/s random, {r_drive:9.0f} steps/s driving")
+            rec.add(f"{name}, {label} driver", "steps_per_s", "ours", rate(step, env.reset, args.seconds),
+                    round=rnd, unit="1/s")
 
 
-if __name__ == "__main__":
-    main()
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m bench sim_speed", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seconds", type=float, default=3.0, help="measuring time per figure")
+    ap.add_argument("--track", default="classic", help="track name or seed")
+    ap.add_argument("--rounds", type=int, default=3)
+    args = ap.parse_args(argv)
+    rec = harness.Recorder("sim_speed", vars(args))
+    for rnd in range(args.rounds):
+        one_round(args, rnd, rec)
+    rec.print_table(ratios=())
+    rec.close()

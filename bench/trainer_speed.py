@@ -1,70 +1,52 @@
-"""Trainer speed: SAC and REDQ-SAC updates per second, ours against the original tmrl 0.7.1.
+"""Trainer speed: SAC and REDQ-SAC updates per second, ours beside tmrl 0.7.1, Stable-Baselines3
+and the matrix-product floor of the same update.
 
-Both sides run in their own worker process with the same torch thread count, on the same
-synthetic Pendulum-shaped data (observation ``(3,)`` in a Tuple, action ``(1,)``, episodes of
-200 steps, 100k samples in memory), MLP 256x256, batch 256. Measurements are interleaved
-(ours, theirs, ours, theirs ...) in several rounds because the machine is shared; the load
-average is printed beside every round.
+    python -m bench trainer_speed                         # Pendulum-shaped SAC and REDQ-SAC
+    python -m bench trainer_speed --cases tmlidar,tmfull  # TrackMania-shaped (SAC)
 
-Two figures per side and algorithm:
-- ``full``: ``batch = memory.sample(); agent.train(batch)`` in a loop (GenericTorchMemory on both
-  sides), with the share of the time spent in ``sample``;
-- ``agent``: ``agent.train(batch)`` on one ready batch.
+Every side runs in its own process with the same torch thread count, on the same synthetic data
+(Pendulum-shaped: observation ``(3,)`` in a Tuple, action ``(1,)``, episodes of 200 steps, 100k
+samples in memory), MLP 256x256, batch 256, and the same allocator settings
+(:func:`tmrl.util.reuse_freed_memory`, which our trainer applies; ``--glibc-defaults-for-tmrl``
+adds a labelled line with tmrl 0.7.1 on glibc's defaults). Rounds alternate the order of the sides.
 
-TrackMania cases (``--cases tmfull,tmlidar``), SAC only, the original's config values (ALG of
-its TM20FULL config: lr, betas, gamma, alpha...):
+Figures, per side and algorithm:
 
-- ``tmfull``: TM20FULL-shaped data, speed/gear/rpm and a history of 4 grayscale 64x64 images
-  plus 2 actions, CNN actor-critic (ours: the ``TM20FULL`` parts of
-  :func:`tmrl.sim.interfaces.pipeline_parts`, i.e. ``ImageMemory`` and ``CNNActorCritic``;
-  theirs: ``MemoryTMFull`` and ``VanillaCNNActorCritic`` with ``SpinupSacAgent``);
-- ``tmlidar``: TM20LIDAR-shaped data, speed and a history of 4 lidars of 19 beams plus 2
-  actions, MLP 256x256 (ours: ``LidarMemory``, ``LidarActorCritic``; theirs: ``MemoryTMLidar``,
-  ``MLPActorCritic``).
+- ``full``: ``batch = memory.sample(); agent.train(batch)`` in a loop (each side's own replay
+  memory); for Stable-Baselines3, ``model.train(gradient_steps=N, batch_size=256)`` on a replay
+  buffer filled with the same samples (SAC only: it has no REDQ);
+- ``agent``: ``agent.train(batch)`` on one ready batch (ours and tmrl 0.7.1);
+- ``floor``: the matrix products of one update (the same shapes: every linear layer's forward
+  and backward products that the update computes), timed alone with torch on the same threads,
+  in milliseconds; ``floor / ours`` is the fraction of the floor our update reaches
+  (1.0: the update costs no more than its products).
 
-Both sides store the same synthetic episodes (random frames or lidars, episodes of 1000, 400,
-700 and 250 steps, the last truncated or terminated), each side compressed by its own sample
-compressor (ours ``compress_full_sample``/``compress_lidar_sample``; theirs
-``get_local_buffer_sample_tm20_imgs``/``get_local_buffer_sample_lidar``) from the same
-preprocessed observations. ``--memory-bytes`` also prints the bytes each side's memory holds per
-stored sample (tracemalloc, ``--memory-bytes-samples`` samples, memory sized to fit them).
-
-Allocator: our worker calls :func:`tmrl.util.reuse_freed_memory`, as our trainer does when its
-``TorchTrainingOffline`` is built (glibc keeps freed blocks for the next update instead of
-page-faulting them in again; it matters for the CNN, whose activations are tens of MiB).
-``--malloc-both`` gives tmrl 0.7.1 the same settings, to separate that gain from the rest.
-
-Usage::
-
-    /work/venv/bin/python bench/trainer_speed.py [--rounds 3] [--seconds 4] [--threads N]
-        [--cases pendulum,tmfull,tmlidar] [--memory-bytes] [--malloc-both]
-        [--anchor-python /tmp/tmrl-anchor/venv/bin/python] [--anchor-home /tmp/tmrl-anchor/home]
-
-The original is run as ``HOME=<anchor-home> <anchor-python> bench/trainer_speed.py --worker tmrl``
-from a folder outside this repository, so that it imports the installed tmrl 0.7.1.
+TrackMania cases (``--cases tmfull,tmlidar``), SAC only, with the ALG values of the original's
+TM20FULL config on both sides: ``tmfull``, speed/gear/rpm and 4 grayscale 64x64 images plus 2
+actions, CNN actor-critic (ours: ``ImageMemory`` and ``CNNActorCritic``; theirs: ``MemoryTMFull``
+and ``VanillaCNNActorCritic``); ``tmlidar``, speed and 4 lidars of 19 beams plus 2 actions, MLP
+256x256 (ours: ``LidarMemory``, ``LidarActorCritic``; theirs: ``MemoryTMLidar``,
+``MLPActorCritic``). Both sides store the same synthetic episodes, each compressed by its own
+sample compressor. ``--memory-bytes`` adds the bytes each side's memory holds per stored sample.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import statistics
-import subprocess
-import sys
 import time
 import tracemalloc
-from pathlib import Path
 from typing import Any
 
-RESULT = "@@RESULT "
+from bench import harness
+
 OBS_HIGH = (1.0, 1.0, 8.0)
 EPISODE = 200
 N_SAMPLES = 100_000
 BATCH = 256
+HIDDEN = 256
 
 
-# --- worker side (runs in either interpreter) -----------------------------------------------------
+# --- child side: tmrl 0.7.1 or ours (runs in either interpreter) ------------------------------------
 
 
 def _spaces():
@@ -103,30 +85,6 @@ class _PlainBuffer:
 
     def __len__(self) -> int:
         return len(self.memory)
-
-
-def _loop_model_cls():
-    """Our models with the critics as a ModuleList of separate MLPs, evaluated one by one in
-    Python (the 'before' of the batched ensemble)."""
-    import torch
-
-    from tmrl.models import SquashedGaussianMLPActor, flatten_obs, mlp, space_dim
-
-    class Critic(torch.nn.Module):
-        def __init__(self, obs_space, act_space):
-            super().__init__()
-            self.q = mlp([space_dim(obs_space) + act_space.shape[0], 256, 256, 1], torch.nn.ReLU)
-
-        def forward(self, obs, act):
-            return self.q(torch.cat((flatten_obs(obs), act), -1)).squeeze(-1)
-
-    class LoopActorCritic(torch.nn.Module):
-        def __init__(self, observation_space, action_space, n=2):
-            super().__init__()
-            self.actor = SquashedGaussianMLPActor(observation_space, action_space)
-            self.qs = torch.nn.ModuleList(Critic(observation_space, action_space) for _ in range(n))
-
-    return LoopActorCritic
 
 
 def _build(side: str, algo: str, variant: str = ""):
@@ -260,28 +218,7 @@ def _tm_memory(side: str, case: str, memory_size: int):
     return memory, parts["sample_compressor"], f"tmrl.driving.memories.{type(memory).__name__}"
 
 
-def _conv_bf16_cnn(observation_space, action_space, **kwargs):
-    """Experimental, not in the library: our CNN actor-critic whose convolutions run under
-    bfloat16 autocast (weights, optimizer state, the MLPs and every loss stay float32). Fast on
-    CPUs with native bfloat16 (AVX512-BF16, AMX), slow where it is emulated."""
-    import torch
-
-    from tmrl.driving.models import CNNActorCritic, ImageEncoder
-
-    class BF16Encoder(ImageEncoder):
-        def forward(self, imgs):
-            with torch.autocast("cpu", dtype=torch.bfloat16):
-                x = self.convs(imgs)
-            return x.flatten(1).float()
-
-    model = CNNActorCritic(observation_space, action_space, **kwargs)
-    for module in model.modules():
-        if type(module) is ImageEncoder:
-            module.__class__ = BF16Encoder
-    return model
-
-
-def _build_tm(side: str, case: str, variant: str = ""):
+def _build_tm(side: str, case: str):
     obs_space, act_space = _tm_spaces(case)
     memory, compressor, memory_name = _tm_memory(side, case, 1_000_000)
     if side == "tmrl":
@@ -296,9 +233,8 @@ def _build_tm(side: str, case: str, variant: str = ""):
         from tmrl.sim.interfaces import pipeline_parts
 
         parts = pipeline_parts("TM20FULL" if case == "tmfull" else "TM20LIDAR")
-        model_cls = _conv_bf16_cnn if variant == "convbf16" else parts["model_cls"]
         agent = SACAgent(observation_space=obs_space, action_space=act_space, device="cpu",
-                         model_cls=model_cls, **TM_ALG)
+                         model_cls=parts["model_cls"], **TM_ALG)
     memory.append(_PlainBuffer(_tm_samples(case, TM_SAMPLES[case], compressor)))
     return memory, agent, memory_name
 
@@ -328,283 +264,303 @@ def _tm_memory_bytes(side: str, case: str, n: int) -> dict[str, Any]:
     return {"bytes_per_sample": held / n, "samples": n, "memory": name}
 
 
-def _measure(memory, agent, mode: str, seconds: float, warmup: int = 3, min_updates: int = 5) -> dict[str, Any]:
+def _measure(step, seconds: float, warmup: int, min_updates: int, updates_per_step: int = 1,
+             sample=None) -> dict[str, Any]:
+    """Call ``step()`` (``updates_per_step`` updates each) for ``seconds``; ``sample()``, when
+    given, is timed apart before each step (its share of the time is reported)."""
     import torch
 
-    batch = memory.sample()
-    for _ in range(warmup):  # warm-up: allocator, optimizer state
-        agent.train(memory.sample() if mode == "full" else batch)
+    for _ in range(warmup):  # allocator, optimizer state
+        step(sample() if sample else None)
     n = 0
     t_sample = 0.0
     cpu0 = time.process_time()
     start = time.perf_counter()
     while True:
-        if mode == "full":
+        batch = None
+        if sample is not None:
             t0 = time.perf_counter()
-            batch = memory.sample()
+            batch = sample()
             t_sample += time.perf_counter() - t0
-        agent.train(batch)
-        n += 1
+        step(batch)
+        n += updates_per_step
         elapsed = time.perf_counter() - start
         if elapsed >= seconds and n >= min_updates:
             break
-    cpu = time.process_time() - cpu0
-    return {
-        "updates_per_s": n / elapsed,
-        "sample_share": t_sample / elapsed,
-        "cpu_per_update_ms": 1000 * cpu / n,
-        "updates": n,
-        "threads": torch.get_num_threads(),
-    }
+    return {"updates_per_s": n / elapsed, "sample_share": t_sample / elapsed,
+            "cpu_ms_per_update": 1000 * (time.process_time() - cpu0) / n, "threads": torch.get_num_threads()}
 
 
-def _glibc_reuse_freed_memory() -> bool:
-    """The mallopt settings of ``tmrl.util.reuse_freed_memory``, for the tmrl 0.7.1 side
-    (``--malloc-both``), whose interpreter imports the original tmrl."""
+def _measure_agent(memory, agent, mode: str, seconds: float, slow: bool) -> dict[str, Any]:
+    fixed = memory.sample()
+    if mode == "full":
+        return _measure(agent.train, seconds, 1 if slow else 3, 3 if slow else 5, sample=memory.sample)
+    return _measure(lambda _: agent.train(fixed), seconds, 1 if slow else 3, 3 if slow else 5)
+
+
+# --- Stable-Baselines3 ---------------------------------------------------------------------------
+
+
+def _sb3_model():
+    """SB3 SAC on Pendulum-v1 (MLP 256x256, batch 256), its replay buffer holding the same
+    synthetic samples as the others' memories (transitions rebuilt from the sample stream)."""
+    import gymnasium
+    import numpy as np
+    from stable_baselines3 import SAC
+    from stable_baselines3.common.logger import configure
+
+    env = gymnasium.make("Pendulum-v1")
+    model = SAC("MlpPolicy", env, batch_size=BATCH, buffer_size=N_SAMPLES, learning_starts=0, device="cpu",
+                policy_kwargs={"net_arch": [HIDDEN, HIDDEN]}, seed=0)
+    model.set_logger(configure(None, []))  # train() records its losses in the logger
+    prev = None
+    for act, obs, rew, terminated, truncated, _ in _samples():
+        if prev is not None:
+            model.replay_buffer.add(prev[None], obs[0][None], (act / 2.0)[None], np.array([rew]),
+                                    np.array([terminated]), [{"TimeLimit.truncated": truncated}])
+        prev = None if terminated or truncated else obs[0]
+    return model
+
+
+def _measure_sb3(model, seconds: float) -> dict[str, Any]:
+    # 8 gradient steps per call: SB3's per-call overhead (learning-rate update, logging) is
+    # spread as it is in its own training loop (gradient_steps=-1 or a train_freq > 1).
+    return _measure(lambda _: model.train(gradient_steps=8, batch_size=BATCH), seconds, 1, 16,
+                    updates_per_step=8)
+
+
+# --- the floor: the matrix products of one update -----------------------------------------------
+
+
+def update_products(obs_dim: int, act_dim: int, hidden: int, batch: int, n_critics: int,
+                    n_targets: int) -> list[tuple[int, int, int, int]]:
+    """The matrix products of one SAC / REDQ-SAC update of MLPs with two hidden layers of
+    ``hidden`` units, as ``(count, m, k, n)``: ``count`` products ``(m, k) @ (k, n)`` that the
+    update can batch (the same layer of every critic of an ensemble), in the update's order.
+
+    Each linear layer ``k -> n`` on a batch ``B`` costs ``(B, k, n)`` forward; backward adds the
+    weight gradient ``(k, B, n)`` and the input gradient ``(B, n, k)`` when the input needs one.
+    The actor's head is two layers ``hidden -> act_dim`` (mean and log-std).
+    """
+    actor = [(obs_dim, hidden), (hidden, hidden), (hidden, act_dim), (hidden, act_dim)]
+    critic = [(obs_dim + act_dim, hidden), (hidden, hidden), (hidden, 1)]
+    b = batch
+
+    def forward(layers, count=1):
+        return [(count, b, k, n) for k, n in layers]
+
+    def backward(layers, weights: bool, first_input: bool, count=1):
+        out = []
+        for i, (k, n) in enumerate(layers):
+            if weights:
+                out.append((count, k, b, n))
+            if i > 0 or first_input:
+                out.append((count, b, n, k))
+        return out
+
+    return (
+        forward(actor) * 2  # pi on o, a2 on o'
+        + forward(critic, n_targets)  # target critics on (o', a2)
+        + forward(critic, n_critics) + backward(critic, True, False, n_critics)  # Q(o, a), critic loss
+        + forward(critic, n_critics) + backward(critic, False, True, n_critics)  # Q(o, pi), actor loss
+        + backward(actor, True, False)  # actor weights
+    )
+
+
+def floor_ms(products: list[tuple[int, int, int, int]], seconds: float) -> float:
+    """Milliseconds that ``products`` take back to back, each group of the same shape as one
+    ``torch.bmm`` (one ``torch.mm`` when alone), into preallocated outputs (no allocation, no
+    autograd, no other work): the median of repeated timings of the whole list."""
+    import statistics
+
+    import torch
+
+    gen = torch.Generator().manual_seed(0)
+    operands = []
+    for count, m, k, n in products:
+        shape = (count,) if count > 1 else ()
+        operands.append((torch.bmm if count > 1 else torch.mm, torch.randn(*shape, m, k, generator=gen),
+                         torch.randn(*shape, k, n, generator=gen), torch.empty(*shape, m, n)))
+
+    def once() -> float:
+        t0 = time.perf_counter()
+        for product, a, b, out in operands:
+            product(a, b, out=out)
+        return time.perf_counter() - t0
+
+    for _ in range(20):
+        once()
+    times = []
+    start = time.perf_counter()
+    while time.perf_counter() - start < seconds or len(times) < 20:
+        times.append(once())
+    return 1000 * statistics.median(times)
+
+
+def _floor_case(case: str, algo: str) -> dict[str, int] | None:
+    """Shapes of the floor of ``case`` (None: no floor for a CNN)."""
+    n_critics, n_targets = (10, 2) if algo == "redq" else (2, 2)
+    if case == "pendulum":
+        return {"obs_dim": 3, "act_dim": 1, "n_critics": n_critics, "n_targets": n_targets}
+    if case == "tmlidar":
+        return {"obs_dim": 1 + TM_HIST * TM_BEAMS + 3 * TM_ACT_BUF, "act_dim": 3, "n_critics": 2, "n_targets": 2}
+    return None
+
+
+# --- child entry --------------------------------------------------------------------------------
+
+
+def child_main(argv: list[str]) -> None:
+    """Serve measurement requests for one side (``--side ours|tmrl|sb3``)."""
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--side", required=True)
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--glibc-defaults", action="store_true")
+    args = parser.parse_args(argv)
+    import torch
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if not args.glibc_defaults:
+        # What our trainer does when TorchTrainingOffline is built, given to every side.
+        _reuse_freed_memory()
+    torch.manual_seed(0)
+    built: dict[str, Any] = {}
+
+    def handle(req: dict[str, Any]) -> dict[str, Any]:
+        case, algo = req.get("case", "pendulum"), req.get("algo", "sac")
+        if "memory_bytes" in req:
+            return _tm_memory_bytes(args.side, case, int(req["memory_bytes"]))
+        if "floor" in req:
+            shapes = req["floor"]
+            return {"floor_ms": floor_ms(update_products(hidden=HIDDEN, batch=BATCH, **shapes), req["seconds"])}
+        key = f"{case}:{algo}:{req.get('variant', '')}"
+        if args.side == "sb3":
+            if key not in built:
+                built[key] = _sb3_model()
+            return _measure_sb3(built[key], req["seconds"])
+        if key not in built:
+            built[key] = (_build(args.side, algo, req.get("variant", "")) if case == "pendulum"
+                          else _build_tm(args.side, case))
+        memory, agent, memory_name = built[key]
+        res = _measure_agent(memory, agent, req["mode"], req["seconds"], slow=case == "tmfull")
+        res["memory"] = memory_name
+        return res
+
+    harness.serve(handle)
+
+
+def _reuse_freed_memory() -> bool:
+    """glibc's settings of :func:`tmrl.util.reuse_freed_memory`, set here so that every side's
+    interpreter (tmrl 0.7.1's and SB3's too) gets them: keep freed blocks for reuse instead of
+    page-faulting them in again at every update."""
     import ctypes
+    import sys
 
+    if not sys.platform.startswith("linux"):
+        return False
     mallopt = ctypes.CDLL(None).mallopt
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, M_TOP_PAD
     return all(mallopt(p, v) == 1 for p, v in ((-3, 256 << 20), (-1, 1 << 30), (-2, 64 << 20)))
 
 
-def worker_main(side: str, threads: int | None, malloc: bool = False) -> None:
-    import torch
-
-    if threads:
-        torch.set_num_threads(threads)
-    if side == "ours":
-        # What our trainer does when TorchTrainingOffline is built (the agents are built directly
-        # here): keep freed blocks for reuse instead of page-faulting them in at every update.
-        from tmrl.util import reuse_freed_memory
-
-        reuse_freed_memory()
-    elif malloc:
-        _glibc_reuse_freed_memory()
-    torch.manual_seed(0)
-    built: dict[str, tuple] = {}
-    for line in sys.stdin:
-        cmd = json.loads(line)
-        if cmd.get("quit"):
-            break
-        case = cmd.get("case", "pendulum")
-        if "memory_bytes" in cmd:
-            print(RESULT + json.dumps(_tm_memory_bytes(side, case, int(cmd["memory_bytes"]))), flush=True)
-            continue
-        key = case + ":" + cmd["algo"] + ":" + cmd.get("variant", "")
-        if key not in built:
-            if case == "pendulum":
-                built[key] = _build(side, cmd["algo"], cmd.get("variant", ""))
-            else:
-                built[key] = _build_tm(side, case, cmd.get("variant", ""))
-        memory, agent, memory_name = built[key]
-        # A CNN update takes seconds on a CPU: fewer warm-up and minimum updates.
-        slow = case == "tmfull"
-        res = _measure(memory, agent, cmd["mode"], cmd["seconds"], warmup=1 if slow else 3,
-                       min_updates=3 if slow else 5)
-        res["memory"] = memory_name
-        print(RESULT + json.dumps(res), flush=True)
-
-
-# --- driver --------------------------------------------------------------------------------------
-
-
-class _Worker:
-    def __init__(self, side: str, python: str, env: dict[str, str], cwd: str, threads: int | None,
-                 malloc: bool = False) -> None:
-        args = [python, str(Path(__file__).resolve()), "--worker", side]
-        if threads:
-            args += ["--threads", str(threads)]
-        if malloc:
-            args += ["--malloc-both"]
-        self.side = side
-        self.proc = subprocess.Popen(
-            args,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
-            text=True,
-            env=env,
-            cwd=cwd,
-        )
-
-    def run(self, algo: str, mode: str, seconds: float, variant: str = "", case: str = "pendulum") -> dict[str, Any]:
-        return self.ask({"algo": algo, "mode": mode, "seconds": seconds, "variant": variant, "case": case})
-
-    def ask(self, cmd: dict[str, Any]) -> dict[str, Any]:
-        assert self.proc.stdin and self.proc.stdout
-        self.proc.stdin.write(json.dumps(cmd) + "\n")
-        self.proc.stdin.flush()
-        for line in self.proc.stdout:
-            if line.startswith(RESULT):
-                return json.loads(line[len(RESULT) :])
-        raise RuntimeError(f"{self.side} worker exited (code {self.proc.wait()})")
-
-    def close(self) -> None:
-        if self.proc.poll() is None and self.proc.stdin:
-            self.proc.stdin.write(json.dumps({"quit": True}) + "\n")
-            self.proc.stdin.flush()
-            self.proc.wait(timeout=30)
-
+# --- driver ---------------------------------------------------------------------------------------
 
 CASES = ("pendulum", "tmfull", "tmlidar")
-CASE_TITLES = {
-    "pendulum": f"Pendulum-shaped, MLP 256x256, {N_SAMPLES} samples in memory",
-    "tmfull": f"TM20FULL-shaped, CNN, history {TM_HIST} of {TM_IMG}x{TM_IMG}, {TM_SAMPLES['tmfull']} samples",
-    "tmlidar": f"TM20LIDAR-shaped, MLP 256x256, history {TM_HIST} of {TM_BEAMS} beams, "
-    f"{TM_SAMPLES['tmlidar']} samples",
-}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--worker", choices=["ours", "tmrl"], help=argparse.SUPPRESS)
-    parser.add_argument("--rounds", type=int, default=3)
+def _jobs(cases: list[str], algos: list[str], modes: list[str]) -> list[tuple[str, str, str]]:
+    jobs = []
+    for case in cases:
+        for algo in algos if case == "pendulum" else ["sac"]:
+            jobs += [(case, algo, mode) for mode in modes]
+    return jobs
+
+
+def _workers(args: argparse.Namespace) -> dict[str, harness.ChildWorker]:
+    common = ["--threads", str(args.threads)] if args.threads else []
+    workers = {}
+    for side in harness.sides_from_args(args):
+        workers[side.name] = harness.ChildWorker(side, "trainer_speed", "--side", side.name, *common)
+        if side.name == "tmrl" and args.glibc_defaults_for_tmrl:
+            label = "tmrl (glibc defaults)"
+            workers[label] = harness.ChildWorker(side, "trainer_speed", "--side", "tmrl", "--glibc-defaults", *common)
+    return workers
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m bench trainer_speed", description=__doc__.split("\n")[0])
+    parser.add_argument("--rounds", type=int, default=5, help="rounds (sides alternate their order)")
     parser.add_argument("--seconds", type=float, default=4.0, help="per measurement")
-    parser.add_argument(
-        "--threads", type=int, default=None, help="torch threads on both sides (default: torch's)"
-    )
+    parser.add_argument("--threads", type=int, default=None, help="torch threads on every side (default: torch's)")
+    parser.add_argument("--cases", default="pendulum", help=f"comma-separated among {', '.join(CASES)}")
     parser.add_argument("--algos", default="sac,redq", help="algorithms of the pendulum case")
-    parser.add_argument(
-        "--cases", default="pendulum", help=f"comma-separated, among {', '.join(CASES)} (TM cases: SAC only)"
-    )
     parser.add_argument("--modes", default="full,agent", help="full (sample + train) and/or agent (train only)")
-    parser.add_argument(
-        "--memory-bytes", action="store_true", help="also print each side's bytes per stored sample (TM cases)"
-    )
-    parser.add_argument("--memory-bytes-samples", type=int, default=20_000)
-    parser.add_argument("--anchor-python", default="/tmp/tmrl-anchor/venv/bin/python")
-    parser.add_argument("--anchor-home", default="/tmp/tmrl-anchor/home")
-    parser.add_argument("--no-anchor", action="store_true", help="measure ours only")
-    parser.add_argument("--bf16", action="store_true", help="also measure ours with critic_dtype='bfloat16' (pendulum)")
-    parser.add_argument(
-        "--conv-bf16",
-        action="store_true",
-        help="also measure ours (tmfull) with the convolutions under bfloat16 autocast (experimental, bench only)",
-    )
-    parser.add_argument(
-        "--malloc-both",
-        action="store_true",
-        help="give tmrl 0.7.1 the allocator settings our trainer uses (tmrl.util.reuse_freed_memory)",
-    )
-    parser.add_argument(
-        "--loop",
-        action="store_true",
-        help="also measure ours with a Python loop over separate critics (before; pendulum)",
-    )
-    args = parser.parse_args()
-    if args.worker:
-        worker_main(args.worker, args.threads, args.malloc_both)
-        return
+    parser.add_argument("--bf16", action="store_true", help="also ours with critic_dtype='bfloat16' (pendulum)")
+    parser.add_argument("--glibc-defaults-for-tmrl", action="store_true",
+                        help="also tmrl 0.7.1 on glibc's allocator defaults (a labelled, one-sided line)")
+    parser.add_argument("--memory-bytes", type=int, default=0, metavar="N",
+                        help="also the bytes per stored sample of each side's memory, over N samples (TM cases)")
+    harness.add_side_arguments(parser, tmrl=True, sb3=True)
+    args = parser.parse_args(argv)
     cases = [c for c in args.cases.split(",") if c]
-    unknown = sorted(set(cases) - set(CASES))
-    if unknown:
-        sys.exit(f"unknown case(s) {unknown}: use {', '.join(CASES)}")
-    modes = [m for m in args.modes.split(",") if m]
-
-    repo = Path(__file__).resolve().parent.parent
-    env_ours = dict(os.environ, PYTHONPATH=str(repo))
-    env_tmrl = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "TMRL_DATA")}
-    env_tmrl["HOME"] = args.anchor_home
-    sides = {"ours": _Worker("ours", sys.executable, env_ours, str(repo), args.threads)}
-    if not args.no_anchor:
-        if not Path(args.anchor_python).exists():
-            sys.exit(
-                f"no tmrl 0.7.1 at {args.anchor_python}: run shared/anchors/setup-tmrl-0.7.1.sh or pass --no-anchor"
-            )
-        # Outside the repository, so that `import tmrl` finds the installed 0.7.1.
-        sides["tmrl"] = _Worker("tmrl", args.anchor_python, env_tmrl, "/tmp", args.threads, args.malloc_both)
-
-    # (case, algo) jobs; per job the runs (label, worker, variant). "ours-bf16" and "ours-loop"
-    # run in the same worker process as "ours".
-    jobs: list[tuple[str, str]] = []
-    for case in cases:
-        jobs += [(case, a) for a in args.algos.split(",")] if case == "pendulum" else [(case, "sac")]
-    base_runs = [("ours", "ours", "")] + ([("tmrl", "tmrl", "")] if "tmrl" in sides else [])
-    pendulum_runs = list(base_runs)
-    if args.bf16:
-        pendulum_runs.append(("ours-bf16", "ours", "bf16"))
-    if args.loop:
-        pendulum_runs.append(("ours-loop", "ours", "loop"))
-
-    tmfull_runs = base_runs + ([("ours-convbf16", "ours", "convbf16")] if args.conv_bf16 else [])
-
-    def runs_of(case: str) -> list[tuple[str, str, str]]:
-        return {"pendulum": pendulum_runs, "tmfull": tmfull_runs}.get(case, base_runs)
-
-    results: dict[tuple[str, str, str, str], list[dict[str, Any]]] = {}
-    print(f"batch {BATCH}; {args.rounds} rounds of {args.seconds:.0f} s per measurement, interleaved; cases:")
-    print("  allocator: ours keeps freed memory for reuse (tmrl.util.reuse_freed_memory); tmrl 0.7.1 "
-          + ("gets the same settings (--malloc-both)" if args.malloc_both else "runs with glibc's defaults"))
-    for case in cases:
-        print(f"  {case}: {CASE_TITLES[case]}")
-    load_start = os.getloadavg()
-    mem_bytes: dict[tuple[str, str], dict[str, Any]] = {}
+    if set(cases) - set(CASES):
+        parser.error(f"unknown case(s) {sorted(set(cases) - set(CASES))}: use {', '.join(CASES)}")
+    jobs = _jobs(cases, args.algos.split(","), [m for m in args.modes.split(",") if m])
+    settings = {"batch": BATCH, "hidden": [HIDDEN, HIDDEN], "samples_in_memory": N_SAMPLES,
+                "threads": args.threads or "torch default", "allocator": "reuse_freed_memory on every side",
+                "seconds": args.seconds, "rounds": args.rounds, "tm_alg": TM_ALG}
+    rec = harness.Recorder("trainer_speed", settings)
+    workers = _workers(args)
     try:
         if args.memory_bytes:
             for case in (c for c in cases if c != "pendulum"):
-                for side, w in sides.items():
-                    mem_bytes[(side, case)] = w.ask({"case": case, "memory_bytes": args.memory_bytes_samples})
-        for rnd in range(args.rounds):
-            print(f"round {rnd + 1}: load average {os.getloadavg()[0]:.2f}", flush=True)
-            for case, algo in jobs:
-                for mode in modes:
-                    runs = runs_of(case)
-                    order = runs if rnd % 2 == 0 else runs[::-1]
-                    for side, worker, variant in order:
-                        res = sides[worker].run(algo, mode, args.seconds, variant, case)
-                        results.setdefault((case, side, algo, mode), []).append(res)
-                        share = f", sampling {100 * res['sample_share']:.1f}%" if mode == "full" else ""
-                        label = algo if case == "pendulum" else case
-                        print(
-                            f"  {side:13s} {label:7s} {mode:6s} {res['updates_per_s']:8.2f} updates/s"
-                            f" ({res['cpu_per_update_ms']:.1f} ms CPU/update, {res['threads']} threads{share})",
-                            flush=True,
-                        )
+                for name, w in workers.items():
+                    if name in ("ours", "tmrl"):
+                        res = w.ask({"case": case, "memory_bytes": args.memory_bytes})
+                        rec.add(f"{case} memory", "bytes_per_sample", name, res["bytes_per_sample"],
+                                higher_is_better=False, unit="B", memory=res["memory"])
+        _run_rounds(args, jobs, workers, rec)
     finally:
-        for w in sides.values():
+        for w in workers.values():
             w.close()
-
-    print(
-        f"\nsummary (median over rounds; best in brackets), load average at start "
-        f"{load_start[0]:.2f}/{load_start[1]:.2f}/{load_start[2]:.2f}, now {os.getloadavg()[0]:.2f}"
-    )
-    for case, algo in jobs if args.rounds > 0 else []:  # --rounds 0: memory bytes only
-        runs = runs_of(case)
-        label = algo if case == "pendulum" else case
-        for mode in modes:
-            line = f"  {label:7s} {mode:6s}"
-            med, cpu = {}, {}
-            for side, _, _ in runs:
-                rs = results[(case, side, algo, mode)]
-                rates = [r["updates_per_s"] for r in rs]
-                med[side] = statistics.median(rates)
-                cpu[side] = statistics.median(r["cpu_per_update_ms"] for r in rs)
-                line += f"  {side}: {med[side]:7.2f} [{max(rates):7.2f}]"
-                if mode == "full":
-                    shares = [r["sample_share"] for r in rs]
-                    line += f" sampling {100 * statistics.median(shares):4.1f}%"
-            if "tmrl" in med:
-                line += f"  ratio {med['ours'] / med['tmrl']:.2f}x"
-                for other in ("ours-bf16", "ours-loop", "ours-convbf16"):
-                    if other in med:
-                        line += f" ({other[5:]} {med[other] / med['tmrl']:.2f}x)"
-            print(line)
-            if "tmrl" in cpu:
-                parts = ", ".join(f"{side} {ms:.1f}" for side, ms in cpu.items())
-                ratios = ", ".join(f"tmrl/{side} {cpu['tmrl'] / ms:.2f}x" for side, ms in cpu.items() if side != "tmrl")
-                print(f"  {'':14s} CPU ms per update: {parts}  ({ratios})")
-        first = results[(case, "ours", algo, modes[0])][0]["memory"]
-        theirs = results.get((case, "tmrl", algo, modes[0]))
-        print(f"  {'':14s} memories: ours = {first}" + (f", theirs = {theirs[0]['memory']}" if theirs else ""))
-    if mem_bytes:
-        frame = TM_IMG * TM_IMG
-        print("\nreplay memory bytes per stored sample (tracemalloc)")
-        for (side, case), res in mem_bytes.items():
-            extra = f" ({res['bytes_per_sample'] / frame:.3f} x one {TM_IMG}x{TM_IMG} uint8 frame)" if case == "tmfull" else ""
-            print(f"  {side:5s} {case:7s} {res['bytes_per_sample']:9.1f} B/sample over {res['samples']} samples{extra}"
-                  f"  [{res['memory']}]")
+    rows = rec.print_table(ratios=[("ours", "tmrl"), ("ours", "sb3"), ("ours", "tmrl (glibc defaults)"),
+                                   ("ours bf16", "tmrl")])
+    _print_floor_fractions(rows)
+    rec.close()
 
 
-if __name__ == "__main__":
-    main()
+def _run_rounds(args: argparse.Namespace, jobs: list[tuple[str, str, str]],
+                workers: dict[str, harness.ChildWorker], rec: harness.Recorder) -> None:
+    names = list(workers)
+    for rnd in range(args.rounds):
+        print(f"round {rnd + 1}/{args.rounds}: load average {harness.load_average():.2f}", flush=True)
+        for case, algo, mode in jobs:
+            figure = f"{case}/{algo}" if case == "pendulum" else case
+            runs = [(n, "") for n in names if n != "sb3" or (case, algo, mode) == ("pendulum", "sac", "full")]
+            if args.bf16 and case == "pendulum":
+                runs.append(("ours", "bf16"))
+            for name, variant in runs if rnd % 2 == 0 else runs[::-1]:
+                res = workers[name].ask({"case": case, "algo": algo, "mode": mode, "seconds": args.seconds,
+                                         "variant": variant})
+                rec.add(f"{figure} {mode}", "updates_per_s", f"{name} {variant}".strip(), res["updates_per_s"],
+                        round=rnd, unit="1/s", cpu_ms_per_update=res["cpu_ms_per_update"],
+                        sample_share=res["sample_share"], threads=res["threads"], memory=res.get("memory"))
+            shapes = _floor_case(case, algo)
+            if shapes is not None and mode == jobs[-1][2]:  # once per figure and round
+                res = workers["ours"].ask({"floor": shapes, "seconds": min(args.seconds, 2.0)})
+                rec.add(figure, "floor_ms", "floor", res["floor_ms"], round=rnd, unit="ms", higher_is_better=False)
+
+
+def _print_floor_fractions(rows: list[dict[str, Any]]) -> None:
+    """``floor / ours``: the floor's milliseconds over our update's, per figure and mode (medians)."""
+    med = {(r["case"], r["metric"], r["side"]): r["median"] for r in rows}
+    for (case, metric, _), floor in med.items():
+        if metric != "floor_ms" or not floor:
+            continue
+        for mode in ("agent", "full"):
+            ours = med.get((f"{case} {mode}", "updates_per_s", "ours"))
+            if ours:
+                print(f"{case} {mode}: floor / ours = {floor:.2f} ms / {1000 / ours:.2f} ms = "
+                      f"{floor * ours / 1000:.2f} of the matrix-product floor")

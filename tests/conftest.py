@@ -8,6 +8,9 @@ import socket
 
 import pytest
 
+# In CI a skipped test is a failure, except the few listed in tests/ci_skips.py.
+pytest_plugins = ["ci_skips"]
+
 
 @pytest.fixture(autouse=True)
 def _isolated_data_folder(tmp_path, monkeypatch):

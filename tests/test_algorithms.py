@@ -109,10 +109,68 @@ def test_learns_the_probe_problem(make):
     assert float(metrics["entropy_coef"]) < 0.05  # learned down toward the target entropy
 
 
-def _reference_sac_step(agent_before: SACAgent, batch: tuple, lr: float) -> dict[str, torch.Tensor]:
-    """Textbook SAC step with plain SGD, losses kept apart: critics from the critic loss only,
-    actor from the actor loss with critics frozen, log_alpha from its own loss."""
-    ag = agent_before
+OBS2 = spaces.Tuple((spaces.Box(-1.0, 1.0, (2,), np.float32),))
+
+
+def two_step_batch(gen: torch.Generator, size: int = 128) -> tuple:
+    """Two-step episodes, observation ``(x, phase)``. Phase 0: reward 0, next observation
+    ``(clip(a + x/2), 1)``, *not* terminal. Phase 1 at ``y``: reward ``-4 y^2``, terminal. The best
+    first action, ``-x/2``, can only be learned by bootstrapping through the next state's value."""
+    half = size // 2
+    x, a0 = (torch.rand(half, 1, generator=gen) * 2 - 1 for _ in range(2))
+    y, a1 = (torch.rand(half, 1, generator=gen) * 2 - 1 for _ in range(2))
+    zeros, ones = torch.zeros(half, 1), torch.ones(half, 1)
+    o = torch.cat((torch.cat((x, zeros), 1), torch.cat((y, ones), 1)))
+    o2 = torch.cat((torch.cat(((a0 + x / 2).clamp(-1, 1), ones), 1), torch.cat((y, ones), 1)))
+    r = torch.cat((torch.zeros(half), -4 * y.squeeze(1) ** 2))
+    d = torch.cat((torch.zeros(half), torch.ones(half)))
+    return (o,), torch.cat((a0, a1)), r, (o2,), d, torch.zeros(size)
+
+
+def first_step_error(agent) -> float:
+    x = torch.linspace(-0.9, 0.9, 19).reshape(-1, 1)
+    with torch.no_grad():
+        a, _ = agent.get_actor()((torch.cat((x, torch.zeros_like(x)), 1),), test=True)
+    return (a + x / 2).abs().mean().item()
+
+
+@pytest.mark.parametrize("algo", ["sac-simultaneous", "sac-sequential", "redq"])
+def test_learns_a_probe_that_needs_bootstrapping(algo):
+    torch.manual_seed(0)
+    kwargs = dict(lr_actor=3e-3, lr_critic=3e-3, lr_entropy=3e-3, alpha=0.05, gamma=0.9)
+    if algo == "redq":
+        agent = REDQSACAgent(OBS2, ACT, "cpu", model_cls=partial(REDQMLPActorCritic, hidden_sizes=(64, 64)),
+                             n=5, **kwargs)
+    else:
+        agent = SACAgent(OBS2, ACT, "cpu", model_cls=partial(MLPActorCritic, hidden_sizes=(64, 64)),
+                         update_order=algo.split("-")[1], **kwargs)
+    gen = torch.Generator().manual_seed(1)
+    assert first_step_error(agent) > 0.2
+    for _ in range(500):
+        agent.train(two_step_batch(gen))
+    assert first_step_error(agent) < 0.1
+
+
+def _sgd_step(named: dict[str, torch.Tensor], params, grads, lr: float, prefix: str) -> None:
+    """``named[prefix.name] -= lr * grad`` for each ``(name, param)`` of ``params``."""
+    for (name, _), g in zip(params, grads):
+        named[f"{prefix}.{name}"] = named[f"{prefix}.{name}"] - lr * g
+
+
+def _move_targets_away(agent: SACAgent, seed: int) -> None:
+    """Target critics that differ from the online ones, so that bootstrapping from the wrong
+    set shows in the update."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in agent.model_target.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=gen))
+
+
+def _reference_sac_step(ag: SACAgent, batch: tuple, lr: float, order: str) -> dict[str, torch.Tensor]:
+    """Textbook SAC step with plain SGD, losses kept apart: critics from the critic loss only
+    (bootstrapped from the *target* critics), actor from the actor loss with critics frozen,
+    log_alpha from its own loss. ``order="sequential"``: the actor loss reads the critics after
+    their step (the original tmrl SAC); ``"simultaneous"``: before it."""
     o, a, r, o2, d, _ = batch
     alpha = ag.log_alpha.detach().exp()
     pi, logp_pi = ag.model.actor(o)
@@ -121,46 +179,45 @@ def _reference_sac_step(agent_before: SACAgent, batch: tuple, lr: float) -> dict
         q1t, q2t = ag.model_target.q1(o2, a2), ag.model_target.q2(o2, a2)
         backup = r + ag.gamma * (1 - d) * (torch.min(q1t, q2t) - alpha * logp_a2)
     loss_q = (((ag.model.q1(o, a) - backup) ** 2).mean() + ((ag.model.q2(o, a) - backup) ** 2).mean()) / 2
-    critic_params = list(ag.model.qs.parameters())
-    g_critic = torch.autograd.grad(loss_q, critic_params)
-    q_pi = torch.min(ag.model.q1(o, pi), ag.model.q2(o, pi))
+    critic_named = list(ag.model.qs.named_parameters())
+    g_critic = torch.autograd.grad(loss_q, [p for _, p in critic_named])
+    out = {name: p.detach().clone() for name, p in ag.model.named_parameters()}
+    _sgd_step(out, critic_named, g_critic, lr, "qs")
+    critics = ag.model
+    if order == "sequential":
+        critics = copy.deepcopy(ag.model)
+        with torch.no_grad():
+            for name, p in critics.qs.named_parameters():
+                p.copy_(out[f"qs.{name}"])
+    q_pi = torch.min(critics.q1(o, pi), critics.q2(o, pi))
     loss_pi = (alpha * logp_pi - q_pi).mean()
-    actor_params = list(ag.model.actor.parameters())
-    g_actor = torch.autograd.grad(loss_pi, actor_params)
+    actor_named = list(ag.model.actor.named_parameters())
+    g_actor = torch.autograd.grad(loss_pi, [p for _, p in actor_named])
+    _sgd_step(out, actor_named, g_actor, lr, "actor")
     loss_alpha = -(ag.log_alpha * (logp_pi.detach() + ag.target_entropy)).mean()
     (g_alpha,) = torch.autograd.grad(loss_alpha, [ag.log_alpha])
-    out = {}
-    with torch.no_grad():
-        for name, p in ag.model.named_parameters():
-            out[name] = p.clone()
-        for (name, _), g in zip(ag.model.qs.named_parameters(prefix="qs"), g_critic):
-            out[name] -= lr * g
-        for (name, _), g in zip(ag.model.actor.named_parameters(prefix="actor"), g_actor):
-            out[name] -= lr * g
-        out["log_alpha"] = ag.log_alpha.detach() - lr * g_alpha
+    out["log_alpha"] = ag.log_alpha.detach() - lr * g_alpha
     return out
 
 
-def test_one_update_matches_the_textbook_sac_step():
-    torch.manual_seed(0)
-    lr = 0.05
-    agent = SACAgent(
+def _sgd_agent(cls: type, lr: float, **kwargs) -> SACAgent:
+    model = REDQMLPActorCritic if cls is REDQSACAgent else MLPActorCritic
+    agent = cls(
         OBS3,
         ACT2,
         "cpu",
-        model_cls=partial(MLPActorCritic, hidden_sizes=SMALL),
+        model_cls=partial(model, hidden_sizes=SMALL),
         optimizer_actor="sgd",
         optimizer_critic="sgd",
         lr_actor=lr,
         lr_critic=lr,
+        **kwargs,
     )
     agent.alpha_optimizer = torch.optim.SGD([agent.log_alpha], lr=lr)
-    batch = random_batch(torch.Generator().manual_seed(2))
-    reference = copy.deepcopy(agent)
-    torch.manual_seed(5)
-    expected = _reference_sac_step(reference, batch, lr)
-    torch.manual_seed(5)
-    agent.train(batch)
+    return agent
+
+
+def _assert_matches(agent: SACAgent, reference: SACAgent, expected: dict[str, torch.Tensor]) -> None:
     for name, p in agent.model.named_parameters():
         torch.testing.assert_close(p.detach(), expected[name], rtol=1e-5, atol=1e-6, msg=name)
     torch.testing.assert_close(agent.log_alpha.detach(), expected["log_alpha"])
@@ -169,6 +226,85 @@ def test_one_update_matches_the_textbook_sac_step():
         agent.model.named_parameters(), agent.model_target.parameters(), reference.model_target.parameters()
     ):
         torch.testing.assert_close(pt, agent.polyak * p0 + (1 - agent.polyak) * p.detach(), msg=name)
+
+
+@pytest.mark.parametrize("order", ["simultaneous", "sequential"])
+def test_one_update_matches_the_textbook_sac_step(order):
+    torch.manual_seed(0)
+    lr = 0.05
+    agent = _sgd_agent(SACAgent, lr, update_order=order, gamma=0.9)
+    _move_targets_away(agent, seed=3)
+    batch = random_batch(torch.Generator().manual_seed(2))
+    assert 0 < float(batch[4].sum()) < len(batch[4])  # terminal and bootstrapped transitions
+    reference = copy.deepcopy(agent)
+    torch.manual_seed(5)
+    expected = _reference_sac_step(reference, batch, lr, order)
+    torch.manual_seed(5)
+    agent.train(batch)
+    _assert_matches(agent, reference, expected)
+
+
+def test_the_two_update_orders_differ_and_unknown_orders_are_refused():
+    # Same batch, same seed: only the critics the actor loss reads differ.
+    batch = random_batch(torch.Generator().manual_seed(2))
+    actors = []
+    for order in ("simultaneous", "sequential"):
+        torch.manual_seed(0)
+        agent = _sgd_agent(SACAgent, 0.05, update_order=order)
+        torch.manual_seed(5)
+        agent.train(batch)
+        actors.append([p.detach().clone() for p in agent.model.actor.parameters()])
+    assert not all(torch.equal(x, y) for x, y in zip(*actors))
+    with pytest.raises(UserError, match="ALG.UPDATE_ORDER") as err:
+        SACAgent(OBS3, ACT2, "cpu", update_order="actor-first")
+    assert "\n" not in str(err.value)
+
+
+def _reference_redq_step(ag: REDQSACAgent, batch: tuple, lr: float) -> dict[str, torch.Tensor]:
+    """REDQ-SAC with plain SGD, drawing its random numbers in the agent's order (target
+    actions, then the subset, then the policy's actions): the target is the minimum over a
+    random subset of ``m`` *target* critics; every critic regresses on it; the actor maximises
+    the mean of all ``n`` critics (before their step)."""
+    o, a, r, o2, d, _ = batch
+    alpha = ag.log_alpha.detach().exp()
+    with torch.no_grad():
+        a2, logp_a2 = ag.model.actor(o2)
+        subset = torch.randperm(ag.n)[: ag.m]
+        q_targ = torch.stack([ag.model_target.qs[int(i)](o2, a2) for i in subset]).min(0).values
+        backup = r + ag.gamma * (1 - d) * (q_targ - alpha * logp_a2)
+    pi, logp_pi = ag.model.actor(o)
+    q = torch.stack([ag.model.qs[i](o, a) for i in range(ag.n)])
+    loss_q = ((q - backup) ** 2).mean(1).mean()
+    critic_named = list(ag.model.qs.named_parameters())
+    g_critic = torch.autograd.grad(loss_q, [p for _, p in critic_named])
+    out = {name: p.detach().clone() for name, p in ag.model.named_parameters()}
+    _sgd_step(out, critic_named, g_critic, lr, "qs")
+    q_pi = torch.stack([ag.model.qs[i](o, pi) for i in range(ag.n)]).mean(0)
+    loss_pi = (alpha * logp_pi - q_pi).mean()
+    actor_named = list(ag.model.actor.named_parameters())
+    g_actor = torch.autograd.grad(loss_pi, [p for _, p in actor_named])
+    _sgd_step(out, actor_named, g_actor, lr, "actor")
+    loss_alpha = -(ag.log_alpha * (logp_pi.detach() + ag.target_entropy)).mean()
+    (g_alpha,) = torch.autograd.grad(loss_alpha, [ag.log_alpha])
+    out["log_alpha"] = ag.log_alpha.detach() - lr * g_alpha
+    out["subset"] = subset
+    return out
+
+
+def test_one_update_matches_the_redq_step_with_a_seeded_subset():
+    torch.manual_seed(0)
+    lr = 0.05
+    agent = _sgd_agent(REDQSACAgent, lr, n=5, m=3, gamma=0.9)
+    _move_targets_away(agent, seed=4)
+    batch = random_batch(torch.Generator().manual_seed(2))
+    reference = copy.deepcopy(agent)
+    torch.manual_seed(6)
+    expected = _reference_redq_step(reference, batch, lr)
+    # A subset that is neither the first m critics nor all of them.
+    assert sorted(expected["subset"].tolist()) not in ([0, 1, 2], list(range(5)))
+    torch.manual_seed(6)
+    agent.train(batch)
+    _assert_matches(agent, reference, expected)
 
 
 @pytest.mark.parametrize("cls", [SACAgent, REDQSACAgent])

@@ -111,6 +111,7 @@ def test_shipped_sim_config_runs_the_whole_sample_path(name, fresh_objects, tmp_
     assert o.POLICY is parts["actor_cls"] and o.TRAIN_MODEL is parts["model_cls"]
     assert o.OBS_PREPROCESSOR is parts["obs_preprocessor"] and o.SAMPLE_COMPRESSOR is parts["sample_compressor"]
     assert o.AGENT.func is SACAgent and o.AGENT.keywords["lr_actor"] == 1e-3 and o.AGENT.keywords["alpha"] == 0.2
+    assert o.AGENT.keywords["update_order"] == "simultaneous"
     assert o.TRAINER.func is TorchTrainingOffline and o.TRAINER.keywords["env_cls"] is o.ENV_CLS
     assert o.CONFIG_DICT["interface"] is sim.interface_class(name)
 
@@ -186,6 +187,13 @@ def test_sim_real_time_mode_uses_the_real_time_env(fresh_objects):
         assert len(obs) == 5 and np.isfinite(rew) and np.array_equal(obs[4], [1.0, 0.0, 0.0])
     finally:
         env.close()
+
+
+def test_update_order_reaches_the_sac_agent(fresh_objects):
+    o = fresh_objects({**SMALL, "ALG": {"UPDATE_ORDER": "sequential"}, "ENV": {"RTGYM_INTERFACE": "SIMLIDAR"}})
+    assert o.AGENT.keywords["update_order"] == "sequential"
+    training = o.TRAINER(sleep_between_buffer_retrieval_attempts=0.0)
+    assert training.agent.update_order == "sequential"
 
 
 def test_sim_redq_passes_its_critic_count_to_the_driving_model(fresh_objects):

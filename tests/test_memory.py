@@ -188,6 +188,48 @@ def test_sampling_is_reproducible_from_numpy_seed():
     assert np.array_equal(draw(), draw())
 
 
+def counted_episodes(lengths: list[int]) -> list[tuple]:
+    """Samples whose reward is their absolute sample number (episodes of the given lengths)."""
+    out, k = [], 0
+    for n in lengths:
+        for t in range(n):
+            obs = (np.array([k, t], np.float32),)
+            act = None if t == 0 else np.array([k], np.float32)
+            out.append((act, obs, float(k), t == n - 1, False, {}))
+            k += 1
+    return out
+
+
+def test_sampling_is_uniform_over_valid_transitions_newest_included():
+    np.random.seed(7)
+    lengths = [37, 50, 23, 41, 30]  # 181 samples into a memory of 100: the ring has wrapped
+    size = 100
+    mem = GenericTorchMemory(memory_size=size, batch_size=64)
+    samples = counted_episodes(lengths)
+    for start in range(0, len(samples), 25):
+        mem.append(Buf(samples[start : start + 25]))
+    total = len(samples)
+    # Transition k (arriving sample k) is valid when k is not an episode's first sample and its
+    # predecessor k - 1 is still held (the last `size` samples).
+    firsts = set(np.cumsum([0] + lengths[:-1]).tolist())
+    valid = [k for k in range(total - size + 1, total) if k not in firsts]
+    assert total - 1 in valid and len(mem) == len(valid)
+    counts = dict.fromkeys(valid, 0)
+    draws = 0
+    for _ in range(400):
+        rewards = mem.sample()[2]
+        for k in rewards.to(torch.int64).tolist():
+            assert k in counts, f"drew transition {k}, which is not valid"
+            counts[k] += 1
+        draws += len(rewards)
+    expected = draws / len(valid)
+    assert counts[total - 1] > expected / 2  # the newest transition is drawn like the others
+    chi2 = sum((c - expected) ** 2 / expected for c in counts.values())
+    dof = len(valid) - 1
+    # Far above chance (about 6 standard deviations of the chi-square law) means not uniform.
+    assert chi2 < dof + 6 * (2 * dof) ** 0.5, (chi2, dof)
+
+
 # ---- RealTimeTorchMemory ------------------------------------------------------------------------
 
 

@@ -571,3 +571,40 @@ def test_payload_order_drops_second_copies_and_keeps_late_payloads():
     assert order.accept(8, 1) is True  # another worker has its own numbering
     assert order.accept(8, None) is True  # unnumbered payloads are not checked
     assert order.duplicates == 2
+
+
+# ------------------------------------------------------------------------------------------------
+# transport options from the config
+
+
+class _RecordedLink:
+    """Stands in for WorkerLink/TrainerLink: keeps the arguments it was built with."""
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        self.args, self.kwargs = args, kwargs
+
+
+def _link_built_with_config(monkeypatch, override: dict[str, Any]) -> _RecordedLink:
+    """The link arguments that the worker and trainer derive from a config (``override`` on the
+    defaults), read by a freshly imported config_constants."""
+    import sys
+
+    import tmrl.config
+    from tmrl.config import loader
+    from tmrl.networking import _make_link
+
+    monkeypatch.setenv(loader.OVERRIDE_ENV, json.dumps(override))
+    # monkeypatch puts the modules back afterwards: the rest of the session keeps its config.
+    monkeypatch.delitem(sys.modules, "tmrl.config.config_constants", raising=False)
+    monkeypatch.delattr(tmrl.config, "config_constants", raising=False)
+    return _make_link(_RecordedLink, "127.0.0.1", None, None, None, None, None, None, None)
+
+
+def test_links_from_the_default_config_refuse_pickle(monkeypatch):
+    link = _link_built_with_config(monkeypatch, {})
+    assert link.kwargs["allow_pickle"] is False
+
+
+def test_allow_pickle_in_the_config_reaches_the_links(monkeypatch):
+    link = _link_built_with_config(monkeypatch, {"ALLOW_PICKLE": True})
+    assert link.kwargs["allow_pickle"] is True

@@ -186,6 +186,30 @@ def test_elastic_clock_restarts_from_now_with_one_warning(make_env, env_id):
 
 
 @pytest.mark.parametrize("env_id", IDS)
+@pytest.mark.parametrize("factor", [0.5, 1.0])
+def test_timeout_factor_decides_what_a_late_step_does(make_env, env_id, factor):
+    # The same lateness, 0.6 of a time step, is within the timeout with factor 1.0 (the grid
+    # keeps its cadence) and beyond it with 0.5 (the clock restarts from now, with a warning).
+    env, clock, log = make_env(env_id, time_step_timeout_factor=factor)
+    env.reset()
+    clock.sleep(0.01)
+    env.step(a(0.1))  # returns at 0.05; the running time step ends at 0.10
+    clock.sleep(0.08)  # 0.13: 0.03 late
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always", TimeStepTimeoutWarning)
+        env.step(a(0.2))
+        env.step(a(0.3))
+    env.unwrapped.stop()
+    late = [w for w in record if issubclass(w.category, TimeStepTimeoutWarning)]
+    if factor == 1.0:
+        assert not late
+        assert times(log, "send") == pytest.approx([0.0, 0.05, 0.13, 0.15])
+    else:
+        assert len(late) == 1
+        assert times(log, "send") == pytest.approx([0.0, 0.05, 0.13, 0.18])
+
+
+@pytest.mark.parametrize("env_id", IDS)
 def test_slow_capture_delays_step_but_not_the_grid(make_env, env_id):
     env, clock, log = make_env(env_id, iface={"capture": 0.04})  # captured at 0.03, done at 0.07
     env.reset()

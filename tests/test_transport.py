@@ -239,29 +239,88 @@ class _TouchOnUnpickle:
         return (open, (str(self.path), "w"))
 
 
-def test_pickle_payloads_create_nothing(net, tmp_path, caplog):
-    net.relay()
-    trainer = net.trainer()
-    assert trainer.wait_connected(30)
-    marker_env = tmp_path / "pwned_by_envelope"
-    marker_obj = tmp_path / "pwned_by_payload"
-    # 1. A pickled tlspyo envelope, with the right password, to the relay.
-    s = _raw_connect(net.port)
-    s.sendall(_tlspyo_frame(pickle.dumps((1, "HELLO", None, _TouchOnUnpickle(marker_env)))))
-    assert _closed_by_peer(s)
-    # 2. A well-formed handshake, then a pickle as the object payload, forwarded to the trainer.
-    s = _raw_connect(net.port)
-    s.sendall(_tlspyo_frame(wire.encode((1, "HELLO", None, ("workers",)))))
+def _link_records(caplog, text: str) -> list[logging.LogRecord]:
+    """Records of the links' own logger (the owner's process) that contain ``text``."""
+    return [r for r in caplog.records if r.name == "tmrl.transport.links" and text in r.getMessage()]
+
+
+def _raw_peer(port: int, group: str) -> socket.socket:
+    """A raw tlspyo client, past the handshake, in ``group``."""
+    s = _raw_connect(port)
+    s.sendall(_tlspyo_frame(wire.encode((1, "HELLO", None, (group,)))))
     assert wire.decode(_recv_exact(s, int(_recv_exact(s, HEADER))))[1] == "WELCOME"
-    payload = pickle.dumps(_TouchOnUnpickle(marker_obj))
-    frame = ((7, 1), 0, 1, len(payload), payload)
-    s.sendall(_tlspyo_frame(wire.encode((2, "OBJ", {"trainers": 1}, frame))))
-    s.sendall(_tlspyo_frame(wire.encode((3, "OBJ", {"trainers": 1}, ((7, 2), 0, 1, 3, b"end")))))
-    _wait_for(lambda: "not tmrl wire data" in _log_text(caplog), what="the refused payload")
-    assert trainer.receive_samples() == []  # the pickle was dropped, the raw bytes never decoded
+    return s
+
+
+def _raw_object(s: socket.socket, msg_id: int, dest: dict[str, int], payload: bytes) -> None:
+    """Send ``payload`` as one object of one chunk to ``dest``."""
+    frame = ((7, msg_id), 0, 1, len(payload), payload)
+    s.sendall(_tlspyo_frame(wire.encode((msg_id + 1, "OBJ", dest, frame))))
+
+
+def test_pickled_envelope_is_refused_by_the_relay(net, tmp_path, caplog):
+    net.relay()
+    marker = tmp_path / "pwned_by_envelope"
+    s = _raw_connect(net.port)
+    s.sendall(_tlspyo_frame(pickle.dumps((1, "HELLO", None, _TouchOnUnpickle(marker)))))
+    assert _closed_by_peer(s)
+    _wait_for(lambda: "not tmrl wire data" in _log_text(caplog), what="the relay's log line")
+    assert not marker.exists()
+
+
+def test_trainer_link_refuses_a_delivered_pickle_by_default(net, tmp_path, caplog):
+    net.relay()
+    trainer = net.trainer()  # allow_pickle left at its default
+    assert trainer.wait_connected(30)
+    marker = tmp_path / "pwned_by_samples"
+    s = _raw_peer(net.port, "workers")
+    _raw_object(s, 1, {"trainers": 1}, pickle.dumps(_TouchOnUnpickle(marker)))
+    _raw_object(s, 2, {"trainers": 1}, wire.encode("after the pickle"))
+    # The relay keeps a worker's order: once the second object is out, the pickle went through
+    # the trainer link's decoder before it.
+    assert _receive(trainer, 1) == ["after the pickle"]
     s.close()
-    assert not marker_env.exists() and not marker_obj.exists()
-    assert "not tmrl wire data" in _log_text(caplog)
+    assert _link_records(caplog, "dropped a sample batch that could not be decoded")
+    assert _link_records(caplog, "pickle is refused unless allow_pickle is set")
+    assert not marker.exists()
+
+
+def test_worker_link_refuses_delivered_pickled_weights_by_default(net, tmp_path, caplog):
+    net.relay()
+    worker = net.worker()
+    assert worker.wait_connected(30)
+    marker = tmp_path / "pwned_by_weights"
+    s = _raw_peer(net.port, "trainers")  # a hostile trainer that knows the password
+    _raw_object(s, 1, {"workers": -1}, pickle.dumps(_TouchOnUnpickle(marker)))
+    _wait_for(lambda: _link_records(caplog, "dropped weights that could not be decoded"), what="the refusal")
+    _raw_object(s, 2, {"workers": -1}, wire.encode(b"good weights"))
+    assert worker.latest_weights(block=True, timeout=30) == b"good weights"  # the link still works
+    s.close()
+    assert _link_records(caplog, "pickle is refused unless allow_pickle is set")
+    assert not marker.exists()
+
+
+def test_allow_pickle_reaches_both_links(net, tmp_path, port_factory):
+    # The opt-in really switches the decoder: the same payloads are unpickled.
+    net.relay()
+    trainer = net.trainer(allow_pickle=True)
+    assert trainer.wait_connected(30)
+    to_trainer, to_worker = tmp_path / "unpickled_by_trainer", tmp_path / "unpickled_by_worker"
+    s = _raw_peer(net.port, "workers")
+    _raw_object(s, 1, {"trainers": 1}, pickle.dumps(_TouchOnUnpickle(to_trainer)))
+    got = _receive(trainer, 1)
+    got[0].close()  # the unpickled object is the file that __reduce__ opened
+    s.close()
+    assert to_trainer.exists()
+    # A second relay, whose trainer is the raw peer (a relay takes one trainer).
+    port = port_factory()
+    net.relay(port=port)
+    worker = net.worker(port=port, allow_pickle=True)
+    assert worker.wait_connected(30)
+    s = _raw_peer(port, "trainers")
+    _raw_object(s, 1, {"workers": -1}, pickle.dumps(_TouchOnUnpickle(to_worker)))
+    _wait_for(to_worker.exists, what="the worker link to unpickle the broadcast")
+    s.close()
 
 
 def test_tls_with_fresh_credentials(net, tmp_path):

@@ -9,10 +9,12 @@ changing what is learned:
   critics with detached weights, so critic weights get gradients from the critic loss only, and
   all three optimizers step on gradients computed from the same (pre-update) parameters.
 
-The one difference from the original tmrl SAC: its actor loss reads the critics *after* their
-optimizer step, ours *before* it (a simultaneous update, as the original tmrl REDQ-SAC and the
-REDQ authors' code do). Saves a second critic pass; learning is unaffected in our tests and on
-Pendulum (bench/pendulum_learning.py).
+The original tmrl SAC evaluates its actor loss against the critics *after* their optimizer step;
+by default ours does it *before* (``update_order="simultaneous"``, as the original tmrl REDQ-SAC
+and the REDQ authors' code do), which saves a second critic pass. ``update_order="sequential"``
+(config ``ALG.UPDATE_ORDER``) gives the original's order: the critic and entropy steps first,
+then the actor loss on the updated critics, with a backward pass of its own.
+``python -m bench pendulum_learning`` compares the two.
 """
 
 from __future__ import annotations
@@ -35,7 +37,10 @@ from tmrl.models import EnsembleQFunction, MLPActorCritic
 from tmrl.training import TrainingAgent
 from tmrl.util import cached_property
 
-__all__ = ["CriticSet", "SACAgent", "SpinupSacAgent", "make_optimizer"]
+__all__ = ["UPDATE_ORDERS", "CriticSet", "SACAgent", "SpinupSacAgent", "make_optimizer"]
+
+UPDATE_ORDERS = ("simultaneous", "sequential")
+"""Values of ``SACAgent(update_order=...)`` (config ``ALG.UPDATE_ORDER``)."""
 
 logger = logging.getLogger(__name__)
 
@@ -233,10 +238,13 @@ class SACAgent(TrainingAgent):
         betas_critic: Adam/AdamW betas of the critic optimizer (None: PyTorch's default).
         l2_actor: weight decay of the actor optimizer (None: the optimizer's default).
         l2_critic: weight decay of the critic optimizer (None: the optimizer's default).
+        update_order: ``"simultaneous"`` (one backward pass; the actor loss reads the critics
+            before their step) or ``"sequential"`` (the original tmrl SAC: the actor loss reads
+            the critics after their step; one more critic pass and backward per update).
 
     Raises:
-        UserError: an unknown optimizer, malformed betas, an unknown device, or a model without
-            critics.
+        UserError: an unknown optimizer, malformed betas, an unknown device, an unknown
+            update order, or a model without critics.
     """
 
     model_nograd = cached_property(lambda self: no_grad(copy_shared(self.model)))
@@ -261,7 +269,14 @@ class SACAgent(TrainingAgent):
         betas_critic: Sequence[float] | None = None,
         l2_actor: float | None = None,
         l2_critic: float | None = None,
+        update_order: str = "simultaneous",
     ) -> None:
+        if update_order not in UPDATE_ORDERS:
+            raise UserError(
+                f"update_order={update_order!r} is not known: set ALG.UPDATE_ORDER to one of "
+                f"{', '.join(UPDATE_ORDERS)}"
+            )
+        self.update_order = update_order
         device = _resolve_device(device)
         super().__init__(observation_space, action_space, device)
         self.model_cls = model_cls
@@ -357,28 +372,34 @@ class SACAgent(TrainingAgent):
             # so its last transition keeps its future value.
             backup = r + self.gamma * (1.0 - d) * (q_targ - alpha * logp_a2)
 
+        simultaneous = self.update_order == "simultaneous"
         # q (2, B) for the critic loss; Q(o, pi) with the critic weights detached, so that the
         # actor loss moves the actor only.
-        q, q_pi_all = self.critics.with_policy_values(o, a, pi)
+        q, q_pi_all = self.critics.with_policy_values(o, a, pi if simultaneous else None)
         loss_critic = (q - backup).square().mean()  # mean of the two critics' MSE
-        q_pi = cast(torch.Tensor, q_pi_all).min(0).values
-        loss_actor = (alpha * logp_pi - q_pi).mean()
-
-        loss = loss_critic + loss_actor
+        loss = loss_critic
         loss_alpha = None
         if self.log_alpha is not None:
             loss_alpha = -(self.log_alpha * (logp_pi.detach() + self.target_entropy)).mean()
             loss = loss + loss_alpha
+        if simultaneous:
+            loss_actor = (alpha * logp_pi - cast(torch.Tensor, q_pi_all).min(0).values).mean()
+            loss = loss + loss_actor
+            self.pi_optimizer.zero_grad(set_to_none=True)
 
         self.q_optimizer.zero_grad(set_to_none=True)
-        self.pi_optimizer.zero_grad(set_to_none=True)
         if self.alpha_optimizer is not None:
             self.alpha_optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.q_optimizer.step()
-        self.pi_optimizer.step()
         if self.alpha_optimizer is not None:
             self.alpha_optimizer.step()
+        if not simultaneous:
+            # The original's order: the actor loss reads the critics after their step.
+            loss_actor = (alpha * logp_pi - self.critics(o, pi, detach_params=True).min(0).values).mean()
+            self.pi_optimizer.zero_grad(set_to_none=True)
+            loss_actor.backward()
+        self.pi_optimizer.step()
         self._update_targets()
 
         metrics: dict[str, Any] = {

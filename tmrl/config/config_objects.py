@@ -296,7 +296,7 @@ _agent_kwargs: dict[str, Any] = {
     "l2_critic": ALG_CONFIG["L2_CRITIC"],
 }
 if ALG_NAME == "SAC":
-    AGENT = partial(_attr("tmrl.algorithms.sac", "SACAgent"), **_agent_kwargs)
+    AGENT = partial(_attr("tmrl.algorithms.sac", "SACAgent"), **_agent_kwargs, update_order=ALG_CONFIG["UPDATE_ORDER"])
 else:
     AGENT = partial(
         _attr("tmrl.algorithms.redq", "REDQSACAgent"),

@@ -478,6 +478,9 @@ _ALG = Section(
                                    item=Number(0, "", min=0, max=1, max_open=True)),
         "L2_ACTOR": Number(0.0, "weight decay of the actor optimizer", min=0),
         "L2_CRITIC": Number(0.0, "weight decay of the critic optimizer", min=0),
+        "UPDATE_ORDER": Choice("simultaneous", "SAC only: \"simultaneous\" evaluates the actor loss on the critics "
+                               "before their step (one backward pass), \"sequential\" after it (the original tmrl "
+                               "SAC)", ("simultaneous", "sequential")),
     },
     "the training algorithm and its hyperparameters",
 )
@@ -626,6 +629,12 @@ def check_consistency(cfg: Mapping[str, Any]) -> None:
         raise SchemaViolation(
             "ALG.REDQ_M",
             f"ALG.REDQ_M must be at most ALG.REDQ_N ({alg['REDQ_N']}), got {alg['REDQ_M']}",
+        )
+    if alg["ALGORITHM"] == "REDQSAC" and alg["UPDATE_ORDER"] != "simultaneous":
+        raise SchemaViolation(
+            "ALG.UPDATE_ORDER",
+            f'ALG.UPDATE_ORDER must be "simultaneous" when ALG.ALGORITHM is "REDQSAC" (the sequential order is '
+            f"SAC's), got {show(alg['UPDATE_ORDER'])}",
         )
     env = cfg["ENV"]
     name = env["RTGYM_INTERFACE"]

@@ -1,0 +1,18 @@
+"""Side-by-side benchmarks of this tmrl against the original tmrl 0.7.1 (and Stable-Baselines3,
+rtgym), on one harness (:mod:`bench.harness`). Not part of the installed ``tmrl`` package.
+
+    python -m bench --list
+    python -m bench NAME [--help | options]
+"""
+
+BENCHMARKS = (
+    "trainer_speed",
+    "pendulum_pipeline",
+    "pendulum_learning",
+    "pipeline_throughput",
+    "trainer_ingest",
+    "memory_speed",
+    "sim_speed",
+    "realtime_jitter",
+)
+"""The benchmarks, as modules of this package with a ``main(argv)``."""
