@@ -490,7 +490,8 @@ def save_checkpoint(training: Any, path: str | os.PathLike[str]) -> Path:
         The folder.
 
     Raises:
-        CheckpointError: ``path`` is a file, or the agent or memory cannot be saved.
+        CheckpointError: ``path`` is a file or a folder of saved state without its header, the
+            agent's state holds non-finite values, or the agent or memory cannot be saved.
     """
     folder = Path(path)
     if folder.exists() and not folder.is_dir():
@@ -509,6 +510,14 @@ def save_checkpoint(training: Any, path: str | os.PathLike[str]) -> Path:
     gen = int(old["generation"]) + 1 if old else 1
 
     state: dict[str, Any] = {"agent": _agent_state(training.agent), "torch_rng": torch.get_rng_state()}
+    from tmrl.algorithms.guard import all_finite
+
+    if not all_finite(state["agent"]):
+        # A NaN checkpoint would poison every restart: keep the previous one instead.
+        raise CheckpointError(
+            f"not saving {folder}: the agent's state holds NaN or infinite values (the previous "
+            "checkpoint is kept); see the trainer's log for skipped updates"
+        )
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         state["cuda_rng"] = torch.cuda.get_rng_state_all()
     buf = io.BytesIO()

@@ -1414,7 +1414,10 @@ class Trainer:
         self.run_instance = run_instance
         while run_instance.epoch < run_instance.epochs:
             stats = run_instance.run_epoch(interface=self.interface)
-            if self.checkpoint_path is not None:
+            ensure_finite = getattr(run_instance, "ensure_finite", None)
+            if callable(ensure_finite) and not ensure_finite():
+                logger.error("checkpoint not saved: the agent's parameters are not finite")
+            elif self.checkpoint_path is not None:
                 t0 = time.perf_counter()
                 self.dump_run_instance_fn(run_instance, self.checkpoint_path)
                 logger.info("checkpoint saved in %.2f s", time.perf_counter() - t0)

@@ -88,6 +88,13 @@ def _tune(transport: Any) -> None:
         pass  # not a TCP socket (tests with fake transports) or an OS without these options
 
 
+def session_token(password: bytes, nonce: bytes) -> bytes:
+    """What a link puts where tlspyo framing puts the password: an HMAC of the relay's
+    per-connection challenge under the password. The password itself never crosses the network
+    (plain TCP included); a token is worth one connection only."""
+    return hmac.new(password, b"tmrl session\0" + nonce, "sha256").hexdigest()[:32].encode("ascii")
+
+
 def _frame(header_size: int, env: bytes, password: bytes = b"") -> bytes:
     head = str(len(env)).encode("ascii")
     return head.ljust(header_size, b" ") + password + env
@@ -479,8 +486,10 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self._server.connections.add(self)
             _tune(self.transport)
             self.transport.registerProducer(self, True)
-            # A fresh challenge: a trainer proves it holds the trainer key by signing it.
+            # A fresh challenge: the link answers with a token derived from it and the password
+            # (never the password), and a trainer proves it holds the trainer key by signing it.
             self._nonce = os.urandom(32)
+            self._reader.pw = session_token(self._server.password_bytes, self._nonce)
             self.transport.write(_frame(self._header_size, wire.encode((0, "HELLO", self._nonce))))
             # Whoever found the port gets a bounded time to authenticate, not a free socket forever.
             self._handshake_timer = reactor.callLater(cfg["handshake_timeout"], self._handshake_expired)
@@ -1029,6 +1038,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
         def __init__(self, state: LinkState):
             super().__init__(client=state, password=cfg["password"], header_size=header_size, groups=groups)
             self._reader = _FrameReader(header_size, b"", cfg["max_frame_bytes"])
+            self.token = b""  # the session token, once the relay's challenge arrived
             self._partials: collections.OrderedDict[Any, list[Any]] = collections.OrderedDict()
             self.alive = False
 
@@ -1058,7 +1068,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
 
         def send_env(self, cmd: str, dest: Any, obj: Any) -> None:
             env = wire.encode((0, cmd, dest, obj))
-            head = str(len(env)).encode("ascii").ljust(header_size, b" ") + self._client.password_bytes
+            head = str(len(env)).encode("ascii").ljust(header_size, b" ") + self.token
             self.transport.writeSequence([head, env])
 
         def send_object(self, dest: dict[str, int], data: memoryview, msg_id: tuple[int, int]) -> None:
@@ -1097,6 +1107,9 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
 
         def _handle(self, cmd: str, obj: Any) -> None:
             if cmd == "HELLO":
+                if type(obj) is not bytes or not 16 <= len(obj) <= 64:
+                    raise ValueError("the relay sent no valid challenge (an older tmrl server?)")
+                self.token = session_token(self._client.password_bytes, obj)
                 proof = None
                 if trainer_key is not None and type(obj) is bytes:
                     from tmrl.transport.credentials import HANDSHAKE_CONTEXT
