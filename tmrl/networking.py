@@ -954,6 +954,7 @@ class PayloadOrder:
         self._gaps: dict[Any, dict[int, None]] = {}
         self.lost = 0
         self.duplicates = 0
+        self._lost_log = RateLimitedLog(logger, logging.WARNING, 1.0)
 
     def accept(self, src: Any, seq: Any) -> bool:
         """Whether payload ``seq`` of worker ``src`` should be used (``False``: a duplicate)."""
@@ -976,9 +977,7 @@ class PayloadOrder:
             while len(gaps) > self.max_gaps:
                 del gaps[next(iter(gaps))]
             self.lost += missing
-            logger.warning(
-                "worker %s: %d sample payloads missing so far (%d in total)", src, missing, self.lost
-            )
+            self._lost_log("worker %s: %d sample payloads missing (%d in total)", src, missing, self.lost)
             self._last[src] = seq
             return True
         if seq in gaps:  # late, but new
@@ -1157,15 +1156,7 @@ class TrainerInterface:
         """The payload as a checked buffer, or ``None`` (dropped, counted and logged)."""
         src = payload.get("src") if isinstance(payload, dict) else None
         who = f"worker {src}" if type(src) is int else "a peer"
-        try:
-            buf = unpack_buffer(payload, maxlen=self.maxlen, schema=self.schema)
-        except (PayloadError, SampleRejected) as err:
-            self.rejected_batches += 1
-            self._reject_log(
-                "dropped a sample batch from %s: %s (%d dropped so far)", who, err, self.rejected_batches
-            )
-            return None
-        run = payload.get("run")
+        run = payload.get("run") if isinstance(payload, dict) else None
         if run is not None and self.run_id is not None and run != self.run_id:
             self.foreign_batches += 1
             self._foreign_log(
@@ -1173,6 +1164,14 @@ class TrainerInterface:
                 "of an earlier run",
                 who,
                 self.foreign_batches,
+            )
+            return None
+        try:
+            buf = unpack_buffer(payload, maxlen=self.maxlen, schema=self.schema)
+        except (PayloadError, SampleRejected) as err:
+            self.rejected_batches += 1
+            self._reject_log(
+                "dropped a sample batch from %s: %s (%d dropped so far)", who, err, self.rejected_batches
             )
             return None
         if not self._order.accept(payload["src"], payload.get("seq")):
@@ -1403,7 +1402,8 @@ class Trainer:
             logger.info("sample batches are checked against %r", self.interface.schema)
         else:
             logger.info("the training instance names no spaces: sample batches are checked for structure only")
-        if agent is not None and hasattr(agent, "get_actor"):
+        ensure_finite = getattr(run_instance, "ensure_finite", None)  # also keeps a good copy
+        if agent is not None and hasattr(agent, "get_actor") and (not callable(ensure_finite) or ensure_finite()):
             try:
                 self.interface.broadcast_model(agent.get_actor())
             except Exception:

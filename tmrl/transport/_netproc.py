@@ -50,6 +50,7 @@ from typing import Any
 
 from tmrl import wire
 from tmrl.transport import _pipe
+from tmrl.util import RateLimitedLog
 
 log_relay = logging.getLogger("tmrl.transport.relay")
 log_link = logging.getLogger("tmrl.transport.link")
@@ -866,6 +867,13 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self.lost_reason: str | None = None
             self.factory: LinkFactory | None = None
             self.close_budget: float = cfg["close_timeout"]
+            # While disconnected, each send past the store's bound drops one object: one line a
+            # second, not one per object.
+            self.drop_log = RateLimitedLog(log_link, logging.WARNING, 1.0)
+
+        def flush_logs(self) -> None:
+            self.drop_log.flush()
+            reactor.callLater(1.0, self.flush_logs)
 
         def status(self, **kw: Any) -> None:
             writer.send(_pipe.STATUS, wire.encode(kw))
@@ -902,7 +910,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 _, old, _, _ = self.store.popleft()
                 self.store_bytes -= len(old)
                 self.dropped += 1
-                log_link.warning(
+                self.drop_log(
                     "not connected to the relay at %s: dropped the oldest unsent object (%d dropped so far)",
                     where,
                     self.dropped,
@@ -1225,6 +1233,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
     else:
         reactor.connectTCP(cfg["server_ip"], cfg["server_port"], factory)
     writer.send(_pipe.READY, wire.encode({"ok": True}))
+    reactor.callLater(1.0, state.flush_logs)
 
     def control_loop() -> None:
         sem = threading.Semaphore(2)  # at most two objects handed to the reactor at a time
