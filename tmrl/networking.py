@@ -75,7 +75,7 @@ PAYLOAD_VERSION = 1
 
 #: Seconds a role interrupted by a signal gives its network process to flush before killing it
 #: (a role must be gone within 5 s of SIGTERM or Ctrl-C).
-STOP_TIMEOUT = 3.0
+STOP_TIMEOUT = 2.0
 
 
 def _one_line(err: BaseException) -> str:

@@ -1270,7 +1270,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
 
 #: Seconds a network process may spend flushing when its parent is gone (or closed the pipe
 #: without a STOP it could read): the parent's role must be gone within 5 s of a signal.
-_PARENT_GONE_BUDGET = 2.0
+_PARENT_GONE_BUDGET = 1.0
 _STOP = struct.Struct("<d")
 _PARENT_PID = 0
 _shutdown_hook: Callable[[float], None] | None = None
