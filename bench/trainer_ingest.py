@@ -5,8 +5,10 @@ trivial environment of bench/pipeline_throughput.py) to the replay memory's ring
 
 Prints microseconds per sample (best of ``--repeats``) for: decode and unpack only; the same plus
 building the sample tuples (reading ``buffer.memory``); decode, unpack and
-``GenericTorchMemory.append_buffer`` through the columns (what the trainer does); the same
-through the tuples (what a buffer without columns costs).
+``GenericTorchMemory.append_buffer`` through the columns (what the trainer did before samples
+were checked); the same with the run's schema check (shapes, dtypes, finite values, action
+bounds: what the trainer does now); the same through the tuples (what a buffer without columns
+costs).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import pipeline_throughput as pt  # noqa: E402  (the trivial environment and act
 from tmrl import wire  # noqa: E402
 from tmrl.memory import GenericTorchMemory  # noqa: E402
 from tmrl.networking import RolloutWorker, pack_buffer, unpack_buffer  # noqa: E402
+from tmrl.spaces import SampleSchema  # noqa: E402
 
 
 def main() -> None:
@@ -43,6 +46,7 @@ def main() -> None:
     n = len(worker.buffer)
     data = wire.encode(pack_buffer(worker.buffer, 1, 0))
     memory = GenericTorchMemory(device="cpu", nb_steps=1, memory_size=1_000_000, batch_size=256)
+    schema = SampleSchema(worker.env.observation_space, worker.env.action_space)
 
     def best_us(fn) -> float:
         best = float("inf")
@@ -61,11 +65,15 @@ def main() -> None:
         ("decode + unpack", lambda: unpack_buffer(wire.decode(data))),
         ("decode + unpack + tuples", lambda: unpack_buffer(wire.decode(data)).memory),
         ("decode + unpack + append_buffer (columns)", lambda: memory.append_buffer(unpack_buffer(wire.decode(data)))),
+        (
+            "decode + unpack + check + append_buffer",
+            lambda: memory.append_buffer(unpack_buffer(wire.decode(data), schema=schema)),
+        ),
         ("decode + unpack + append_buffer (tuples)", through_tuples),
     ]
     print(f"{n} samples per payload, {len(data) / n:.1f} bytes/sample, best of {args.repeats}")
     for name, fn in rows:
-        print(f"{name:45} {best_us(fn):6.2f} µs/sample")
+        print(f"{name:45} {best_us(fn):6.3f} µs/sample")
 
 
 if __name__ == "__main__":
