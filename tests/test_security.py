@@ -405,6 +405,34 @@ def test_a_fake_trainer_cannot_crash_workers_even_through_the_stored_broadcast(t
     assert (tmp_path / "w.json").read_bytes() == _json_weights(0.75)
 
 
+def test_a_torch_worker_refuses_non_finite_or_misshapen_weights(tmp_path, port_factory, closing):
+    from safetensors.numpy import save
+
+    port = port_factory()
+    closing.append(relay(port))
+    w = RolloutWorker(env_cls=lambda: gymnasium.make("Pendulum-v1"), actor_module_cls=_pendulum_actor(),
+                      server_ip="127.0.0.1", server_port=port, password=PW, security=None, header_size=10,
+                      keys_dir=str(tmp_path / "k"), model_path=str(tmp_path / "w.tmod"), model_history=0)
+    closing.append(w)
+    fake = TrainerLink("127.0.0.1", port, PW, security=None)
+    closing.append(fake)
+    assert w.wait_connected(30) and fake.wait_connected(30)
+    mine = {k: v.numpy().copy() for k, v in w.actor.state_dict().items()}
+    poisoned = dict(mine)
+    name = next(iter(poisoned))
+    poisoned[name] = np.full_like(poisoned[name], np.nan)  # the right names and shapes, NaN values
+    # other values everywhere, one tensor of another shape: a plain load would copy the others
+    misshapen = {k: v + 1 for k, v in mine.items()}
+    last = list(misshapen)[-1]
+    misshapen[last] = np.zeros((2, *mine[last].shape), mine[last].dtype)
+    for tensors in (poisoned, misshapen):
+        fake.broadcast_weights(pack_weights(save(tensors), None, 1))
+        assert w.update_actor_weights(verbose=False, blocking=True) == 0
+        for k, v in w.actor.state_dict().items():  # the actor is untouched, not half-loaded
+            assert np.array_equal(v.numpy(), mine[k])
+    assert not (tmp_path / "w.tmod").exists() and w.rejected_weights == 2
+
+
 def test_workers_that_pin_the_trainer_key_load_its_weights_only(tmp_path, port_factory, closing):
     keys = tmp_path / "worker_keys"
     real = ensure_trainer_key(tmp_path / "trainer_keys")

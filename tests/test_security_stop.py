@@ -249,6 +249,35 @@ def test_a_role_stops_within_5_s_in_every_state(role, state, ready, sig, tmp_pat
     print(f"[stop] {role} {state} {signal.Signals(sig).name}: gone in {took:.2f} s")
 
 
+def _netprocs(pids: list[int]) -> list[int]:
+    out = []
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                if b"tmrl.transport._netproc" in f.read():
+                    out.append(pid)
+        except OSError:
+            pass
+    return out
+
+
+def test_network_processes_die_with_their_parent_even_if_a_fork_keeps_their_pipe(
+    tmp_path, port_factory, roles, closing
+):
+    # A process forked by the role (multiprocessing's default on Linux) inherits the write end of
+    # the network process's pipe: the pipe never closes, only the parent-death watch can tell.
+    port = port_factory()
+    closing.append(_relay(port))
+    r = Role(script("worker", "forked", port=port, tmp=str(tmp_path)), tmp_path)
+    roles.append(r)
+    r.wait_line("forked")
+    nets = _netprocs(descendants(r.proc.pid))
+    assert nets
+    os.kill(r.proc.pid, signal.SIGKILL)
+    took = assert_gone_within(r, nets, 5.0, "the network process of a killed worker with a forked child")
+    print(f"[stop] worker forked SIGKILL: network process gone in {took:.2f} s")
+
+
 # ------------------------------------------------------------------------------------------------
 # the command-line roles, reconnecting (no server to talk to)
 
@@ -330,6 +359,14 @@ def _child(role: str, state: str, args: dict) -> int:
                     obj.collect_train_episode()
                     sending_since[0] = time.monotonic()
                     obj.send_and_clear_buffer()
+            elif state == "forked":
+                obj.wait_connected(30)
+                if os.fork() == 0:  # holds every descriptor of the role, then goes away
+                    time.sleep(12)
+                    os._exit(0)
+                _say(forked=True)
+                while True:
+                    time.sleep(0.1)
             else:
                 obj.wait_connected(30)
                 _say(receiving=True)
