@@ -5,8 +5,9 @@
 
 Microseconds per sample (best of ``--repeats`` per round; medians over rounds) for: decode and
 unpack only; the same plus building the sample tuples (reading ``buffer.memory``); decode, unpack
-and ``GenericTorchMemory.append_buffer`` through the columns (what the trainer does); the same
-through the tuples (what a buffer without columns costs).
+and ``GenericTorchMemory.append_buffer`` through the columns (without the run's schema check);
+the same with the schema check (shapes, dtypes, finite values, action bounds: what the trainer
+does); the same through the tuples (what a buffer without columns costs).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ def one_round(args: argparse.Namespace, rnd: int, rec: harness.Recorder) -> None
     from tmrl import wire
     from tmrl.memory import GenericTorchMemory
     from tmrl.networking import RolloutWorker, pack_buffer, unpack_buffer
+    from tmrl.spaces import SampleSchema
 
     worker = RolloutWorker(env_cls=_trivial_env_cls(), actor_module_cls=_actor_cls("ours", 1), standalone=True,
                            max_samples_per_episode=args.samples, model_path=os.devnull + "_none", model_history=0)
@@ -31,6 +33,7 @@ def one_round(args: argparse.Namespace, rnd: int, rec: harness.Recorder) -> None
     n = len(worker.buffer)
     data = wire.encode(pack_buffer(worker.buffer, 1, 0))
     memory = GenericTorchMemory(device="cpu", nb_steps=1, memory_size=1_000_000, batch_size=256)
+    schema = SampleSchema(worker.env.observation_space, worker.env.action_space)
 
     def best_us(fn: Callable[[], object]) -> float:
         best = float("inf")
@@ -50,6 +53,10 @@ def one_round(args: argparse.Namespace, rnd: int, rec: harness.Recorder) -> None
         ("decode + unpack", lambda: unpack_buffer(wire.decode(data))),
         ("decode + unpack + tuples", lambda: unpack_buffer(wire.decode(data)).memory),
         ("decode + unpack + append_buffer (columns)", lambda: memory.append_buffer(unpack_buffer(wire.decode(data)))),
+        (
+            "decode + unpack + check + append_buffer",
+            lambda: memory.append_buffer(unpack_buffer(wire.decode(data), schema=schema)),
+        ),
         ("decode + unpack + append_buffer (tuples)", through_tuples),
     ):
         rec.add(case, name, "ours", best_us(fn), round=rnd, higher_is_better=False, unit="us/sample")

@@ -384,3 +384,79 @@ def test_dataset_into_a_bigger_or_smaller_memory(tmp_path):
     assert np.array_equal(again.valid_slots(), bigger.valid_slots())
     smaller = RealTimeTorchMemory(act_buf_len=2, memory_size=20, dataset_path=str(tmp_path / "c"))
     assert smaller.size == 20 and smaller.total == 105 and len(smaller) > 0
+
+
+# ------------------------------------------------------------------------------------------------
+# checkpoints that fail safe (issue 15)
+
+
+def test_a_checkpoint_folder_without_its_header_is_refused_never_overwritten(tmp_path, port_factory):
+    from tmrl.networking import Trainer
+
+    cls = training_cls()
+    path = tmp_path / "ckpt"
+    training = trained(cls)
+    save_checkpoint(training, path)
+    save_checkpoint(training, path)  # generation 2: a run with history
+    (path / "checkpoint.json").unlink()  # lost (a bad copy, a hand clean-up)
+    before = {p.name: p.read_bytes() for p in path.iterdir()}
+    trainer = Trainer(training_cls=cls, server_ip="127.0.0.1", server_port=port_factory(), password="pw",
+                      security=None, keys_dir=str(tmp_path / "keys"), model_path=str(tmp_path / "m.tmod"),
+                      checkpoint_path=str(path))
+    try:
+        with pytest.raises(CheckpointError) as err:
+            trainer.run()  # would have started afresh and deleted the state at its first save
+    finally:
+        trainer.interface.close()
+    assert "no checkpoint.json" in one_line(err) and "move the folder away" in one_line(err)
+    with pytest.raises(CheckpointError):
+        save_checkpoint(trained(cls), path)
+    assert {p.name: p.read_bytes() for p in path.iterdir()} == before
+
+
+def test_an_interrupted_first_save_still_starts_afresh(tmp_path):
+    cls = training_cls()
+    path = tmp_path / "ckpt"
+    save_checkpoint(trained(cls), path)
+    (path / "checkpoint.json").unlink()  # the first save died before its header
+    assert ckpt.checkpoint_complete(path) is False
+    save_checkpoint(trained(cls), path)
+    assert ckpt.checkpoint_complete(path) is True
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda h: h.update(generation=-1),
+        lambda h: h.update(epoch="x"),
+        lambda h: h.update(total_samples=2.5),
+        lambda h: h.update(run_id=["not", "a", "string"]),
+        lambda h: h["state"].update(file="../../etc/passwd"),
+        lambda h: h["state"].update(size="big"),
+        lambda h: h.update(memory=[]),
+        lambda h: h["memory"].update(kind="zzz"),
+        lambda h: h["memory"].update(stats=[1, 2]),
+        lambda h: h["memory"]["segments"][0].update(start=10**6),
+        lambda h: h["memory"]["meta"].update(total="many"),
+        lambda h: h["rng"].update(python="state"),
+        lambda h: h["rng"].update(numpy=["MT19937", [1, 2], 0, 0, 0.0]),
+    ],
+)
+def test_bad_header_values_are_refused_in_one_line(tmp_path, edit):
+    cls = training_cls()
+    path = tmp_path / "ckpt"
+    save_checkpoint(trained(cls), path)
+    header = json.loads((path / "checkpoint.json").read_text())
+    edit(header)
+    (path / "checkpoint.json").write_text(json.dumps(header))
+    with pytest.raises(CheckpointError) as err:
+        load_checkpoint(path, cls)
+    assert "checkpoint.json" in one_line(err) or "corrupt" in one_line(err)
+
+
+def test_the_run_identity_is_kept_by_the_checkpoint(tmp_path):
+    cls = training_cls()
+    training = trained(cls)
+    training.run_id = "0123456789abcdef"
+    save_checkpoint(training, tmp_path / "c")
+    assert load_checkpoint(tmp_path / "c", cls).run_id == "0123456789abcdef"

@@ -494,7 +494,7 @@ def test_config_constants_reads_config_and_creates_nothing(_isolated_data_folder
     values = json.loads(out.stdout)
     assert values == {"run": "r", "lr": 0.125, "sec": "TLS",
                       "model": str(_isolated_data_folder / "weights" / "r.tmod"), "is_path": True,
-                      "nbw": None, "ip": "127.0.0.1", "lidar": False}
+                      "nbw": 64, "ip": "127.0.0.1", "lidar": False}
     assert not _isolated_data_folder.exists()
 
 

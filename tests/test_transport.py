@@ -18,6 +18,7 @@ import pytest
 from tmrl import wire
 from tmrl.errors import UserError
 from tmrl.transport import RelayServer, TrainerLink, WorkerLink, ensure_credentials
+from tmrl.transport._netproc import session_token
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -102,16 +103,34 @@ def _receive(trainer: TrainerLink, n: int, timeout: float = 30.0) -> list[Any]:
     return got
 
 
-def _raw_connect(port: int) -> socket.socket:
+class _Raw:
+    """A plain socket to the relay that has read its HELLO: ``token`` is what a link with the
+    right password puts in each frame (the relay's challenge under the password)."""
+
+    def __init__(self, port: int):
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=20)
+        length = int(_recv_exact(self, HEADER))
+        env = wire.decode(_recv_exact(self, length))
+        assert env[1] == "HELLO"
+        self.nonce = env[2]
+        self.token = session_token(PASSWORD.encode(), self.nonce)
+
+    def sendall(self, data: bytes) -> None:
+        self.sock.sendall(data)
+
+    def recv(self, n: int) -> bytes:
+        return self.sock.recv(n)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def _raw_connect(port: int) -> _Raw:
     """A plain socket to the relay, after reading its HELLO frame."""
-    s = socket.create_connection(("127.0.0.1", port), timeout=20)
-    length = int(_recv_exact(s, HEADER))
-    env = wire.decode(_recv_exact(s, length))
-    assert env[1] == "HELLO"
-    return s
+    return _Raw(port)
 
 
-def _recv_exact(s: socket.socket, n: int) -> bytes:
+def _recv_exact(s: Any, n: int) -> bytes:
     data = b""
     while len(data) < n:
         chunk = s.recv(n - len(data))
@@ -121,7 +140,7 @@ def _recv_exact(s: socket.socket, n: int) -> bytes:
     return data
 
 
-def _closed_by_peer(s: socket.socket) -> bool:
+def _closed_by_peer(s: Any) -> bool:
     """True when the relay closes the socket (reads until EOF or reset)."""
     try:
         while s.recv(65536):
@@ -133,8 +152,8 @@ def _closed_by_peer(s: socket.socket) -> bool:
         s.close()
 
 
-def _tlspyo_frame(body: bytes, password: str = PASSWORD) -> bytes:
-    return f"{len(body):<{HEADER}}".encode() + password.encode() + body
+def _tlspyo_frame(body: bytes, raw: _Raw) -> bytes:
+    return f"{len(body):<{HEADER}}".encode() + raw.token + body
 
 
 def _log_text(caplog) -> str:
@@ -205,7 +224,7 @@ def test_wrong_password_is_refused_and_never_logged(net, caplog):
     _wait_for(lambda: bad.refused, what="the refusal")
     assert bad.refused == "wrong password" and not bad.connected
     s = _raw_connect(net.port)
-    s.sendall(_tlspyo_frame(wire.encode((1, "HELLO", None, ("workers",))), password="x" * len(PASSWORD)))
+    s.sendall(f"{len(hello := wire.encode((1, 'HELLO', None, ('workers',)))):<{HEADER}}".encode() + b"x" * 32 + hello)
     assert _closed_by_peer(s)
     _wait_for(lambda: "wrong password" in _log_text(caplog), what="the relay's log line")
     text = _log_text(caplog)
@@ -218,10 +237,10 @@ def test_garbage_and_oversized_frames_leave_the_relay_up(net, caplog):
     s.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n" + os.urandom(200))
     assert _closed_by_peer(s)
     s = _raw_connect(net.port)
-    s.sendall(f"{10**9:<{HEADER}}".encode() + PASSWORD.encode() + b"\x00" * 100)
+    s.sendall(f"{10**9:<{HEADER}}".encode() + s.token + b"\x00" * 100)
     assert _closed_by_peer(s)
     s = _raw_connect(net.port)  # right password, garbage envelope
-    s.sendall(_tlspyo_frame(os.urandom(64)))
+    s.sendall(_tlspyo_frame(os.urandom(64), s))
     assert _closed_by_peer(s)
     _wait_for(lambda: "exceeds max_frame_bytes" in _log_text(caplog), what="the oversized-frame log line")
     assert "invalid frame header" in _log_text(caplog)
@@ -247,7 +266,7 @@ def _link_records(caplog, text: str) -> list[logging.LogRecord]:
 def _raw_peer(port: int, group: str) -> socket.socket:
     """A raw tlspyo client, past the handshake, in ``group``."""
     s = _raw_connect(port)
-    s.sendall(_tlspyo_frame(wire.encode((1, "HELLO", None, (group,)))))
+    s.sendall(_tlspyo_frame(wire.encode((1, "HELLO", None, (group,))), s))
     assert wire.decode(_recv_exact(s, int(_recv_exact(s, HEADER))))[1] == "WELCOME"
     return s
 
@@ -255,14 +274,14 @@ def _raw_peer(port: int, group: str) -> socket.socket:
 def _raw_object(s: socket.socket, msg_id: int, dest: dict[str, int], payload: bytes) -> None:
     """Send ``payload`` as one object of one chunk to ``dest``."""
     frame = ((7, msg_id), 0, 1, len(payload), payload)
-    s.sendall(_tlspyo_frame(wire.encode((msg_id + 1, "OBJ", dest, frame))))
+    s.sendall(_tlspyo_frame(wire.encode((msg_id + 1, "OBJ", dest, frame)), s))
 
 
 def test_pickled_envelope_is_refused_by_the_relay(net, tmp_path, caplog):
     net.relay()
     marker = tmp_path / "pwned_by_envelope"
     s = _raw_connect(net.port)
-    s.sendall(_tlspyo_frame(pickle.dumps((1, "HELLO", None, _TouchOnUnpickle(marker)))))
+    s.sendall(_tlspyo_frame(pickle.dumps((1, "HELLO", None, _TouchOnUnpickle(marker))), s))
     assert _closed_by_peer(s)
     _wait_for(lambda: "not tmrl wire data" in _log_text(caplog), what="the relay's log line")
     assert not marker.exists()
@@ -531,10 +550,10 @@ def test_a_worker_cannot_broadcast_fake_weights(net, caplog):
     victim = net.worker()
     assert victim.wait_connected(30)
     s = _raw_connect(net.port)
-    s.sendall(_tlspyo_frame(wire.encode((1, "HELLO", None, ("workers",)))))
+    s.sendall(_tlspyo_frame(wire.encode((1, "HELLO", None, ("workers",))), s))
     assert wire.decode(_recv_exact(s, int(_recv_exact(s, HEADER))))[1] == "WELCOME"
     fake = wire.encode(b"fake weights")
-    s.sendall(_tlspyo_frame(wire.encode((2, "OBJ", {"workers": -1}, ((1, 1), 0, 1, len(fake), fake)))))
+    s.sendall(_tlspyo_frame(wire.encode((2, "OBJ", {"workers": -1}, ((1, 1), 0, 1, len(fake), fake))), s))
     assert _closed_by_peer(s)
     _wait_for(lambda: "workers may not send" in _log_text(caplog), what="the refusal log line")
     assert victim.latest_weights() is None

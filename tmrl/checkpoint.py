@@ -47,6 +47,7 @@ from tmrl.util import atomic_write_bytes, atomic_write_text
 
 __all__ = [
     "FORMAT",
+    "checkpoint_complete",
     "VERSION",
     "CheckpointError",
     "dump_run_instance",
@@ -205,7 +206,95 @@ def _read_header(folder: Path) -> dict[str, Any]:
     for key in ("generation", "epoch", "total_updates", "total_samples", "state", "memory", "rng"):
         if key not in header:
             raise CheckpointError(f"{path} is corrupt (no {key!r}); restore the folder from a backup or delete it")
+    problem = _header_problem(header)
+    if problem is not None:
+        raise CheckpointError(f"{path} is corrupt ({problem}); restore the folder from a backup or delete it")
     return header
+
+
+def _is_count(value: Any, low: int = 0) -> bool:
+    return type(value) is int and low <= value < 2**62
+
+
+def _file_record_problem(record: Any, what: str) -> str | None:
+    if not isinstance(record, dict):
+        return f"{what} is not a file record"
+    name = record.get("file")
+    if not isinstance(name, str) or not _OWN_FILE.match(name):
+        return f"{what} names no file of this checkpoint"
+    if not _is_count(record.get("size")) or not _is_count(record.get("crc32")):
+        return f"{what} has a bad size or checksum"
+    return None
+
+
+def _header_problem(header: dict[str, Any]) -> str | None:
+    """The first value of ``header`` that cannot be right, or ``None`` (a hand-edited or
+    damaged header is refused in one line instead of failing deep inside the restore)."""
+    if not _is_count(header["generation"], 1):
+        return "bad 'generation'"
+    for key in ("epoch", "total_updates", "total_samples"):
+        if not _is_count(header[key]):
+            return f"bad {key!r}: {str(header[key])[:40]}"
+    run_id = header.get("run_id")
+    if run_id is not None and (not isinstance(run_id, str) or not 0 < len(run_id) <= 64):
+        return "bad 'run_id'"
+    problem = _file_record_problem(header["state"], "'state'")
+    if problem is not None:
+        return problem
+    memory = header["memory"]
+    if not isinstance(memory, dict) or memory.get("kind") not in ("ring", "data"):
+        return "bad 'memory'"
+    stats = memory.get("stats")
+    if not isinstance(stats, list) or len(stats) != 4 or not all(type(v) in (int, float) for v in stats):
+        return "bad memory statistics"
+    if memory["kind"] == "data":
+        return _file_record_problem(memory.get("file"), "the memory data")
+    meta, segments = memory.get("meta"), memory.get("segments")
+    if not isinstance(meta, dict) or not isinstance(segments, list):
+        return "bad memory layout"
+    for key in ("total", "capacity", "oldest"):
+        if key in meta and not _is_count(meta[key]):
+            return f"bad memory {key!r}"
+    for seg in segments:
+        problem = _file_record_problem(seg, "a memory segment")
+        if problem is not None:
+            return problem
+        if not (_is_count(seg.get("start")) and _is_count(seg.get("stop")) and seg["start"] <= seg["stop"]):
+            return "a memory segment has bad bounds"
+    rng = header["rng"]
+    if not isinstance(rng, dict) or not isinstance(rng.get("python"), list) or not isinstance(rng.get("numpy"), list):
+        return "bad 'rng'"
+    return None
+
+
+def checkpoint_complete(path: str | os.PathLike[str]) -> bool:
+    """Whether the folder ``path`` holds a checkpoint to resume from.
+
+    Returns:
+        ``True`` when it has a header; ``False`` when it is missing, empty or holds only the
+        files of an interrupted *first* save (generation 1: nothing to lose).
+
+    Raises:
+        CheckpointError: the folder holds saved state of a later generation but no header (a
+            deleted or lost ``checkpoint.json``): starting afresh would overwrite that state.
+    """
+    folder = Path(path)
+    if not folder.is_dir():
+        return False
+    if (folder / HEADER).exists():
+        return True
+    later = sorted(e.name for e in folder.iterdir() if _OWN_FILE.match(e.name) and _generation(e.name) > 1)
+    if later:
+        raise CheckpointError(
+            f"checkpoint {folder} holds saved state ({later[0]}...) but no {HEADER}: it is refused rather "
+            "than overwritten; restore checkpoint.json from a backup, or move the folder away to start a new run"
+        )
+    return False
+
+
+def _generation(name: str) -> int:
+    digits = re.search(r"-(\d+)\.", name)
+    return int(digits.group(1)) if digits else 0
 
 
 # ==== agent and RNG ================================================================================
@@ -401,23 +490,34 @@ def save_checkpoint(training: Any, path: str | os.PathLike[str]) -> Path:
         The folder.
 
     Raises:
-        CheckpointError: ``path`` is a file, or the agent or memory cannot be saved.
+        CheckpointError: ``path`` is a file or a folder of saved state without its header, the
+            agent's state holds non-finite values, or the agent or memory cannot be saved.
     """
     folder = Path(path)
     if folder.exists() and not folder.is_dir():
         raise CheckpointError(
             f"{folder} is a file, not a tmrl checkpoint folder: move it away or choose another checkpoint path"
         )
-    folder.mkdir(parents=True, exist_ok=True)
     old: dict[str, Any] | None = None
     if (folder / HEADER).exists():
         try:
             old = _read_header(folder)
         except CheckpointError as err:
             logger.warning("replacing an unreadable checkpoint at %s (%s)", folder, err)
+    else:
+        checkpoint_complete(folder)  # refuses a folder of saved state without its header
+    folder.mkdir(parents=True, exist_ok=True)
     gen = int(old["generation"]) + 1 if old else 1
 
     state: dict[str, Any] = {"agent": _agent_state(training.agent), "torch_rng": torch.get_rng_state()}
+    from tmrl.algorithms.guard import all_finite
+
+    if not all_finite(state["agent"]):
+        # A NaN checkpoint would poison every restart: keep the previous one instead.
+        raise CheckpointError(
+            f"not saving {folder}: the agent's state holds NaN or infinite values (the previous "
+            "checkpoint is kept); see the trainer's log for skipped updates"
+        )
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         state["cuda_rng"] = torch.cuda.get_rng_state_all()
     buf = io.BytesIO()
@@ -435,6 +535,7 @@ def save_checkpoint(training: Any, path: str | os.PathLike[str]) -> Path:
         "total_updates": int(training.total_updates),
         "total_samples": int(training.total_samples),
         "training_class": type(training).__qualname__,
+        "run_id": run_id if isinstance(run_id := getattr(training, "run_id", None), str) else None,
         "state": state_record,
         "memory": memory_record,
         "rng": {"python": _python_rng(), "numpy": _numpy_rng()},
@@ -514,12 +615,22 @@ def load_checkpoint(path: str | os.PathLike[str], training: Any) -> Any:
             f"the agent saved in {folder} does not fit this agent ({_one_line(err)}); use the model "
             "settings the checkpoint was written with"
         ) from None
-    _restore_memory(instance.memory, folder, header["memory"])
+    try:
+        _restore_memory(instance.memory, folder, header["memory"])
+        _restore_rng(header["rng"], state)
+    except CheckpointError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError, OverflowError, RuntimeError) as err:
+        raise CheckpointError(
+            f"{folder / HEADER} is corrupt ({type(err).__name__}: {_one_line(err)}); restore the folder "
+            "from a backup or delete it"
+        ) from None
     _link(instance.memory, folder, int(header["generation"]))
     instance.epoch = int(header["epoch"])
     instance.total_updates = int(header["total_updates"])
     instance.total_samples = int(header["total_samples"])
-    _restore_rng(header["rng"], state)
+    if header.get("run_id") is not None:
+        instance.run_id = header["run_id"]
     logger.info(
         "resumed from checkpoint %s: epoch %d, %d samples in memory (%d received), %d updates",
         folder, instance.epoch, len(instance.memory), instance.total_samples, instance.total_updates,
@@ -539,7 +650,15 @@ def load_memory(memory: Any, path: str | os.PathLike[str]) -> Any:
     """
     folder = Path(path)
     header = _read_header(folder)
-    _restore_memory(memory, folder, header["memory"])
+    try:
+        _restore_memory(memory, folder, header["memory"])
+    except CheckpointError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError, OverflowError) as err:
+        raise CheckpointError(
+            f"{folder / HEADER} is corrupt ({type(err).__name__}: {_one_line(err)}); restore the folder "
+            "from a backup or delete it"
+        ) from None
     logger.info("loaded %d transitions from %s", len(memory), folder)
     return memory
 

@@ -80,6 +80,19 @@ def format_row(row: Mapping[str, Any]) -> str:
     parts.append(
         f"{_fmt(row.get('updates_per_second'))} upd/s {_fmt(row.get('samples_per_second'))} smp/s"
     )
+    # Shown only once something happened: dropped batches or skipped updates deserve attention.
+    alarms = " ".join(
+        f"{label} {_fmt(row[key])}"
+        for key, label in (
+            ("rejected_batches", "rejected"),
+            ("foreign_batches", "other-run"),
+            ("skipped_updates", "non-finite"),
+            ("restored_states", "restored"),
+        )
+        if isinstance(row.get(key), (int, float)) and row[key] > 0
+    )
+    if alarms:
+        parts.append(alarms)
     return " | ".join(parts)
 
 

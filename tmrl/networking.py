@@ -22,7 +22,10 @@ resolved when an object is built.
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import datetime
+import hashlib
 import itertools
 import logging
 import math
@@ -40,6 +43,17 @@ from typing import Any, ClassVar
 import numpy as np
 
 from tmrl.errors import UserError
+from tmrl.util import RateLimitedLog
+from tmrl.spaces import (  # noqa: F401 (re-exported: their home was this module)
+    Rows,
+    SampleRejected,
+    SampleSchema,
+    SpacesMismatchError,
+    _space_str,
+    check_spaces,
+    describe_spaces,
+    finite_stat,
+)
 
 __all__ = [
     "Buffer",
@@ -58,6 +72,16 @@ logger = logging.getLogger(__name__)
 
 #: Version of the sample and weight payloads (inside the wire format's own versioning).
 PAYLOAD_VERSION = 1
+
+#: Seconds a role interrupted by a signal gives its network process to flush before killing it
+#: (a role must be gone within 5 s of SIGTERM or Ctrl-C).
+STOP_TIMEOUT = 2.0
+
+
+def _one_line(err: BaseException) -> str:
+    """An exception as one short line (its message's first line, or its type)."""
+    text = str(err).strip().splitlines()
+    return (text[0] if text else type(err).__name__)[:300]
 
 
 class _FromConfig:
@@ -94,6 +118,19 @@ def _link_options() -> dict[str, Any]:
     max_frame = _cfg("MAX_FRAME_BYTES", None, None)
     if max_frame:
         opts["max_frame_bytes"] = int(max_frame)
+    return opts
+
+
+def _relay_options() -> dict[str, Any]:
+    """Relay memory bounds that only the config sets (``None`` keys keep the relay's defaults)."""
+    opts: dict[str, Any] = {}
+    for key, arg in (
+        ("SERVER_MEMORY_BYTES", "max_total_bytes"),
+        ("SERVER_PARTIAL_TIMEOUT", "partial_timeout"),
+    ):
+        value = _cfg(key, None, None)
+        if value is not None:
+            opts[arg] = value
     return opts
 
 
@@ -507,13 +544,15 @@ def _chunk_arrays(n: int, cols: list[Any]) -> tuple[Any, Any, np.ndarray, np.nda
     return act, obs, scalars[0], scalars[1], scalars[2]
 
 
-def pack_buffer(buffer: Buffer, source_id: int, seq: int) -> dict[str, Any]:
+def pack_buffer(buffer: Buffer, source_id: int, seq: int, run: str | None = None) -> dict[str, Any]:
     """Describe ``buffer`` as a data-only dict for :mod:`tmrl.wire`, column by column.
 
     Args:
         buffer: the samples and statistics to send.
         source_id: the sending worker's id.
         seq: the sending worker's payload counter (lets the trainer count lost payloads).
+        run: the run identity of the weights the worker acts with (``None``: none received yet);
+            a trainer drops samples stamped for another run.
 
     Raises:
         UserError: a sample holds something the wire cannot carry (named in the message).
@@ -525,7 +564,7 @@ def pack_buffer(buffer: Buffer, source_id: int, seq: int) -> dict[str, Any]:
     else:
         cols = ("R", list(memory))
     own = buffer.stats.get(buffer.source_id, {})
-    return {
+    payload = {
         "v": PAYLOAD_VERSION,
         "kind": "samples",
         "src": int(source_id),
@@ -534,14 +573,94 @@ def pack_buffer(buffer: Buffer, source_id: int, seq: int) -> dict[str, Any]:
         "cols": cols,
         "stats": dict(own),
     }
+    if run is not None:
+        payload["run"] = str(run)
+    return payload
 
 
-def unpack_buffer(payload: Any, maxlen: int | None = None) -> Buffer:
+def _schema_input(col: Any, n: int) -> Any:
+    """A checked column as the schema reads it: arrays at the leaves, containers as such,
+    irregular columns as :class:`~tmrl.spaces.Rows` (the schema transposes or stacks them)."""
+    tag = col[0]
+    if tag in ("A", "B", "F", "f", "I"):
+        return col[1]
+    if tag == "R":
+        return Rows(col[1])
+    if tag in ("T", "L"):
+        subs = [_schema_input(c, n) for c in col[1]]
+        return tuple(subs) if tag == "T" else subs
+    if tag == "D":
+        return {k: _schema_input(c, n) for k, c in zip(col[1], col[2])}
+    raise SampleRejected("an observation is None")  # "0" or "N": None where arrays are expected
+
+
+def _leaf_column(arr: np.ndarray) -> tuple:
+    """A checked array as a packed column (the inverse of :func:`_schema_input` for leaves)."""
+    if arr.ndim >= 2:
+        return ("A", arr)
+    if arr.dtype == np.bool_:
+        return ("B", arr)
+    if arr.dtype == np.float32:
+        return ("f", arr)
+    if arr.dtype.kind == "f":
+        return ("F", arr)
+    return ("I", arr)
+
+
+def _tree_column(tree: Any) -> tuple:
+    if isinstance(tree, dict):
+        return ("D", list(tree), [_tree_column(v) for v in tree.values()])
+    if isinstance(tree, (tuple, list)):
+        return ("T" if isinstance(tree, tuple) else "L", [_tree_column(v) for v in tree])
+    return _leaf_column(tree)
+
+
+def _validated_columns(n: int, cols: list[Any], schema: SampleSchema) -> list[Any]:
+    """The six columns of a payload checked against ``schema`` and cast to its dtypes.
+
+    Raises:
+        SampleRejected: the first problem.
+    """
+    act_col = cols[0]
+    act_none = None
+    if act_col[0] == "0":
+        act, act_none = None, np.ones(n, dtype=bool)
+    elif act_col[0] == "N":
+        act_none, act = act_col[1], _schema_input(act_col[2], n)
+    else:
+        act = _schema_input(act_col, n)
+    obs = _schema_input(cols[1], n)
+    rew, term, trunc = (_schema_input(c, n) for c in cols[2:5])
+    checked = schema.check(n, act, act_none, obs, rew, term, trunc)
+    if checked.act is None:
+        new_act: tuple = ("0",)
+    elif checked.act_none is None:
+        new_act = _leaf_column(checked.act)
+    else:
+        new_act = ("N", checked.act_none, _leaf_column(checked.act))
+    return [
+        new_act,
+        _tree_column(checked.obs),
+        ("F", checked.rew),
+        ("B", checked.terminated),
+        ("B", checked.truncated),
+        cols[5],
+    ]
+
+
+def unpack_buffer(payload: Any, maxlen: int | None = None, schema: SampleSchema | None = None) -> Buffer:
     """Rebuild the :class:`Buffer` sent by :func:`pack_buffer`; ``sources`` is filled with the
-    sender's id and its statistics are recorded under that id.
+    sender's id and its statistics are recorded under that id (non-finite ones are dropped).
+
+    Args:
+        payload: the decoded payload.
+        maxlen: the buffer's capacity (at least the payload's size).
+        schema: when given, the samples are checked against it (shapes, dtypes, finite values,
+            action bounds) and cast to its dtypes; the buffer then holds them as columns.
 
     Raises:
         PayloadError: the payload does not have the structure :func:`pack_buffer` produces.
+        SampleRejected: the samples do not fit ``schema``.
     """
     if not isinstance(payload, dict) or payload.get("kind") != "samples":
         raise PayloadError("received an object that is not a tmrl sample payload")
@@ -559,15 +678,23 @@ def unpack_buffer(payload: Any, maxlen: int | None = None) -> Buffer:
             raise PayloadError("sample payload does not have 6 columns")
         for c in cols:
             _check_column(c, n)
+        if n and schema is not None:
+            cols = _validated_columns(n, cols, schema)
         if n:  # kept as columns: tuples are built only if someone reads `memory`
             buf._chunks = [(n, cols)]
     else:
         _check_column(cols, n)
+        if n and schema is not None:
+            raise SampleRejected("the samples are not (act, obs, rew, terminated, truncated, info) tuples")
         buf.memory = _unpack_column(cols, n)
     buf.sources = [src] * n
     stats = payload.get("stats")
     if isinstance(stats, dict):
-        clean = {k: v for k, v in stats.items() if k in _STAT_NAMES and isinstance(v, (int, float))}
+        clean = {}
+        for k, v in stats.items():
+            value = finite_stat(v) if k in _STAT_NAMES else None
+            if value is not None and (not k.endswith("steps") or 0 <= value < 2**62):
+                clean[k] = value
         if clean:
             buf.stats[src] = clean
     return buf
@@ -577,33 +704,76 @@ def unpack_buffer(payload: Any, maxlen: int | None = None) -> Buffer:
 # Weights envelope
 
 
-_WEIGHTS_MAGIC = b"TMRLWGT1"
+_WEIGHTS_MAGIC = b"TMRLWGT2"
 _U32 = struct.Struct("<I")
+_RESERVED_HEADER_KEYS = frozenset(("v", "kind", "version", "spaces", "size", "run", "sha256"))
 
 
-def pack_weights(data: bytes, spaces: dict[str, Any] | None, version: int) -> bytes:
-    """The bytes broadcast to workers: a magic, a small :mod:`tmrl.wire` header (payload
-    version, weights version, the actor's spaces, the size) and the weights file's bytes as they
-    are (no re-encoding of the big part: one copy for a model of any size)."""
+def pack_weights(
+    data: bytes,
+    spaces: dict[str, Any] | None,
+    version: int,
+    run: str | None = None,
+    meta: dict[str, Any] | None = None,
+    key: Any = None,
+) -> bytes:
+    """The bytes broadcast to workers: a magic, a small :mod:`tmrl.wire` header, a signature and
+    the weights file's bytes as they are (no re-encoding of the big part: one copy for a model of
+    any size).
+
+    Args:
+        data: the weights file's bytes.
+        spaces: :func:`describe_spaces` of the actor (``None``: unknown).
+        version: the trainer's broadcast counter.
+        run: the run identity (workers stamp their samples with it).
+        meta: extra data-only header fields (names other than the reserved ones).
+        key: a :class:`~tmrl.transport.credentials.TrainerKey`: the header (which holds the
+            SHA-256 of ``data``) is signed with it. ``None``: unsigned.
+
+    Raises:
+        ValueError: ``meta`` uses a reserved name.
+    """
     from tmrl import wire
 
-    header = wire.encode(
-        {
-            "v": PAYLOAD_VERSION,
-            "kind": "weights",
-            "version": int(version),
-            "spaces": spaces,
-            "size": len(data),
-        }
-    )
-    return b"".join((_WEIGHTS_MAGIC, _U32.pack(len(header)), header, data))
+    fields: dict[str, Any] = {
+        "v": PAYLOAD_VERSION,
+        "kind": "weights",
+        "version": int(version),
+        "spaces": spaces,
+        "size": len(data),
+        "run": run,
+    }
+    if meta:
+        clash = _RESERVED_HEADER_KEYS.intersection(meta)
+        if clash:
+            raise ValueError(f"weights header fields {sorted(clash)} are reserved")
+        fields.update(meta)
+    signature = b""
+    if key is not None:
+        fields["sha256"] = hashlib.sha256(data).digest()
+    header = wire.encode(fields)
+    if key is not None:
+        signature = key.sign(header)
+    return b"".join((_WEIGHTS_MAGIC, _U32.pack(len(header)), header, _U32.pack(len(signature)), signature, data))
 
 
-def unpack_weights(envelope: bytes | bytearray | memoryview) -> tuple[dict[str, Any], memoryview]:
+class WeightsRejected(PayloadError):
+    """Received weights that this worker must not load (the message says why)."""
+
+
+def unpack_weights(
+    envelope: bytes | bytearray | memoryview, public_key: bytes | None = None
+) -> tuple[dict[str, Any], memoryview]:
     """Inverse of :func:`pack_weights`: ``(header, weights bytes as a view, not a copy)``.
+
+    Args:
+        envelope: the received bytes.
+        public_key: the pinned trainer public key (PEM): the envelope must then be signed by it
+            and its data must match the signed SHA-256. ``None``: no signature is required.
 
     Raises:
         PayloadError: not a weights envelope of this tmrl version, or truncated.
+        WeightsRejected: unsigned, or not signed by ``public_key``.
     """
     from tmrl import wire
 
@@ -612,82 +782,35 @@ def unpack_weights(envelope: bytes | bytearray | memoryview) -> tuple[dict[str, 
     if len(view) < start or bytes(view[: len(_WEIGHTS_MAGIC)]) != _WEIGHTS_MAGIC:
         raise PayloadError("received weights in an unknown format: run the same tmrl version everywhere")
     (hlen,) = _U32.unpack(view[len(_WEIGHTS_MAGIC) : start])
+    header_bytes = bytes(view[start : start + hlen])
+    sig_at = start + hlen
+    if len(view) < sig_at + _U32.size:
+        raise PayloadError("received weights that are truncated")
+    (slen,) = _U32.unpack(view[sig_at : sig_at + _U32.size])
+    signature = bytes(view[sig_at + _U32.size : sig_at + _U32.size + slen])
+    data = view[sig_at + _U32.size + slen :]
     try:
-        header = wire.decode(bytes(view[start : start + hlen]))
+        header = wire.decode(header_bytes)
     except wire.DecodeError as err:
         raise PayloadError(f"received weights with a corrupt header ({err})") from None
-    data = view[start + hlen :]
     if (
         not isinstance(header, dict)
         or header.get("kind") != "weights"
         or header.get("v") != PAYLOAD_VERSION
         or header.get("size") != len(data)
+        or len(signature) != slen
     ):
         raise PayloadError("received weights that are truncated or from another tmrl version")
+    if public_key is not None:
+        from tmrl.transport.credentials import verify_signature
+
+        if not signature:
+            raise WeightsRejected("the weights are not signed, but this worker pins the trainer's key")
+        if not verify_signature(public_key, signature, header_bytes):
+            raise WeightsRejected("the weights are not signed by the trainer whose key this worker pins")
+        if header.get("sha256") != hashlib.sha256(data).digest():
+            raise WeightsRejected("the weights do not match their signed checksum (corrupt or altered)")
     return header, data
-
-
-# ================================================================================================
-# Spaces description (sent with the weights)
-
-
-class SpacesMismatchError(UserError):
-    """The worker's observation or action space differs from the trainer's."""
-
-
-def _describe_space(space: Any) -> Any:
-    name = type(space).__name__
-    if hasattr(space, "spaces") and isinstance(space.spaces, (tuple, list)):
-        return {"type": name, "spaces": [_describe_space(s) for s in space.spaces]}
-    if hasattr(space, "spaces") and isinstance(space.spaces, dict):
-        return {
-            "type": name,
-            "keys": [str(k) for k in space.spaces],
-            "spaces": [_describe_space(s) for s in space.spaces.values()],
-        }
-    out: dict[str, Any] = {"type": name}
-    shape = getattr(space, "shape", None)
-    if shape is not None:
-        out["shape"] = [int(x) for x in shape]
-    dtype = getattr(space, "dtype", None)
-    if dtype is not None:
-        out["dtype"] = str(np.dtype(dtype))
-    n = getattr(space, "n", None)
-    if n is not None and np.ndim(n) == 0:
-        out["n"] = int(n)
-    return out
-
-
-def describe_spaces(observation_space: Any, action_space: Any) -> dict[str, Any]:
-    """A small data-only description (types, shapes, dtypes) of an actor's spaces."""
-    return {"observation": _describe_space(observation_space), "action": _describe_space(action_space)}
-
-
-def _space_str(d: Any) -> str:
-    if not isinstance(d, dict):
-        return repr(d)
-    if "spaces" in d:
-        inner = ", ".join(_space_str(s) for s in d["spaces"])
-        return f"{d.get('type')}({inner})"
-    parts = [
-        f"shape={tuple(d['shape'])}" if "shape" in d else "",
-        d.get("dtype", ""),
-        f"n={d['n']}" if "n" in d else "",
-    ]
-    return f"{d.get('type')}({', '.join(p for p in parts if p)})"
-
-
-def check_spaces(mine: dict[str, Any], theirs: Any) -> None:
-    """Raise :class:`SpacesMismatchError` naming both sides when the descriptions differ."""
-    if not isinstance(theirs, dict):
-        return
-    for key in ("observation", "action"):
-        if key in theirs and theirs[key] != mine[key]:
-            raise SpacesMismatchError(
-                f"the trainer's {key} space is {_space_str(theirs[key])} but this worker's is "
-                f"{_space_str(mine[key])}: run the worker and the trainer with the same environment "
-                f"(and the same config.json)"
-            )
 
 
 # ================================================================================================
@@ -739,6 +862,8 @@ class Server:
         if max_workers is not None and int(max_workers) < 0:
             max_workers = None
         self.port = port
+        from tmrl.transport.credentials import TRAINER_PUBLIC_KEY_FILE
+
         self._relay = RelayServer(
             port=port,
             password=password,
@@ -747,7 +872,9 @@ class Server:
             security=security,
             keys_dir=str(keys_dir) if keys_dir is not None else None,
             max_workers=max_workers,
+            trainer_key_file=Path(keys_dir) / TRAINER_PUBLIC_KEY_FILE if keys_dir is not None else None,
             **_link_options(),
+            **_relay_options(),
         )
         Server._alive.append(self)
         logger.info("server listening on port %d (%s)", port, "TLS" if security else "plain TCP")
@@ -784,9 +911,10 @@ def _make_link(
     security: str | None,
     keys_dir: str | os.PathLike[str] | None,
     hostname: str | None,
+    **extra: Any,
 ) -> Any:
     """A transport link (``WorkerLink`` or ``TrainerLink``) with every unset argument taken from
-    the config, as the worker and the trainer both need."""
+    the config, as the worker and the trainer both need; ``extra`` goes to the link as is."""
     security = _cfg_keep_none("SECURITY", security, "TLS")
     keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
     return link_cls(
@@ -799,6 +927,7 @@ def _make_link(
         keys_dir=str(keys_dir) if keys_dir is not None else None,
         hostname=_cfg("HOSTNAME", hostname, "default"),
         **_link_options(),
+        **extra,
     )
 
 
@@ -810,22 +939,33 @@ class PayloadOrder:
     taken when its number is new for its worker, including a late one that fills a gap; a
     second copy is refused. Gaps still open are counted as lost and logged.
 
+    Memory is bounded whatever the peers send: at most ``max_sources`` workers are followed (the
+    least recently heard of is forgotten) and at most ``max_gaps`` open gaps per worker.
+
     Args:
         max_gaps: how many open gaps are remembered per worker (the oldest are forgotten).
+        max_sources: how many workers are followed.
     """
 
-    def __init__(self, max_gaps: int = 10_000):
+    def __init__(self, max_gaps: int = 10_000, max_sources: int = 4096):
         self.max_gaps = max_gaps
-        self._last: dict[Any, int] = {}
+        self.max_sources = max_sources
+        self._last: collections.OrderedDict[Any, int] = collections.OrderedDict()
         self._gaps: dict[Any, dict[int, None]] = {}
         self.lost = 0
         self.duplicates = 0
+        self._lost_log = RateLimitedLog(logger, logging.WARNING, 1.0)
 
     def accept(self, src: Any, seq: Any) -> bool:
         """Whether payload ``seq`` of worker ``src`` should be used (``False``: a duplicate)."""
-        if not isinstance(seq, int):
+        if type(seq) is not int:
             return True  # a peer that does not number its payloads: nothing to check
         last = self._last.get(src)
+        if last is not None:
+            self._last.move_to_end(src)
+        elif len(self._last) >= self.max_sources:
+            old, _ = self._last.popitem(last=False)
+            self._gaps.pop(old, None)
         gaps = self._gaps.setdefault(src, {})
         if last is None or seq == last + 1:
             self._last[src] = seq
@@ -837,9 +977,7 @@ class PayloadOrder:
             while len(gaps) > self.max_gaps:
                 del gaps[next(iter(gaps))]
             self.lost += missing
-            logger.warning(
-                "worker %s: %d sample payloads missing so far (%d in total)", src, missing, self.lost
-            )
+            self._lost_log("worker %s: %d sample payloads missing (%d in total)", src, missing, self.lost)
             self._last[src] = seq
             return True
         if seq in gaps:  # late, but new
@@ -851,6 +989,35 @@ class PayloadOrder:
         return False
 
 
+def _weights_problem(actor: Any, data: bytes | memoryview) -> str | None:
+    """What is wrong with the weights file ``data`` for ``actor``, or ``None``.
+
+    Safetensors files (the built-in actors' format) are read with NumPy: every floating-point
+    tensor must be finite and, for a module, names and shapes must be the module's (so that
+    loading cannot fail half-way). Other formats (a user actor's own) are left to ``actor.load``.
+    """
+    try:
+        from safetensors.numpy import load
+
+        arrays = load(bytes(data))
+    except Exception:  # noqa: BLE001 (not safetensors, or a dtype NumPy lacks: the actor decides)
+        return None
+    for name, arr in arrays.items():
+        if arr.dtype.kind in "fc" and not np.isfinite(arr).all():
+            return f"tensor {name} holds non-finite values"
+    state_dict = getattr(actor, "state_dict", None)
+    if callable(state_dict):
+        try:
+            mine = {k: tuple(v.shape) for k, v in state_dict().items()}
+        except Exception:  # noqa: BLE001 (not a torch module after all: nothing to compare)
+            return None
+        theirs = {k: tuple(a.shape) for k, a in arrays.items()}
+        if mine != theirs:
+            diff = sorted(set(mine) ^ set(theirs)) or [k for k in mine if mine[k] != theirs[k]]
+            return f"the tensors do not fit this actor (first difference: {diff[0]!r})"
+    return None
+
+
 class TrainerInterface:
     """The trainer's side of the network, as ``TrainingOffline.run_epoch`` sees it:
     :meth:`retrieve_buffer` and :meth:`broadcast_model`.
@@ -859,9 +1026,19 @@ class TrainerInterface:
     reports, for each worker, the latest episode statistics it ever sent. When the connection to
     the server comes back (a restarted server), the latest weights are broadcast again.
 
+    Received sample batches are checked before anyone sees them: their structure always, and
+    when :attr:`schema` is set, their shapes, dtypes and values (see :class:`~tmrl.spaces.SampleSchema`).
+    A batch that fails is dropped whole, counted in :attr:`rejected_batches` and reported in a
+    rate-limited log line naming the worker and the first problem. Batches stamped with another
+    :attr:`run_id` are dropped and counted in :attr:`foreign_batches`.
+
     Args: as :class:`Trainer` (``server_ip``, ``server_port``, ``password``, ``header_size``,
     ``security``, ``keys_dir``, ``hostname``, ``model_path``); ``local_com_port`` and
     ``max_buf_len`` are accepted for compatibility with tmrl 0.7 and unused.
+    ``schema``: the run's :class:`~tmrl.spaces.SampleSchema` (``None``: structure only).
+    ``run_id``: the run identity stamped on the weights (``None``: none).
+    ``sign_weights``: sign every broadcast with the trainer key of the credentials folder
+    (created there when missing; see :mod:`tmrl.transport.credentials`).
 
     Raises:
         UserError: bad connection settings (see :mod:`tmrl.transport`).
@@ -879,12 +1056,23 @@ class TrainerInterface:
         keys_dir: str | os.PathLike[str] | None = None,
         hostname: str | None = None,
         model_path: str | os.PathLike[str] | None = None,
+        schema: SampleSchema | None = None,
+        run_id: str | None = None,
+        sign_weights: bool = True,
     ):
         from tmrl.transport import TrainerLink
 
         self.model_path = Path(_cfg("MODEL_PATH_TRAINER", model_path, "model_trainer.tmod"))
         self.server_ip = _cfg("SERVER_IP_FOR_TRAINER", server_ip, "127.0.0.1")
         self.maxlen = int(_cfg("BUFFERS_MAXLEN", None, 500_000))
+        self.schema = schema
+        self.run_id = run_id
+        keys = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
+        self._key: Any = None
+        if sign_weights and keys is not None:
+            from tmrl.transport.credentials import ensure_trainer_key
+
+            self._key = ensure_trainer_key(keys)
         self._link = _make_link(
             TrainerLink,
             self.server_ip,
@@ -895,12 +1083,17 @@ class TrainerInterface:
             security,
             keys_dir,
             hostname,
+            trainer_key=self._key,
         )
-        self._stats: dict[int | None, dict[str, float]] = {}
+        self._stats: collections.OrderedDict[int | None, dict[str, float]] = collections.OrderedDict()
         self._order = PayloadOrder()
-        self.rejected_payloads = 0
+        self.rejected_batches = 0
+        self.foreign_batches = 0
         self.received_samples = 0
+        self.skipped_broadcasts = 0
         self.weights_version = 0
+        self._reject_log = RateLimitedLog(logger, logging.WARNING, 1.0)
+        self._foreign_log = RateLimitedLog(logger, logging.INFO, 1.0)
         self._last_weights: bytes | None = None
         self._weights_lock = threading.Lock()
         self._closed = threading.Event()
@@ -911,6 +1104,11 @@ class TrainerInterface:
         logger.info("trainer connecting to the server at %s", self.server_ip)
 
     @property
+    def rejected_payloads(self) -> int:
+        """Alias of :attr:`rejected_batches` (its earlier name)."""
+        return self.rejected_batches
+
+    @property
     def lost_payloads(self) -> int:
         """Sample payloads that some worker sent and that never arrived (so far)."""
         return self._order.lost
@@ -919,6 +1117,16 @@ class TrainerInterface:
     def duplicate_payloads(self) -> int:
         """Second copies of payloads, dropped (the transport delivers at least once)."""
         return self._order.duplicates
+
+    def counters(self) -> dict[str, int]:
+        """Counters for the trainer's metrics row: ``rejected_batches`` (malformed or off-schema
+        batches dropped), ``foreign_batches`` (stamped for another run), ``skipped_broadcasts``
+        (weights with non-finite values not sent)."""
+        return {
+            "rejected_batches": self.rejected_batches,
+            "foreign_batches": self.foreign_batches,
+            "skipped_broadcasts": self.skipped_broadcasts,
+        }
 
     @property
     def connected(self) -> bool:
@@ -944,25 +1152,52 @@ class TrainerInterface:
                             return
             was_connected = connected
 
+    def _unpack(self, payload: Any) -> Buffer | None:
+        """The payload as a checked buffer, or ``None`` (dropped, counted and logged)."""
+        src = payload.get("src") if isinstance(payload, dict) else None
+        who = f"worker {src}" if type(src) is int else "a peer"
+        run = payload.get("run") if isinstance(payload, dict) else None
+        if run is not None and self.run_id is not None and run != self.run_id:
+            self.foreign_batches += 1
+            self._foreign_log(
+                "dropped a sample batch from %s made for another run (%d so far): it acted with weights "
+                "of an earlier run",
+                who,
+                self.foreign_batches,
+            )
+            return None
+        try:
+            buf = unpack_buffer(payload, maxlen=self.maxlen, schema=self.schema)
+        except (PayloadError, SampleRejected) as err:
+            self.rejected_batches += 1
+            self._reject_log(
+                "dropped a sample batch from %s: %s (%d dropped so far)", who, err, self.rejected_batches
+            )
+            return None
+        if not self._order.accept(payload["src"], payload.get("seq")):
+            return None  # a second copy of a payload already taken (at-least-once delivery)
+        return buf
+
     def retrieve_buffer(self) -> Buffer:
         """Every sample received since the last call (possibly none), never blocking.
 
-        ``sources`` gives each sample's worker id; malformed payloads are logged and dropped.
+        ``sources`` gives each sample's worker id; batches that are malformed, do not fit
+        :attr:`schema` or were made for another run are dropped (see the class docstring).
         """
         res = Buffer(maxlen=self.maxlen)
         res.sources = []
         for payload in self._link.receive_samples():
-            try:
-                buf = unpack_buffer(payload, maxlen=self.maxlen)
-            except PayloadError as err:
-                self.rejected_payloads += 1
-                logger.warning("dropped a payload from the server: %s", err)
+            buf = self._unpack(payload)
+            if buf is None:
                 continue
-            if not self._order.accept(payload["src"], payload.get("seq")):
-                continue  # a second copy of a payload already taken (at-least-once delivery)
             for key, values in buf.stats.items():
                 self._stats.setdefault(key, {}).update(values)
+                self._stats.move_to_end(key)
+                while len(self._stats) > 1024:  # bounded whatever source ids peers make up
+                    self._stats.popitem(last=False)
             res += buf
+        self._reject_log.flush()
+        self._foreign_log.flush()
         self.received_samples += len(res)
         res.stats = {k: dict(v) for k, v in self._stats.items()}
         return res
@@ -971,9 +1206,10 @@ class TrainerInterface:
         """Send ``model``'s weights (an ``ActorModule``) to every worker.
 
         The actor saves itself to a temporary file next to ``model_path``, which then replaces
-        ``model_path`` (the trainer keeps a local copy) and whose bytes are broadcast.
+        ``model_path`` (the trainer keeps a local copy) and whose bytes are broadcast, stamped
+        with :attr:`run_id` and signed with the trainer key. Weights that hold a non-finite
+        value are neither kept nor sent (logged, counted in ``skipped_broadcasts``).
         """
-
         self.model_path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(
             prefix=f".{self.model_path.name}.", suffix=".tmp", dir=self.model_path.parent
@@ -982,6 +1218,13 @@ class TrainerInterface:
         try:
             model.save(tmp)
             data = Path(tmp).read_bytes()
+            problem = _weights_problem(None, data)
+            if problem is not None:
+                self.skipped_broadcasts += 1
+                logger.error(
+                    "did not broadcast the actor's weights: %s (%d broadcasts skipped)", problem, self.skipped_broadcasts
+                )
+                return
             os.replace(tmp, self.model_path)
         finally:
             if os.path.exists(tmp):
@@ -992,15 +1235,15 @@ class TrainerInterface:
             describe_spaces(obs_space, act_space) if obs_space is not None and act_space is not None else None
         )
         self.weights_version += 1
-        envelope = pack_weights(data, spaces, self.weights_version)
+        envelope = pack_weights(data, spaces, self.weights_version, run=self.run_id, key=self._key)
         with self._weights_lock:
             self._last_weights = envelope
             self._link.broadcast_weights(envelope)
 
-    def close(self) -> None:
-        """Disconnect (idempotent)."""
+    def close(self, timeout: float = 15.0) -> None:
+        """Disconnect (idempotent); the link's process is killed after ``timeout`` seconds."""
         self._closed.set()
-        self._link.close()
+        self._link.close(timeout)
 
 
 class Trainer:
@@ -1029,6 +1272,21 @@ class Trainer:
             folder into a fresh ``training_cls()``; see :func:`tmrl.checkpoint.load_checkpoint`).
         updater_fn: ``fn(run_instance, training_cls) -> run_instance`` applied after loading a
             checkpoint, for example to change hyperparameters of a resumed run.
+        obs_preprocessor, sample_compressor: the workers' (``OBS_PREPROCESSOR`` and
+            ``SAMPLE_COMPRESSOR`` of the built-in pipelines). With the spaces of the training
+            instance (``run_instance.agent.observation_space`` and ``action_space``) they give the
+            run's :class:`~tmrl.spaces.SampleSchema`: sample batches that do not fit it are dropped
+            before the memory sees them. Workers that compress samples need the same compressor
+            here.
+
+    A run has an identity (:attr:`run_id`): created for a new run, kept in the default
+    checkpoint, stamped on every broadcast; workers stamp their samples with the identity of the
+    weights they act with, and samples made for another run are dropped.
+
+    Raises:
+        UserError: bad connection settings; at :meth:`run`, a checkpoint that cannot be resumed
+            (for example a checkpoint folder whose header is missing), or a schema that cannot be
+            derived.
     """
 
     def __init__(
@@ -1048,6 +1306,8 @@ class Trainer:
         dump_run_instance_fn: Callable[[Any, str], None] | None = None,
         load_run_instance_fn: Callable[[str], Any] | None = None,
         updater_fn: Callable[[Any, Any], Any] | None = None,
+        obs_preprocessor: Callable[[Any], Any] | None = None,
+        sample_compressor: Callable[..., tuple] | None = None,
     ):
         if training_cls is None:
             from tmrl.config import config_objects
@@ -1065,7 +1325,10 @@ class Trainer:
         self.dump_run_instance_fn = dump_run_instance_fn
         self.load_run_instance_fn = load_run_instance_fn
         self.updater_fn = updater_fn
+        self.obs_preprocessor = obs_preprocessor
+        self.sample_compressor = sample_compressor
         self.run_instance: Any = None
+        self.run_id: str | None = None
         self.interface = TrainerInterface(
             server_ip=server_ip,
             server_port=server_port,
@@ -1080,15 +1343,19 @@ class Trainer:
         )
 
     def checkpoint_exists(self) -> bool:
-        """Whether there is a checkpoint to resume from at ``checkpoint_path``."""
+        """Whether there is a checkpoint to resume from at ``checkpoint_path``.
+
+        Raises:
+            CheckpointError: a checkpoint folder holds saved state but no header (it would be
+                overwritten by a new run): it is refused, never overwritten.
+        """
         path = self.checkpoint_path
         if path is None or not os.path.exists(path):
             return False
         if self._default_checkpoint and os.path.isdir(path):
-            from tmrl.checkpoint import HEADER
+            from tmrl.checkpoint import checkpoint_complete
 
-            # why: a folder without its header is a first save that was interrupted: start afresh
-            return os.path.exists(os.path.join(path, HEADER))
+            return checkpoint_complete(path)
         return True
 
     def _load_or_create(self) -> Any:
@@ -1104,26 +1371,53 @@ class Trainer:
             )
             if self.updater_fn is not None:
                 run_instance = self.updater_fn(run_instance, self.training_cls)
-            # why: workers that (re)connect must get the resumed weights without waiting for
-            # the next training step (which may itself wait for their samples).
-            agent = getattr(run_instance, "agent", None)
-            if agent is not None and hasattr(agent, "get_actor"):
-                try:
-                    self.interface.broadcast_model(agent.get_actor())
-                except Exception:
-                    logger.exception("could not broadcast the resumed actor")
+            run_id = getattr(run_instance, "run_id", None)
+            self.run_id = run_id if isinstance(run_id, str) and run_id else None
         else:
             run_instance = self.training_cls()
+            self.run_id = secrets.token_hex(8)
+            try:
+                run_instance.run_id = self.run_id  # kept by the default checkpoint
+            except AttributeError:  # a training class with __slots__: the identity lives here only
+                pass
             if path is not None:
                 self.dump_run_instance_fn(run_instance, path)
+        self._announce(run_instance)
         return run_instance
+
+    def _announce(self, run_instance: Any) -> None:
+        """Give the interface the run's schema and identity, and broadcast the actor at once:
+        workers that (re)connect get this run's weights (and identity) without waiting for the
+        next training step, which may itself wait for their samples."""
+        self.interface.run_id = self.run_id
+        agent = getattr(run_instance, "agent", None)
+        spaces = None
+        for holder in (agent, run_instance):
+            obs, act = getattr(holder, "observation_space", None), getattr(holder, "action_space", None)
+            if obs is not None and act is not None:
+                spaces = (obs, act)
+                break
+        if spaces is not None:
+            self.interface.schema = SampleSchema(*spaces, self.obs_preprocessor, self.sample_compressor)
+            logger.info("sample batches are checked against %r", self.interface.schema)
+        else:
+            logger.info("the training instance names no spaces: sample batches are checked for structure only")
+        ensure_finite = getattr(run_instance, "ensure_finite", None)  # also keeps a good copy
+        if agent is not None and hasattr(agent, "get_actor") and (not callable(ensure_finite) or ensure_finite()):
+            try:
+                self.interface.broadcast_model(agent.get_actor())
+            except Exception:
+                logger.exception("could not broadcast the actor")
 
     def _iterate_epochs(self) -> Iterable[Any]:
         run_instance = self._load_or_create()
         self.run_instance = run_instance
         while run_instance.epoch < run_instance.epochs:
             stats = run_instance.run_epoch(interface=self.interface)
-            if self.checkpoint_path is not None:
+            ensure_finite = getattr(run_instance, "ensure_finite", None)
+            if callable(ensure_finite) and not ensure_finite():
+                logger.error("checkpoint not saved: the agent's parameters are not finite")
+            elif self.checkpoint_path is not None:
                 t0 = time.perf_counter()
                 self.dump_run_instance_fn(run_instance, self.checkpoint_path)
                 logger.info("checkpoint saved in %.2f s", time.perf_counter() - t0)
@@ -1131,10 +1425,14 @@ class Trainer:
 
     def run(self) -> None:
         """Train until ``training_cls``'s number of epochs is reached; the network link is
-        closed at the end (also on Ctrl-C, which propagates as ``KeyboardInterrupt``)."""
+        closed at the end (also on Ctrl-C, which propagates as ``KeyboardInterrupt``: then within
+        a few seconds, without waiting for the server)."""
         try:
             for _ in self._iterate_epochs():
                 pass
+        except KeyboardInterrupt:
+            self.interface.close(STOP_TIMEOUT)
+            raise
         finally:
             self.interface.close()
 
@@ -1187,6 +1485,9 @@ class Trainer:
                     if entry is None:
                         continue
                     wandb.log({k: v for k, v in dict(entry).items() if isinstance(v, (int, float))})
+        except KeyboardInterrupt:
+            self.interface.close(STOP_TIMEOUT)
+            raise
         finally:
             self.interface.close()
             wandb.finish()
@@ -1264,8 +1565,7 @@ class RolloutWorker:
         self.device = device
         self.actor = actor_module_cls(observation_space=obs_space, action_space=act_space).to_device(device)
         if self.model_path.is_file():
-            logger.debug("loading weights from %s", self.model_path)
-            self.actor = self.actor.load(str(self.model_path), device=device)
+            self._load_model_file()
         self.standalone = standalone
         self.max_samples_per_episode = max_samples_per_episode
         self.crc_debug = crc_debug
@@ -1275,6 +1575,12 @@ class RolloutWorker:
         self._seq = 0
         self._cur_hist_cpt = 0
         self.weights_version = 0
+        self.run_id: str | None = None
+        """The run identity of the weights this worker acts with (stamped on its samples)."""
+        self.rejected_weights = 0
+        self._weights_log = RateLimitedLog(logger, logging.ERROR, 10.0)
+        self._keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
+        self._unsigned_warned = False
         self.debug_ts_cpt = 0
         self.debug_ts_res_cpt = 0
         self.server_ip = _cfg("SERVER_IP_FOR_WORKER", server_ip, "127.0.0.1")
@@ -1307,11 +1613,12 @@ class RolloutWorker:
         """Wait until connected to the server; ``False`` on timeout or in standalone mode."""
         return self._link is not None and bool(self._link.wait_connected(timeout))
 
-    def close(self) -> None:
-        """Send what was handed to the network, then disconnect (idempotent)."""
+    def close(self, timeout: float = 15.0) -> None:
+        """Send what was handed to the network, then disconnect (idempotent). The link's process
+        flushes for at most ``timeout - 1`` seconds and is killed after ``timeout``."""
         self._closed = True
         if self._link is not None:
-            self._link.close()
+            self._link.close(timeout)
 
     def __enter__(self) -> RolloutWorker:
         return self
@@ -1593,7 +1900,7 @@ class RolloutWorker:
             self.buffer.clear()
             return
         try:
-            payload = pack_buffer(self.buffer, self.source_id, self._seq)
+            payload = pack_buffer(self.buffer, self.source_id, self._seq, run=self.run_id)
             self._link.send_samples(payload)
         except TypeError as err:
             raise UserError(
@@ -1604,12 +1911,63 @@ class RolloutWorker:
         self._seq += 1
         self.buffer.clear()
 
-    def _load_weights(self, envelope: bytes, verbose: bool) -> None:
-        msg, data = unpack_weights(envelope)
-        check_spaces(self.spaces, msg.get("spaces"))
+    def _load_model_file(self) -> None:
+        """Load ``model_path`` at start; a file that does not load is reported and left alone (the
+        trainer's next weights replace it): a worker never refuses to start over a file it can
+        replace."""
+        logger.debug("loading weights from %s", self.model_path)
+        try:
+            problem = _weights_problem(self.actor, self.model_path.read_bytes())
+            if problem is not None:
+                raise UserError(problem)
+            self.actor = self.actor.load(str(self.model_path), device=self.device)
+        except Exception as err:  # noqa: BLE001 (any failure of a replaceable file: one line, go on)
+            logger.error(
+                "ignored the weights file %s (%s); starting with a fresh actor until the trainer's weights arrive",
+                self.model_path,
+                _one_line(err),
+            )
+
+    def _pinned_key(self) -> bytes | None:
+        from tmrl.transport.credentials import load_trainer_public_key
+
+        key = load_trainer_public_key(self._keys_dir)
+        if key is None and not self._unsigned_warned:
+            self._unsigned_warned = True
+            logger.warning(
+                "weights from the server are not authenticated: copy trainer_public_key.pem from the "
+                "trainer's credentials folder into %s so that only the trainer's weights are loaded",
+                self._keys_dir or "this worker's credentials folder",
+            )
+        return key
+
+    def _load_weights(self, envelope: bytes, verbose: bool) -> bool:
+        """Check and load received weights; on any problem keep the current actor, log one line
+        (rate-limited) and return ``False``. Nothing is written before the checks pass, and
+        ``model_path`` is replaced only once the new weights have loaded."""
         from tmrl.util import atomic_write_bytes
 
-        atomic_write_bytes(self.model_path, data)
+        candidate = self.model_path.with_name(f".{self.model_path.name}.incoming")
+        try:
+            msg, data = unpack_weights(envelope, self._pinned_key())
+            check_spaces(self.spaces, msg.get("spaces"))
+            problem = _weights_problem(self.actor, data)
+            if problem is not None:
+                raise WeightsRejected(problem)
+            atomic_write_bytes(candidate, data)
+            actor = self.actor.load(str(candidate), device=self.device)
+        except Exception as err:  # noqa: BLE001 (a peer's bytes, or user load code: never fatal)
+            self.rejected_weights += 1
+            self._weights_log(
+                "ignored weights from the server (%s); keeping the current actor (%d ignored so far)",
+                _one_line(err),
+                self.rejected_weights,
+            )
+            with contextlib.suppress(OSError):
+                candidate.unlink()
+            return False
+        os.replace(candidate, self.model_path)
+        self.actor = actor
         if self.model_history > 0:
             self._cur_hist_cpt += 1
             if self._cur_hist_cpt >= self.model_history:
@@ -1618,10 +1976,13 @@ class RolloutWorker:
                 atomic_write_bytes(f"{self.model_path_history}{stamp}_{self.weights_version + 1}.tmod", data)
                 if verbose:
                     logger.info("weights saved in the history")
-        self.actor = self.actor.load(str(self.model_path), device=self.device)
-        self.weights_version = int(msg.get("version", self.weights_version + 1))
+        version = msg.get("version")
+        self.weights_version = version if type(version) is int else self.weights_version + 1
+        run = msg.get("run")
+        self.run_id = run if isinstance(run, str) and 0 < len(run) <= 64 else None
         if verbose:
             logger.info("weights updated (version %d)", self.weights_version)
+        return True
 
     def update_actor_weights(self, verbose: bool = True, blocking: bool = False) -> int:
         """Load the newest weights broadcast by the trainer, if any arrived.
@@ -1631,10 +1992,9 @@ class RolloutWorker:
             blocking: wait until weights arrive.
 
         Returns:
-            The number of models loaded (0 or 1: only the newest broadcast matters).
-
-        Raises:
-            SpacesMismatchError: the trainer's actor has other observation or action spaces.
+            The number of models loaded (0 or 1: only the newest broadcast matters). Weights that
+            fail a check (signature, spaces, non-finite values, a file the actor cannot load) are
+            not loaded: the worker keeps its actor and logs why (rate-limited); 0 is returned.
         """
         if self._link is None:
             return 0
@@ -1647,8 +2007,7 @@ class RolloutWorker:
                 time.sleep(0.5)
         if envelope is None:
             return 0
-        self._load_weights(envelope, verbose)
-        return 1
+        return 1 if self._load_weights(envelope, verbose) else 0
 
     def ignore_actor_weights(self) -> int:
         """Discard weights received from the trainer (expert workers). Returns how many were discarded."""

@@ -2,20 +2,22 @@
 
 Each function builds its object from ``tmrl.config.config_constants`` and
 ``tmrl.config.config_objects`` (which read ``config.json`` when first imported), runs it until it
-is done or interrupted, and returns the process exit code (0 done, 130 interrupted). Ctrl-C stops
-the role cleanly: the network link or relay is closed (no child process keeps a port) and one line
-says so.
+is done or interrupted, and returns the process exit code (0 done, 130 Ctrl-C, 143 SIGTERM).
+Ctrl-C and SIGTERM stop the role cleanly within a few seconds, in every state: the network link
+or relay is closed (no child process keeps a port) and one line says which signal stopped what.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import threading
 from collections.abc import Mapping
 from typing import Any
 
 from tmrl.errors import UserError
+from tmrl.networking import STOP_TIMEOUT
 
 __all__ = ["WORKER_MODES", "run_benchmark", "run_server", "run_trainer", "run_worker"]
 
@@ -27,17 +29,32 @@ WORKER_MODES = ("train", "expert", "test")
 
 #: Exit code of a role stopped by Ctrl-C (128 + SIGINT, as the CLI's).
 INTERRUPTED = 130
+#: Exit code of a role stopped by SIGTERM (128 + SIGTERM).
+TERMINATED = 143
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM arrived (``kill``, a service manager): stop like Ctrl-C, and say which it was."""
 
 
 def _interrupt_on_sigterm() -> None:
-    """Make SIGTERM (``kill``, a service manager) stop a role like Ctrl-C: cleanly."""
+    """Make SIGTERM stop a role like Ctrl-C: cleanly, within a few seconds."""
     import signal
 
     def handler(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
+        # A second signal during the clean-up would interrupt it half-way: the first one is enough.
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        raise Terminated
 
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, handler)
+
+
+def _stopped(role: str, err: KeyboardInterrupt, detail: str = "") -> int:
+    """Say in one line that ``role`` stopped and why; return the exit code."""
+    name, code = ("SIGTERM", TERMINATED) if isinstance(err, Terminated) else ("Ctrl-C", INTERRUPTED)
+    _say(f"tmrl: {role} stopped ({name}){detail}")
+    return code
 
 
 def _say(line: str) -> None:
@@ -77,9 +94,9 @@ def run_server(cfg: Mapping[str, Any] | None = None, stop_event: threading.Event
             if not server.running:
                 _say(f"tmrl: the server on port {server.port} stopped unexpectedly")
                 return 1
-    except KeyboardInterrupt:
-        _say("tmrl: server stopped (Ctrl-C)")
-        return INTERRUPTED
+    except KeyboardInterrupt as err:
+        server.stop()
+        return _stopped("server", err)
     finally:
         server.stop()
     return 0
@@ -112,6 +129,8 @@ def trainer_from_config() -> Any:
         dump_run_instance_fn=getattr(co, "DUMP_RUN_INSTANCE_FN", None),
         load_run_instance_fn=getattr(co, "LOAD_RUN_INSTANCE_FN", None),
         updater_fn=getattr(co, "UPDATER_FN", None),
+        obs_preprocessor=getattr(co, "OBS_PREPROCESSOR", None),
+        sample_compressor=getattr(co, "SAMPLE_COMPRESSOR", None),
     )
 
 
@@ -121,8 +140,9 @@ def run_trainer(cfg: Mapping[str, Any] | None = None, wandb: bool = False) -> in
     _interrupt_on_sigterm()
     cc = _constants()
     trainer = trainer_from_config()
-    if getattr(cc, "RESET_TRAINING", False) and trainer.checkpoint_exists():
-        _set_aside(trainer.checkpoint_path)
+    path = trainer.checkpoint_path
+    if getattr(cc, "RESET_TRAINING", False) and path is not None and os.path.exists(path):
+        _set_aside(path)
     logger.info("trainer running %s", getattr(_objects(), "ALG_NAME", "the configured algorithm"))
     try:
         if wandb:
@@ -134,10 +154,9 @@ def run_trainer(cfg: Mapping[str, Any] | None = None, wandb: bool = False) -> in
             )
         else:
             trainer.run()
-    except KeyboardInterrupt:
-        trainer.interface.close()
-        _say("tmrl: trainer stopped (Ctrl-C); the last checkpoint is kept")
-        return INTERRUPTED
+    except KeyboardInterrupt as err:
+        trainer.interface.close(STOP_TIMEOUT)
+        return _stopped("trainer", err, "; the last checkpoint is kept")
     return 0
 
 
@@ -194,9 +213,9 @@ def run_worker(cfg: Mapping[str, Any] | None = None, mode: str = "train") -> int
             worker.run(expert=True)
         else:
             worker.run_episodes(10_000)
-    except KeyboardInterrupt:
-        _say(f"tmrl: worker stopped (Ctrl-C){'' if mode == 'test' else '; samples already sent are kept'}")
-        return INTERRUPTED
+    except KeyboardInterrupt as err:
+        worker.close(STOP_TIMEOUT)
+        return _stopped("worker", err, "" if mode == "test" else "; samples already sent are kept")
     finally:
         worker.close()
     return 0
@@ -208,9 +227,8 @@ def run_benchmark(cfg: Mapping[str, Any] | None = None, nb_steps: int = 1000) ->
     worker = worker_from_config(standalone=True)
     try:
         res = worker.run_env_benchmark(nb_steps=nb_steps, test=False, verbose=False)
-    except KeyboardInterrupt:
-        _say("tmrl: benchmark stopped (Ctrl-C)")
-        return INTERRUPTED
+    except KeyboardInterrupt as err:
+        return _stopped("benchmark", err)
     finally:
         worker.close()
     print(f"benchmark ({nb_steps} steps): {res}")

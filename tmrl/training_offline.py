@@ -9,6 +9,7 @@ just as well with an in-process interface (tests, benchmarks, single-machine tra
 
 from __future__ import annotations
 
+import copy
 import cProfile
 import io
 import logging
@@ -151,7 +152,40 @@ class TrainingOffline:
             observation_space=observation_space, action_space=action_space, device=self.device
         )
         self.total_samples = len(self.memory)
+        self.restored_states = 0
+        self._last_good_state: Any = None
         logger.info("training set up: %d samples in memory", self.total_samples)
+
+    # --- non-finite parameters ---------------------------------------------------------------
+
+    def ensure_finite(self) -> bool:
+        """Check that the agent's state (models, targets, optimizers) is finite before it is
+        broadcast or checkpointed; keep a copy of it when it is, restore the last good copy when it
+        is not.
+
+        Returns:
+            ``True`` when the state is finite (possibly after a restore), ``False`` when it is not
+            and there is no good copy to go back to (then do not broadcast nor save it).
+        """
+        state_dict = getattr(self.agent, "state_dict", None)
+        if not callable(state_dict):
+            return True
+        from tmrl.algorithms.guard import all_finite
+
+        state = state_dict()
+        if all_finite(state):
+            self._last_good_state = copy.deepcopy(state)
+            return True
+        if self._last_good_state is None:
+            _log.error("the agent's parameters are not finite and there is no earlier good state to restore")
+            return False
+        self.agent.load_state_dict(copy.deepcopy(self._last_good_state))
+        self.restored_states += 1
+        _log.error(
+            "the agent's parameters were not finite: restored the last good state (%d restores so far)",
+            self.restored_states,
+        )
+        return True
 
     # --- control -------------------------------------------------------------------------------
 
@@ -252,7 +286,9 @@ class TrainingOffline:
             (s spent waiting for samples), ``sampling_time`` and ``training_time`` (s in the
             round), ``updates_per_second`` and ``samples_per_second`` (over the round's wall
             time), then the means of the agent's metrics (``loss_actor``, ``loss_critic``,
-            ``entropy_coef``...). After :meth:`stop`, the rounds done so far; the epoch is then
+            ``entropy_coef``...), ``skipped_updates`` (updates with a non-finite loss or gradient,
+            so far), ``restored_states`` (non-finite parameters replaced by the last good ones)
+            and the interface's ``counters()`` when it has them (``rejected_batches``...). After :meth:`stop`, the rounds done so far; the epoch is then
             not counted.
         """
         metrics = self._logger(logger)
@@ -285,7 +321,7 @@ class TrainingOffline:
                 train_rows.append(self.agent.train(batch) or {})
                 training += time.perf_counter() - t_train
                 self.total_updates += 1
-                if self.total_updates % self.update_model_interval == 0:
+                if self.total_updates % self.update_model_interval == 0 and self.ensure_finite():
                     interface.broadcast_model(self.agent.get_actor())
                 t_wait = time.perf_counter()
                 if not self.check_ratio(interface):
@@ -319,6 +355,11 @@ class TrainingOffline:
                 "samples_per_second": self._round_samples / round_time if round_time > 0 else math.nan,
             }
             row.update(_mean_rows(train_rows))
+            row["skipped_updates"] = int(getattr(self.agent, "skipped_updates", 0))
+            row["restored_states"] = self.restored_states
+            counters = getattr(interface, "counters", None)
+            if callable(counters):
+                row.update(counters())  # rejected_batches and the like (tmrl.networking)
             stats.append(row)
             metrics.log_round(row)
             if stopped:

@@ -11,6 +11,7 @@ import inspect
 import math
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -25,6 +26,7 @@ __all__ = [
     "dump",
     "load",
     "reuse_freed_memory",
+    "RateLimitedLog",
 ]
 
 
@@ -273,3 +275,54 @@ def reuse_freed_memory() -> bool:
     mallopt.restype = ctypes.c_int
     _malloc_tuned = all(mallopt(param, value) == 1 for param, value in _MALLOC_SETTINGS)
     return _malloc_tuned
+
+
+class RateLimitedLog:
+    """One log line for the first of a repeated event, then at most one summary line per
+    ``interval`` seconds: a flood of drops (a hostile peer, a disconnected link) costs a few lines,
+    not one per event.
+
+    Args:
+        logger: where the lines go.
+        level: their level (``logging.WARNING``...).
+        interval: seconds between two lines.
+
+    Attributes:
+        total: how many events were reported so far.
+    """
+
+    def __init__(self, logger: Any, level: int, interval: float = 1.0):
+        self.logger = logger
+        self.level = level
+        self.interval = interval
+        self.total = 0
+        self._pending = 0
+        self._last = -math.inf
+        self._last_line: tuple[str, tuple[Any, ...]] | None = None
+
+    def __call__(self, msg: str, *args: Any) -> None:
+        """Report one event: logged now if the last line is older than ``interval``, else counted
+        for the next summary."""
+        self.total += 1
+        now = time.monotonic()
+        if now - self._last >= self.interval:
+            self._emit(now, msg, args, self._pending)
+        else:
+            self._pending += 1
+            self._last_line = (msg, args)
+
+    def flush(self) -> None:
+        """Log the summary of the events held back, once ``interval`` has passed (call it
+        regularly: a flood that stops is still summarised)."""
+        now = time.monotonic()
+        if self._pending and self._last_line is not None and now - self._last >= self.interval:
+            msg, args = self._last_line
+            self._emit(now, msg, args, self._pending - 1)
+
+    def _emit(self, now: float, msg: str, args: tuple[Any, ...], more: int) -> None:
+        self._last = now
+        self._pending = 0
+        self._last_line = None
+        if more:
+            msg += f" (and {more} more like it in the last {self.interval:g} s)"
+        self.logger.log(self.level, msg, *args)

@@ -148,6 +148,8 @@ class REDQSACAgent(SACAgent):
             if self.alpha_optimizer is not None:
                 self.alpha_optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if not self.guard.update_ok(loss, self._guarded):
+            return self.guard.skipped_metrics()
         self.q_optimizer.step()
         if update_policy:
             self.pi_optimizer.step()

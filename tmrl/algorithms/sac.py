@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from tmrl.actor import TorchActorModule
+from tmrl.algorithms.guard import NonFiniteGuard
 from tmrl.custom.utils.nn import copy_shared, no_grad
 from tmrl.errors import UserError
 from tmrl.models import EnsembleQFunction, MLPActorCritic
@@ -332,6 +333,14 @@ class SACAgent(TrainingAgent):
         # Same order in both lists: Polyak averaging pairs them up.
         self._params: list[torch.Tensor] = list(self.model.parameters())
         self._target_params: list[torch.Tensor] = list(self.model_target.parameters())
+        # Non-finite losses or gradients skip the update (tmrl/algorithms/guard.py).
+        self.guard = NonFiniteGuard()
+        self._guarded: list[torch.Tensor] = self._params + ([self.log_alpha] if self.log_alpha is not None else [])
+
+    @property
+    def skipped_updates(self) -> int:
+        """Updates skipped because their loss or gradients were not finite."""
+        return self.guard.skipped
 
     def _make_model(self) -> torch.nn.Module:
         return _build_model(self.model_cls, self.observation_space, self.action_space)
@@ -391,6 +400,8 @@ class SACAgent(TrainingAgent):
         if self.alpha_optimizer is not None:
             self.alpha_optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if not self.guard.update_ok(loss, self._guarded):
+            return self.guard.skipped_metrics()
         self.q_optimizer.step()
         if self.alpha_optimizer is not None:
             self.alpha_optimizer.step()

@@ -578,7 +578,12 @@ SCHEMA = Section(
         "ALLOW_PICKLE": Bool(False, "accept pickled messages from the network (trusted networks only: "
                                     "pickle can run code)"),
         "MAX_FRAME_BYTES": Int(64 * _MIB, "largest message accepted from the network, in bytes", min=1024),
-        "NB_WORKERS": Int(-1, "maximum number of workers served at once (negative: no limit)"),
+        "NB_WORKERS": Int(64, "maximum number of workers connected to the server at once (negative: no limit)"),
+        "SERVER_MEMORY_BYTES": Int(1536 * _MIB, "most memory the server spends on samples waiting for the trainer "
+                                                "and on messages being received, in bytes; a connection that "
+                                                "would exceed it is closed", min=64 * _MIB),
+        "SERVER_PARTIAL_TIMEOUT": Number(60.0, "seconds the server waits for the next part of a half-received "
+                                               "message before it drops it and closes the connection", min=1),
         "WANDB_PROJECT": Str("tmrl", "wandb project of --trainer --wandb"),
         "WANDB_ENTITY": Str("tmrl", "wandb entity (user or team) of --trainer --wandb"),
         "WANDB_KEY": Str("YourWandbApiKey", "wandb API key of --trainer --wandb"),

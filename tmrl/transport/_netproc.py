@@ -41,6 +41,8 @@ import math
 import os
 import random
 import signal
+import struct
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -48,6 +50,7 @@ from typing import Any
 
 from tmrl import wire
 from tmrl.transport import _pipe
+from tmrl.util import RateLimitedLog
 
 log_relay = logging.getLogger("tmrl.transport.relay")
 log_link = logging.getLogger("tmrl.transport.link")
@@ -84,6 +87,13 @@ def _tune(transport: Any) -> None:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT, 3)
     except (AttributeError, OSError):
         pass  # not a TCP socket (tests with fake transports) or an OS without these options
+
+
+def session_token(password: bytes, nonce: bytes) -> bytes:
+    """What a link puts where tlspyo framing puts the password: an HMAC of the relay's
+    per-connection challenge under the password. The password itself never crosses the network
+    (plain TCP included); a token is worth one connection only."""
+    return hmac.new(password, b"tmrl session\0" + nonce, "sha256").hexdigest()[:32].encode("ascii")
 
 
 def _frame(header_size: int, env: bytes, password: bytes = b"") -> bytes:
@@ -181,7 +191,11 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
     from zope.interface import implementer
 
     max_consumables = cfg["max_consumables"]
-    max_consumable_bytes = cfg["max_consumable_bytes"]
+    max_total_bytes = cfg.get("max_total_bytes") or (3 * cfg["max_consumable_bytes"]) // 2
+    # The backlog takes at most half of the memory budget, so that the relay holds workers back
+    # (back-pressure) well before the budget bites; the other half is for objects in progress.
+    max_consumable_bytes = min(cfg["max_consumable_bytes"], max_total_bytes // 2)
+    partial_timeout = float(cfg.get("partial_timeout") or 60.0)
 
     class RelayState(TlspyoServer):
         """tlspyo's relay bookkeeping (clients, groups) with bounded queues and frame stores."""
@@ -208,6 +222,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             # group -> complete frame group of the last broadcast, and the one in progress
             self.complete: dict[str, list[bytes]] = {}
             self.partial: dict[str, list[Any]] = {}
+            self.complete_bytes: dict[str, int] = {}
             self.dropped = 0
             self.queued_bytes = 0  # bytes of frames in the consumable queues
             self._last_log: dict[str, float] = {}
@@ -246,7 +261,36 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     return "refused a second trainer: a trainer is already connected (one trainer per server)"
                 max_count = self._accepted_groups[g]["max_count"]
                 if g == "workers" and max_count is not None and n >= max_count:
-                    return f"refused a worker: max_workers={max_count} workers are already connected"
+                    return (
+                        f"refused a worker: max_workers={max_count} workers are already connected "
+                        "(config key NB_WORKERS)"
+                    )
+            return None
+
+        def trainer_refusal(self, nonce: bytes, proof: Any) -> str | None:
+            """Why a trainer is refused (``None``: accepted). With a pinned trainer public key
+            (``trainer_public_key.pem``, read at each trainer handshake, so a key made after the
+            relay started applies), a trainer must sign this connection's challenge with it."""
+            path = cfg.get("trainer_key_file")
+            pinned = None
+            try:
+                if path:
+                    with open(path, "rb") as f:
+                        pinned = f.read(1 << 16)
+            except FileNotFoundError:
+                pass
+            except OSError as e:
+                return f"refused a trainer: cannot read the pinned trainer key {path} ({e})"
+            if pinned is None:
+                return None
+            from tmrl.transport.credentials import HANDSHAKE_CONTEXT, verify_signature
+
+            sig = proof.get("sig") if type(proof) is dict else None
+            if type(sig) is not bytes or not verify_signature(pinned, sig, HANDSHAKE_CONTEXT + nonce):
+                return (
+                    "refused a trainer: it does not hold the trainer key pinned in trainer_public_key.pem "
+                    "(copy the trainer's trainer_public_key.pem to the server, or remove the pinned one)"
+                )
             return None
 
         def out_frame(self, key: tuple, idx: int, count: int, total: int, chunk: bytes, bcast: bool) -> bytes:
@@ -288,6 +332,32 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 del self.partial[group]
                 if part[4] == total:
                     self.complete[group] = part[3]
+                    self.complete_bytes[group] = part[4]
+
+        def held_bytes(self) -> int:
+            """Bytes of sample and weight data this relay holds: the backlog, batches sent to the
+            trainer and not yet acknowledged, objects being received, the stored broadcasts."""
+            total = self.queued_bytes + sum(self.complete_bytes.values())
+            total += sum(part[4] for part in self.partial.values())
+            for conn in self.connections:
+                total += conn.unacked_bytes + (conn._partial[5] if conn._partial is not None else 0)
+            return total
+
+        def over_budget(self, extra: int) -> bool:
+            """Whether taking ``extra`` more bytes would exceed ``max_total_bytes``."""
+            return self.held_bytes() + extra > max_total_bytes
+
+        def sweep_partials(self) -> None:
+            """Close connections whose half-received object has had no new part for
+            ``partial_timeout`` seconds (unless the relay itself paused their reading)."""
+            if self.closing:
+                return
+            now = time.monotonic()
+            for conn in list(self.connections):
+                since = conn.last_part
+                if since is not None and not conn.held and now - since > partial_timeout:
+                    conn._kill(f"no part of a message for {partial_timeout:.0f} s")
+            reactor.callLater(min(5.0, partial_timeout / 4), self.sweep_partials)
 
         def add_consumable(self, group: str, key: tuple, frames: list[bytes]) -> None:
             queue = self.group_info[group]["to_consume"]
@@ -372,7 +442,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     conn.transport.resumeProducing()
                     conn.process_frames()
 
-        def shutdown(self) -> None:
+        def shutdown(self, budget: float = 3.0) -> None:
             if self.closing:
                 return
             self.closing = True
@@ -380,7 +450,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 conn.transport.unregisterProducer()
                 conn.transport.loseConnection()  # flushes what is queued
             self.maybe_stop()
-            reactor.callLater(3.0, _stop_reactor)
+            reactor.callLater(min(3.0, budget), _stop_reactor)
 
         def maybe_stop(self) -> None:
             if self.closing and not self.connections:
@@ -405,16 +475,23 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 None  # consumable being received: [msg_id, dest, count, total, chunks, size]
             )
             self.paused = False
+            self._nonce = b""
             self._handshake_timer: Any = None
             self.stale: set[str] = set()
             self.unacked: dict[tuple, tuple[str, list[bytes]]] = {}
+            self.unacked_bytes = 0
             self.held = False  # reading paused by the relay's back-pressure
+            self.last_part: float | None = None  # when the last part of an unfinished object came
 
         def connectionMade(self) -> None:
             self._server.connections.add(self)
             _tune(self.transport)
             self.transport.registerProducer(self, True)
-            self.transport.write(_frame(self._header_size, wire.encode((0, "HELLO", None))))
+            # A fresh challenge: the link answers with a token derived from it and the password
+            # (never the password), and a trainer proves it holds the trainer key by signing it.
+            self._nonce = os.urandom(32)
+            self._reader.pw = session_token(self._server.password_bytes, self._nonce)
+            self.transport.write(_frame(self._header_size, wire.encode((0, "HELLO", self._nonce))))
             # Whoever found the port gets a bounded time to authenticate, not a free socket forever.
             self._handshake_timer = reactor.callLater(cfg["handshake_timeout"], self._handshake_expired)
 
@@ -434,9 +511,14 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 log_relay.info("%s (%s) disconnected", self._peer, "/".join(self._groups))
             if self.unacked:
                 self._requeue_unacked()
+            srv = self._server
+            for group, part in list(srv.partial.items()):  # its unfinished broadcast goes too
+                if part[0][0] == self._identifier:
+                    del srv.partial[group]
             self._identifier = None
             self._state = "DEAD"
             self._partial = None
+            self.last_part = None
             self._cancel_handshake_timer()
             self._server.connections.discard(self)
             self._server.held.discard(self)
@@ -486,10 +568,12 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             _, cmd, dest, obj = env
             if cmd == "ACK":
                 if type(obj) is tuple:
-                    self.unacked.pop(obj, None)
+                    done = self.unacked.pop(obj, None)
+                    if done is not None:
+                        self.unacked_bytes -= sum(len(f) for f in done[1])
                 return
             if cmd == "HELLO":
-                self._hello(obj)
+                self._hello(obj, dest)
             elif self._state != _ALIVE:
                 self._kill(f"command {cmd[:20]!r} before the handshake")
             elif cmd == "OBJ":
@@ -499,7 +583,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             else:
                 self._kill(f"unknown command {cmd[:20]!r}")
 
-        def _hello(self, groups: Any) -> None:
+        def _hello(self, groups: Any, proof: Any) -> None:
             if self._state != _HANDSHAKE:
                 self._kill("second handshake")
                 return
@@ -510,6 +594,8 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 return
             groups = tuple(groups)
             reason = self._server.refusal(groups)
+            if reason is None and "trainers" in groups:
+                reason = self._server.trainer_refusal(self._nonce, proof)
             if reason is not None:
                 self._server.log_refusal(self._peer, f"{reason} from {self._peer}", reason)
                 self.transport.write(_frame(self._header_size, wire.encode((0, "REFUSED", reason))))
@@ -572,6 +658,14 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 self._kill(f"{role} may not send to {sorted(dest)} that way")
                 return
             msg_id, idx, count, total, chunk = obj
+            if srv.over_budget(len(chunk)):
+                self._kill(
+                    f"the relay's memory budget of {max_total_bytes} bytes is used up (config key "
+                    "SERVER_MEMORY_BYTES)"
+                )
+                return
+            # A multi-part object in progress: its sender must keep sending (partial_timeout).
+            self.last_part = time.monotonic() if idx + 1 < count else None
             key = (self._identifier, msg_id)
             for g, n in dest.items():
                 if n < 0:
@@ -623,8 +717,10 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
         def deliver(self, group: str, key: tuple, frames: list[bytes]) -> None:
             # Kept until the link acknowledges it: if this connection drops first, the object goes
             # back to the front of the queue for the next trainer (at-least-once delivery).
-            self._server.queued_bytes -= sum(len(f) for f in frames)
+            size = sum(len(f) for f in frames)
+            self._server.queued_bytes -= size
             self.unacked[key] = (group, frames)
+            self.unacked_bytes += size
             for out in frames:
                 self.transport.write(out)
             log_relay.debug("sent a sample batch to %s", self._peer)
@@ -639,6 +735,7 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 "%s left with %d sample batches unacknowledged: queued again", self._peer, len(self.unacked)
             )
             self.unacked.clear()
+            self.unacked_bytes = 0
             for g in groups:
                 srv.dispatch(g)
 
@@ -690,19 +787,21 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
         cfg["security"] or "plain TCP",
     )
     writer.send(_pipe.READY, wire.encode({"ok": True, "port": bound}))
+    reactor.callLater(min(5.0, partial_timeout / 4), state.sweep_partials)
 
     def control_loop() -> None:
+        budget = _PARENT_GONE_BUDGET
         while True:
             try:
-                kind, _ = _pipe.read_message(_STDIN, 1 << 20)
+                kind, payload = _pipe.read_message(_STDIN, 1 << 20)
             except _pipe.PipeClosed:
                 break
             if kind == _pipe.STOP:
+                budget = _stop_budget(payload)
                 break
-        reactor.callFromThread(state.shutdown)
+        reactor.callFromThread(state.shutdown, budget)
 
-    threading.Thread(target=control_loop, daemon=True).start()
-    reactor.run(installSignalHandlers=False)
+    _serve(state.shutdown, control_loop)
 
 
 # ================================================================================================
@@ -723,6 +822,11 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
     max_object_bytes: int = cfg["max_object_bytes"]
     window: int = cfg["credit_window"]
     where = f"{cfg['server_ip']}:{cfg['server_port']}"
+    trainer_key: Any = None
+    if cfg.get("trainer_key"):
+        from tmrl.transport.credentials import TrainerKey
+
+        trainer_key = TrainerKey(cfg["trainer_key"])
 
     class LinkState:
         """What survives reconnections: the store of unsent objects, credit, and flags."""
@@ -762,6 +866,14 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             self.last_refusal: str | None = None
             self.lost_reason: str | None = None
             self.factory: LinkFactory | None = None
+            self.close_budget: float = cfg["close_timeout"]
+            # While disconnected, each send past the store's bound drops one object: one line a
+            # second, not one per object.
+            self.drop_log = RateLimitedLog(log_link, logging.WARNING, 1.0)
+
+        def flush_logs(self) -> None:
+            self.drop_log.flush()
+            reactor.callLater(1.0, self.flush_logs)
 
         def status(self, **kw: Any) -> None:
             writer.send(_pipe.STATUS, wire.encode(kw))
@@ -798,7 +910,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 _, old, _, _ = self.store.popleft()
                 self.store_bytes -= len(old)
                 self.dropped += 1
-                log_link.warning(
+                self.drop_log(
                     "not connected to the relay at %s: dropped the oldest unsent object (%d dropped so far)",
                     where,
                     self.dropped,
@@ -883,24 +995,27 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                 if self.proto is not None and self.proto.alive:
                     self.proto.send_env("ACK", None, key)  # now in the trainer process
 
-        def shutdown(self) -> None:
+        def shutdown(self, budget: float = math.inf) -> None:
             if self.closing:
                 return
             self.closing = True
+            self.close_budget = max(0.0, min(cfg["close_timeout"], budget))
             if self.proto is not None:
                 self.finish(self.proto)
-            elif self.store:
+            elif self.store and self.close_budget > 0:
                 # Not connected: give the relay a chance to take what this process still holds.
                 log_link.info(
                     "waiting up to %.0f s to deliver %d unsent objects to %s",
-                    cfg["close_timeout"],
+                    self.close_budget,
                     len(self.store),
                     where,
                 )
-                reactor.callLater(cfg["close_timeout"], self.give_up)
+                reactor.callLater(self.close_budget, self.give_up)
             else:
                 if self.factory is not None:
                     self.factory.stopTrying()
+                if self.store:
+                    self.give_up()
                 _stop_reactor()
 
         def finish(self, proto: LinkProtocol) -> None:
@@ -909,7 +1024,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
             # A registered producer would make a TLS transport wait for it before closing.
             proto.transport.unregisterProducer()
             proto.transport.loseConnection()  # flushes what is queued first
-            reactor.callLater(cfg["close_timeout"], _stop_reactor)
+            reactor.callLater(self.close_budget, _stop_reactor)
 
         def give_up(self) -> None:
             if self.store:
@@ -931,6 +1046,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
         def __init__(self, state: LinkState):
             super().__init__(client=state, password=cfg["password"], header_size=header_size, groups=groups)
             self._reader = _FrameReader(header_size, b"", cfg["max_frame_bytes"])
+            self.token = b""  # the session token, once the relay's challenge arrived
             self._partials: collections.OrderedDict[Any, list[Any]] = collections.OrderedDict()
             self.alive = False
 
@@ -960,7 +1076,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
 
         def send_env(self, cmd: str, dest: Any, obj: Any) -> None:
             env = wire.encode((0, cmd, dest, obj))
-            head = str(len(env)).encode("ascii").ljust(header_size, b" ") + self._client.password_bytes
+            head = str(len(env)).encode("ascii").ljust(header_size, b" ") + self.token
             self.transport.writeSequence([head, env])
 
         def send_object(self, dest: dict[str, int], data: memoryview, msg_id: tuple[int, int]) -> None:
@@ -999,7 +1115,15 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
 
         def _handle(self, cmd: str, obj: Any) -> None:
             if cmd == "HELLO":
-                self.send_env("HELLO", None, groups)
+                if type(obj) is not bytes or not 16 <= len(obj) <= 64:
+                    raise ValueError("the relay sent no valid challenge (an older tmrl server?)")
+                self.token = session_token(self._client.password_bytes, obj)
+                proof = None
+                if trainer_key is not None and type(obj) is bytes:
+                    from tmrl.transport.credentials import HANDSHAKE_CONTEXT
+
+                    proof = {"sig": trainer_key.sign(HANDSHAKE_CONTEXT + obj)}
+                self.send_env("HELLO", proof, groups)
             elif cmd == "WELCOME":  # accepted: only now may stored objects be sent
                 self._state = _ALIVE
                 self.alive = True
@@ -1109,30 +1233,113 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
     else:
         reactor.connectTCP(cfg["server_ip"], cfg["server_port"], factory)
     writer.send(_pipe.READY, wire.encode({"ok": True}))
+    reactor.callLater(1.0, state.flush_logs)
 
     def control_loop() -> None:
         sem = threading.Semaphore(2)  # at most two objects handed to the reactor at a time
         limit = max_object_bytes + (1 << 20)
+        budget = _PARENT_GONE_BUDGET
         try:
             while True:
-                state.writable.wait()
+                # Held back by the relay (the connection's buffer is full), this process stops
+                # reading the pipe so that the parent's sends block; it still watches the pipe, so
+                # that a parent that closes it (stopping, or dead) is noticed at once.
+                while not state.writable.wait(0.25):
+                    if _pipe.peer_closed(_STDIN):
+                        raise _pipe.PipeClosed()
                 kind, payload = _pipe.read_message(_STDIN, limit)
                 if kind == _pipe.SEND:
-                    sem.acquire()
+                    while not sem.acquire(timeout=0.25):
+                        if _pipe.peer_closed(_STDIN):
+                            raise _pipe.PipeClosed()
                     reactor.callFromThread(state.handle_send, payload, sem.release)
                 elif kind == _pipe.CREDIT:
                     reactor.callFromThread(state.on_credit, int.from_bytes(payload, "little"))
                 elif kind == _pipe.STOP:
+                    budget = _stop_budget(payload)
                     break
         except _pipe.PipeClosed:
             pass
-        reactor.callFromThread(state.shutdown)
+        reactor.callFromThread(state.shutdown, budget)
 
-    threading.Thread(target=control_loop, daemon=True).start()
-    reactor.run(installSignalHandlers=False)
+    _serve(state.shutdown, control_loop)
 
 
 # ================================================================================================
+
+
+#: Seconds a network process may spend flushing when its parent is gone (or closed the pipe
+#: without a STOP it could read): the parent's role must be gone within 5 s of a signal.
+_PARENT_GONE_BUDGET = 1.0
+_STOP = struct.Struct("<d")
+_PARENT_PID = 0
+_shutdown_hook: Callable[[float], None] | None = None
+
+
+def _stop_budget(payload: bytes | bytearray) -> float:
+    """The flush budget a STOP message carries (seconds; older parents send none)."""
+    if len(payload) == _STOP.size:
+        (budget,) = _STOP.unpack(payload)
+        if budget >= 0:  # NaN compares False: the default below
+            return float(budget)
+    return math.inf
+
+
+def _request_shutdown(budget: float) -> None:
+    """Stop this process soon (from a signal handler or the watch thread)."""
+    hook = _shutdown_hook
+    if hook is None:
+        raise SystemExit(0)  # still starting: nothing to flush
+    from twisted.internet import reactor
+
+    reactor.callFromThread(hook, budget)
+
+
+def _parent_gone() -> bool:
+    return os.getppid() != _PARENT_PID
+
+
+def _on_signal(signum: int, frame: Any) -> None:
+    # SIGTERM: stop (flushing briefly). The parent-death signal also arrives when the thread that
+    # started us exits while our parent lives on: only a changed parent means it died.
+    if signum == signal.SIGTERM or _parent_gone():
+        _request_shutdown(_PARENT_GONE_BUDGET)
+
+
+def _watch_parent() -> None:
+    """Stop when the parent dies, checked twice a second (the fallback where no parent-death
+    signal exists, and a second line of defence where it does)."""
+    while True:
+        time.sleep(0.5)
+        if _parent_gone():
+            try:
+                _request_shutdown(_PARENT_GONE_BUDGET)
+            except SystemExit:
+                os._exit(0)
+            return
+
+
+def _set_parent_death_signal() -> None:
+    """Ask Linux to send SIGUSR2 when the parent dies (prctl PR_SET_PDEATHSIG)."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGUSR2), 0, 0, 0)  # 1: PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass  # the polling watch still applies
+
+
+def _serve(shutdown: Callable[[float], None], control_loop: Callable[[], None]) -> None:
+    """Run the reactor with the control thread; signals and the parent watch call ``shutdown``."""
+    global _shutdown_hook
+    _shutdown_hook = shutdown
+    threading.Thread(target=control_loop, daemon=True, name="tmrl-control").start()
+    from twisted.internet import reactor
+
+    reactor.run(installSignalHandlers=False)
 
 
 class _PipeLogHandler(logging.Handler):
@@ -1156,8 +1363,16 @@ def main() -> None:
     """Entry point of the network process (see the module docstring)."""
     # Ctrl-C reaches the whole process group: the parent decides when we stop (or dies, closing
     # our stdin), so that pending objects are flushed and no port stays held.
-    global _STDIN
+    global _STDIN, _PARENT_PID
+    _PARENT_PID = os.getppid()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _on_signal)
+    if hasattr(signal, "SIGUSR2"):
+        signal.signal(signal.SIGUSR2, _on_signal)
+    _set_parent_death_signal()
+    if _parent_gone():  # died before the death signal was armed
+        return
+    threading.Thread(target=_watch_parent, daemon=True, name="tmrl-parent-watch").start()
     _STDIN = open(0, "rb", buffering=0, closefd=False)  # noqa: SIM115 (for the process's lifetime)
     out_fd = os.dup(1)
     os.dup2(2, 1)  # a stray print must not corrupt the pipe protocol

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import struct
 import threading
+import time
 from typing import Any
 
 HEADER = struct.Struct("<BQ")
@@ -68,27 +69,126 @@ def read_message(f: Any, max_len: int) -> tuple[int, bytearray]:
     return kind, read_exact(f, length) if length else bytearray()
 
 
-class PipeWriter:
-    """Thread-safe writer of whole messages to a pipe file descriptor."""
+def peer_closed(f: Any) -> bool:
+    """Whether the writer of the pipe ``f`` (a raw file we read) has closed its end, without
+    reading from it: a network process held back (not reading its pipe) still notices that its
+    parent is gone. Always ``False`` where the OS cannot tell (then the parent-death watch
+    applies)."""
+    try:
+        fd = f.fileno()
+    except (OSError, ValueError):
+        return True
+    try:
+        import select
 
-    def __init__(self, fd: int):
+        poller = select.poll()
+        poller.register(fd, select.POLLHUP | select.POLLERR)
+        return any(ev & (select.POLLHUP | select.POLLERR) for _, ev in poller.poll(0))
+    except (AttributeError, OSError, ValueError):  # no poll() (Windows): ask the pipe itself
+        return _windows_pipe_broken(fd)
+
+
+def _windows_pipe_broken(fd: int) -> bool:
+    try:
+        import ctypes
+        import msvcrt  # type: ignore[import-not-found,unused-ignore]
+
+        handle = msvcrt.get_osfhandle(fd)
+        avail = ctypes.c_ulong(0)
+        ok = ctypes.windll.kernel32.PeekNamedPipe(handle, None, 0, None, ctypes.byref(avail), None)  # type: ignore[attr-defined,unused-ignore]
+        return not ok
+    except (ImportError, AttributeError, OSError, ValueError):
+        return False
+
+
+class PipeWriter:
+    """Thread-safe writer of whole messages to a pipe file descriptor.
+
+    A write interrupted half-way (an exception raised by a signal handler while the pipe was full)
+    leaves the stream without a message boundary: the writer then refuses every later message
+    (:class:`PipeClosed`), and the owner stops the reader by closing the pipe or by a signal.
+    """
+
+    def __init__(self, fd: int, closer: Any = None):
         self.fd = fd
+        self._closer = closer  # the file object owning ``fd``, when there is one: it closes it
         self.lock = threading.Lock()
+        self.broken = False
+        self.closed = False
 
     def send(self, kind: int, *parts: bytes | bytearray | memoryview) -> None:
         """Write one message made of ``parts``; blocks while the pipe is full.
 
         Raises:
-            PipeClosed: the reader is gone.
+            PipeClosed: the reader is gone, or the writer was closed or broken.
         """
         total = sum(len(p) for p in parts)
         with self.lock:
+            if self.closed or self.broken:
+                raise PipeClosed("the pipe writer is closed")
             try:
                 self._write_all(HEADER.pack(kind, total))
                 for p in parts:
                     self._write_all(p)
             except (BrokenPipeError, OSError) as e:
+                self.broken = True
                 raise PipeClosed(str(e)) from None
+            except BaseException:
+                self.broken = True  # KeyboardInterrupt mid-message: the stream has lost its framing
+                raise
+
+    def try_send(self, kind: int, payload: bytes, timeout: float) -> bool:
+        """Write one small message (at most ``select.PIPE_BUF`` bytes: all or nothing) without
+        blocking longer than ``timeout`` seconds, whatever the reader does. Returns whether it was
+        written."""
+        data = HEADER.pack(kind, len(payload)) + payload
+        if not self.lock.acquire(timeout=max(0.0, timeout)):
+            return False  # another thread is stuck writing: the caller falls back to a signal
+        try:
+            if self.closed or self.broken:
+                return False
+            return self._write_before(data, time.monotonic() + timeout)
+        finally:
+            self.lock.release()
+
+    def _write_before(self, data: bytes, deadline: float) -> bool:
+        try:
+            os.set_blocking(self.fd, False)
+        except (OSError, AttributeError):
+            return False  # cannot write without risking a block: let the caller signal instead
+        try:
+            while True:
+                try:
+                    os.write(self.fd, data)  # a write of at most PIPE_BUF bytes is atomic
+                    return True
+                except BlockingIOError:
+                    if time.monotonic() >= deadline:
+                        return False
+                    time.sleep(0.01)
+                except OSError:
+                    return False
+        finally:
+            try:
+                os.set_blocking(self.fd, True)
+            except OSError:
+                pass
+
+    def close(self, timeout: float) -> bool:
+        """Close the descriptor (the reader sees end of file) unless another thread is writing
+        after ``timeout`` seconds (closing under a blocked writer could let it write into a
+        reused descriptor). Returns whether it was closed."""
+        if not self.lock.acquire(timeout=max(0.0, timeout)):
+            return False
+        try:
+            if not self.closed:
+                self.closed = True
+                try:
+                    self._closer() if self._closer is not None else os.close(self.fd)
+                except OSError:
+                    pass
+            return True
+        finally:
+            self.lock.release()
 
     def _write_all(self, data: bytes | bytearray | memoryview) -> None:
         view = memoryview(data).cast("B")

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import logging
 import os
+import struct
 import subprocess
 import sys
 import threading
+import time
 import weakref
 from collections.abc import Callable
 from pathlib import Path
@@ -72,7 +74,7 @@ class NetProcess:
         self._stdin, self._stdout = self.proc.stdin, self.proc.stdout
         _pipe.enlarge(self._stdin.fileno())
         _pipe.enlarge(self._stdout.fileno())
-        self._writer = _pipe.PipeWriter(self._stdin.fileno())
+        self._writer = _pipe.PipeWriter(self._stdin.fileno(), closer=self._stdin.close)
         self._reader = threading.Thread(target=self._read_loop, name=f"tmrl-{name}-reader", daemon=True)
         self._reader.start()
         _LIVE.add(self)
@@ -125,18 +127,25 @@ class NetProcess:
         return not self.exited.is_set() and self.proc.poll() is None
 
     def stop(self, timeout: float = 15.0) -> None:
-        """Ask the child to flush and exit; kill it after ``timeout`` seconds. Idempotent."""
+        """Ask the child to flush and exit; kill it after ``timeout`` seconds. Idempotent.
+
+        Never blocks on the pipe: the STOP message (which tells the child how long it may flush)
+        is written only if it fits at once (the child may be held back, not reading); the pipe
+        is then closed, which the child notices in every state. If neither could be done (another
+        thread is stuck writing to the pipe), the child gets SIGTERM (same effect).
+        """
         with self._stop_lock:
             if self._stopped:
                 return
             self._stopped = True
-        self.send(_pipe.STOP)
+        deadline = time.monotonic() + timeout
+        budget = max(0.0, timeout - 1.0)  # the child's flush ends before we would kill it
+        sent = self._writer.try_send(_pipe.STOP, struct.pack("<d", budget), min(0.5, timeout))
+        closed = self._writer.close(0.2)
+        if not (sent or closed):
+            self._terminate()
         try:
-            self._stdin.close()
-        except OSError:
-            pass
-        try:
-            self.proc.wait(timeout)
+            self.proc.wait(max(0.0, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             logger.warning("the %s network process did not exit in %.0f s; killing it", self.name, timeout)
             self.proc.kill()
@@ -147,6 +156,12 @@ class NetProcess:
         except OSError:
             pass
         _LIVE.discard(self)
+
+    def _terminate(self) -> None:
+        try:
+            self.proc.terminate()  # SIGTERM: the child flushes briefly and exits (Windows: exits)
+        except OSError:
+            pass
 
     def _read_loop(self) -> None:
         f = self._stdout  # a raw FileIO (bufsize=0)

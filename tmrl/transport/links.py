@@ -48,6 +48,7 @@ class _Link:
         recon_initial_delay: float = 0.5,
         recon_max_delay: float = 5.0,
         start_timeout: float = 60.0,
+        trainer_key: Any = None,
     ):
         security, folder = check_common(
             password=password,
@@ -107,6 +108,7 @@ class _Link:
             "recon_initial_delay": recon_initial_delay,
             "recon_max_delay": recon_max_delay,
             "close_timeout": 10.0,
+            "trainer_key": trainer_key.private_pem if trainer_key is not None else None,
         }
         self._proc = NetProcess(cfg, self._on_message, max_object_bytes + (1 << 20), name=self._groups[0])
         self._proc.wait_ready(start_timeout)
@@ -187,7 +189,8 @@ class _Link:
         pass
 
     def close(self, timeout: float = 15.0) -> None:
-        """Flush what was sent, disconnect and stop the network process. Idempotent."""
+        """Flush what was sent, disconnect and stop the network process; it is killed after
+        ``timeout`` seconds (and flushes for at most ``timeout - 1``). Idempotent."""
         self._closed = True
         self._proc.stop(timeout)
 
@@ -289,9 +292,11 @@ class WorkerLink(_Link):
 class TrainerLink(_Link):
     """The trainer's connection: receives sample batches, broadcasts weights.
 
-    Same arguments as :class:`WorkerLink`. The link asks the relay for at most 64 objects at a
-    time and asks for more as :meth:`receive_samples` drains them, so a trainer that falls behind
-    leaves the backlog at the relay (bounded by its ``max_consumables``).
+    Same arguments as :class:`WorkerLink`, plus ``trainer_key`` (keyword): a
+    :class:`~tmrl.transport.credentials.TrainerKey` with which the link answers the relay's
+    challenge, for relays that pin the trainer's public key. The link asks the relay for at most
+    64 objects at a time and asks for more as :meth:`receive_samples` drains them, so a trainer
+    that falls behind leaves the backlog at the relay (bounded by its ``max_consumables``).
     """
 
     _groups = ("trainers",)
