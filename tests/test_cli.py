@@ -208,10 +208,10 @@ FAKE_HOOKS = textwrap.dedent(
                 password=cfg["PASSWORD"])
         return 0
 
-    def run_worker(cfg, mode):
-        if mode == "expert":
+    def run_worker(cfg, mode, standalone=None):
+        if mode == "expert" and not standalone:
             raise UserError("the expert is\\nunhappy")
-        print("HOOK " + json.dumps({"mode": mode}))
+        print("HOOK " + json.dumps({"mode": mode, "standalone": standalone}))
         return 3 if mode == "test" else None
 
     def run_benchmark(cfg):
@@ -255,11 +255,17 @@ def test_config_error_stops_a_role_before_it_starts(hooked):
     assert "HOOK" not in out.stdout
 
 
-@pytest.mark.parametrize("flag, mode, code", [("--worker", "train", 0), ("--test", "test", 3)])
-def test_worker_modes_and_exit_codes(hooked, flag, mode, code):
-    out = tmrl(hooked, flag, code=RUN_WITH_HOOKS)
+@pytest.mark.parametrize("flags, mode, standalone, code", [
+    (["--worker"], "train", None, 0),
+    (["--test"], "test", True, 3),
+    # tmrl 0.7: --test beside --worker or --expert runs that worker without a server
+    (["--worker", "--test"], "train", True, 0),
+    (["--test", "--expert"], "expert", True, 0),
+])
+def test_worker_modes_and_exit_codes(hooked, flags, mode, standalone, code):
+    out = tmrl(hooked, *flags, code=RUN_WITH_HOOKS)
     assert out.returncode == code, out.stderr
-    assert hook_output(out) == {"mode": mode}
+    assert hook_output(out) == {"mode": mode, "standalone": standalone}
 
 
 def test_benchmark_turns_on_rtgym_benchmark(hooked):

@@ -216,7 +216,9 @@ def test_sim_unknown_interface_kwarg_is_a_config_error(fresh_objects, kwargs, ke
 def test_sim_accepts_the_original_save_replays(fresh_objects):
     o = fresh_objects({"ENV": {"RTGYM_INTERFACE": "SIMFULL",
                                "RTGYM_CONFIG": {"interface_kwargs": {"save_replays": False, "view_width": 20.0}}}})
-    assert "save_replays" not in o.ENV_CLS.keywords and o.ENV_CLS.keywords["view_width"] == 20.0
+    # save_replays now reaches the simulator, which saves a replay of every lap when it is on
+    assert o.ENV_CLS.keywords["save_replays"] is False and o.ENV_CLS.keywords["view_width"] == 20.0
+    assert o.ENV_CLS().interface.replays is None
 
 
 # --- the drone: interface keywords are validated -------------------------------------------------

@@ -94,6 +94,9 @@ def sac_training(memory_size: int = 10_000, spaces: tuple = (OBS, ACT), **kw: An
 
 
 def make_trainer(tmp_path: Path, port: int, training: Any = None, **kw: Any) -> Trainer:
+    # The workers' functions are given (none here): the schema comes from the spaces, as with --trainer.
+    kw.setdefault("obs_preprocessor", None)
+    kw.setdefault("sample_compressor", None)
     return Trainer(
         training_cls=training or sac_training(),
         server_ip="127.0.0.1",

@@ -458,7 +458,7 @@ def test_interface_kwargs_are_checked():
 
     cfg = sim_config("SIMLIDAR")
     cfg["ENV"]["RTGYM_CONFIG"]["interface_kwargs"] = {"save_replays": False, "lidar_scale": 0.1}
-    assert interface_kwargs(cfg)["lidar_scale"] == 0.1 and "save_replays" not in interface_kwargs(cfg)
+    assert interface_kwargs(cfg)["lidar_scale"] == 0.1 and interface_kwargs(cfg)["save_replays"] is False
     cfg["ENV"]["RTGYM_CONFIG"]["interface_kwargs"] = {"view_width": 20.0}
     with pytest.raises(UserError, match="view_width"):
         interface_kwargs(cfg)

@@ -56,6 +56,7 @@ __all__ = [
     "load_run_instance",
     "make_load_run_instance_fn",
     "save_checkpoint",
+    "update_run_instance",
 ]
 
 logger = logging.getLogger(__name__)
@@ -682,3 +683,47 @@ def make_load_run_instance_fn(run_cls: Callable[[], Any]) -> Callable[[str | os.
         return load_checkpoint(checkpoint_path, run_cls)
 
     return load_run_instance_fn
+
+
+#: Settings of a training loop that :func:`update_run_instance` takes from the new one.
+_LOOP_SETTINGS = ("epochs", "rounds", "steps", "update_model_interval", "update_buffer_interval",
+                  "max_training_steps_per_env_step", "start_training", "sleep_between_buffer_retrieval_attempts")
+#: Agent settings it takes, and the optimizer whose learning rate follows each.
+_AGENT_SETTINGS = {"lr_actor": "pi_optimizer", "lr_critic": "q_optimizer", "lr_entropy": "alpha_optimizer",
+                   "gamma": None, "polyak": None}
+
+
+def update_run_instance(run_instance: Any, training_cls: Any) -> Any:
+    """An ``updater_fn`` for :class:`~tmrl.networking.Trainer`: a resumed run takes the settings
+    that ``training_cls`` (a ``partial``) gives now, so that editing ``config.json`` between two
+    runs changes a resumed run as tmrl 0.7's ``update_run_instance`` did.
+
+    Taken over: the loop's epochs, rounds, steps, intervals and ratios; the agent's learning rates
+    (set in its optimizers, whose state is kept), ``gamma`` and ``polyak``; the memory's batch
+    size. The memory's contents, the networks and the counters are kept.
+
+    Returns:
+        ``run_instance``, updated in place.
+    """
+    loop = dict(getattr(training_cls, "keywords", {}) or {})
+    for name in _LOOP_SETTINGS:
+        if name in loop and getattr(run_instance, name, None) != loop[name]:
+            logger.info("resumed run: %s %s -> %s", name, getattr(run_instance, name, None), loop[name])
+            setattr(run_instance, name, loop[name])
+    memory = getattr(run_instance, "memory", None)
+    if memory is not None and hasattr(memory, "nb_steps"):
+        memory.nb_steps = run_instance.steps
+    memory_kwargs = dict(getattr(loop.get("memory_cls"), "keywords", {}) or {})
+    if memory is not None and "batch_size" in memory_kwargs:
+        memory.batch_size = int(memory_kwargs["batch_size"])
+    agent = getattr(run_instance, "agent", None)
+    agent_kwargs = dict(getattr(loop.get("training_agent_cls"), "keywords", {}) or {})
+    for name, optimizer_name in _AGENT_SETTINGS.items():
+        if agent is None or name not in agent_kwargs or getattr(agent, name, None) == agent_kwargs[name]:
+            continue
+        logger.info("resumed run: %s %s -> %s", name, getattr(agent, name, None), agent_kwargs[name])
+        setattr(agent, name, agent_kwargs[name])
+        optimizer = getattr(agent, optimizer_name, None) if optimizer_name else None
+        for group in getattr(optimizer, "param_groups", []):
+            group["lr"] = float(agent_kwargs[name])
+    return run_instance

@@ -69,6 +69,8 @@ HOOKS: dict[str, tuple[str, str]] = {
     "check_environment": ("tmrl.tm.tools", "check_environment"),
     "record_reward": ("tmrl.tm.tools", "record_reward"),
     "doctor": ("tmrl.tm.tools", "doctor"),
+    "import_weights": ("tmrl.roles", "run_import_weights"),
+    "export_weights": ("tmrl.roles", "run_export_weights"),
 }
 
 #: Replacements of :data:`HOOKS` when ``ENV.RTGYM_INTERFACE`` is one of the simulator's.
@@ -145,6 +147,12 @@ def build_parser() -> argparse.ArgumentParser:
              "credentials, and print where they are")
     add("--doctor", action="store_const", const="doctor", dest="command",
         help="check this machine (packages, GPU, data folder, config, ports) and say what to fix")
+    add("--import-weights", metavar="FILE", dest="import_weights",
+        help="convert a tmrl 0.7 weights file (.tmod) for the configured actor and write it where the worker "
+             "reads its weights (or to --out); the file is read as tensors only, never as code")
+    add("--export-weights", metavar="FILE", dest="export_weights",
+        help="write this tmrl's weights file FILE as a tmrl 0.7 weights file (to --out, default "
+             "<name>-tmrl07.tmod next to it)")
     add("--print-config", action="store_const", const="print_config", dest="command",
         help="print the effective configuration (config.json with defaults and --config applied; "
              "secrets hidden) and exit")
@@ -158,6 +166,8 @@ def build_parser() -> argparse.ArgumentParser:
     options.add_argument("--wandb", action="store_true",
                          help="with --trainer: log metrics to Weights & Biases (WANDB_* keys of config.json; "
                               "needs pip install \"tmrl[wandb]\")")
+    options.add_argument("--out", metavar="PATH",
+                         help="with --import-weights or --export-weights: where to write the converted file")
     options.add_argument("--use-keyboard", action="store_true",
                          help="with --record-reward: drive with the keyboard instead of a gamepad")
     options.add_argument("-v", "--verbose", action="store_true", help="show debug messages")
@@ -303,7 +313,11 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
     if command == "trainer":
         result = hook(cfg, wandb=args.wandb)
     elif command in ("worker", "expert", "test"):
-        result = hook(cfg, {"worker": "train", "expert": "expert", "test": "test"}[command])
+        # --worker --test and --expert --test: that worker, standalone (tmrl 0.7's behaviour)
+        standalone = True if command == "test" or args.standalone else None
+        result = hook(cfg, {"worker": "train", "expert": "expert", "test": "test"}[command], standalone=standalone)
+    elif command in ("import_weights", "export_weights"):
+        result = hook(cfg, getattr(args, command), out=args.out)
     elif command == "record_reward":
         result = hook(cfg, use_keyboard=args.use_keyboard)
     elif command == "benchmark" and cfg["ENV"]["RTGYM_INTERFACE"].startswith("TM20"):
@@ -330,6 +344,11 @@ def _print_quietly(text: str) -> int:
 
 
 def _check_combinations(parser: argparse.ArgumentParser, args: argparse.Namespace, extra: list[str]) -> None:
+    for command in ("import_weights", "export_weights"):
+        if getattr(args, command) is not None:
+            args.command = command
+    if args.out is not None and args.command not in ("import_weights", "export_weights"):
+        parser.error("--out goes with --import-weights or --export-weights")
     if args.command is None:
         parser.error("choose a command, e.g. --demo, --install or --server (see --help)")
     if extra and args.command != "demo":
@@ -365,12 +384,22 @@ def _split_demo_args(argv: list[str]) -> tuple[list[str], list[str]]:
     return ours, extra
 
 
+def _split_standalone_test(argv: list[str]) -> tuple[list[str], bool]:
+    """tmrl 0.7 accepts ``--test`` beside ``--worker`` or ``--expert``: that worker, standalone.
+    Returns the arguments without that ``--test`` and whether it was there."""
+    if "--test" in argv and ("--worker" in argv or "--expert" in argv):
+        return [a for a in argv if a != "--test"], True
+    return argv, False
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``python -m tmrl`` with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     argv, extra = _split_demo_args(argv)
+    argv, standalone = _split_standalone_test(argv)
     args = parser.parse_args(argv)
+    args.standalone = standalone
     _check_combinations(parser, args, extra)
     _configure_logging(args.verbose, args.quiet)
     try:

@@ -17,7 +17,7 @@ from gymnasium import spaces
 import tmrl.realtime  # noqa: F401  (registers the real-time ids)
 from tmrl.errors import UserError
 
-__all__ = ["Float64ToFloat32", "GenericGymEnv", "ScaleObservation", "to_float32"]
+__all__ = ["AffineObservation", "Float64ToFloat32", "GenericGymEnv", "ScaleObservation", "to_float32"]
 
 
 def _map_space(space: spaces.Space, box_fn: Any) -> spaces.Space:
@@ -42,29 +42,36 @@ def _map_obs(space: spaces.Space, obs: Any, box_fn: Any) -> Any:
     return obs
 
 
-class ScaleObservation(gymnasium.ObservationWrapper):
-    """Multiply every Box part of the observation (nested Tuple/Dict included) by ``scale``.
+class AffineObservation(gymnasium.ObservationWrapper):
+    """Map every Box part of the observation (nested Tuple/Dict included) to
+    ``(obs + shift) * scale`` (tmrl 0.7's ``AffineObservationWrapper``, extended to nested
+    spaces)."""
 
-    The original tmrl's ``AffineObservationWrapper(env, 0, scale)``, extended to nested spaces.
-    """
-
-    def __init__(self, env: gymnasium.Env, scale: float) -> None:
+    def __init__(self, env: gymnasium.Env, shift: float, scale: float) -> None:
         super().__init__(env)
+        self.shift = float(shift)
         self.scale = float(scale)
 
         def box(b: spaces.Box) -> spaces.Box:
-            low, high = b.low * self.scale, b.high * self.scale
+            low, high = (b.low + self.shift) * self.scale, (b.high + self.shift) * self.scale
             return spaces.Box(np.minimum(low, high), np.maximum(low, high), dtype=b.dtype)
 
         self.observation_space = _map_space(env.observation_space, box)
 
     def observation(self, observation: Any) -> Any:
-        scale = self.scale
+        shift, scale = self.shift, self.scale
         return _map_obs(
             self.env.observation_space,
             observation,
-            lambda b, x: (np.asarray(x) * scale).astype(b.dtype, copy=False),
+            lambda b, x: ((np.asarray(x) + shift) * scale).astype(b.dtype, copy=False),
         )
+
+
+class ScaleObservation(AffineObservation):
+    """Multiply every Box part of the observation (nested Tuple/Dict included) by ``scale``."""
+
+    def __init__(self, env: gymnasium.Env, scale: float) -> None:
+        super().__init__(env, 0.0, scale)
 
 
 def to_float32(x: Any) -> Any:
@@ -146,6 +153,13 @@ class GenericGymEnv(gymnasium.Wrapper):
         if to_float32:
             env = Float64ToFloat32(env)
         super().__init__(env)
+
+    def wait(self) -> None:
+        """Pause a real-time environment between episodes (rtgym's ``wait()``); environments that
+        have no such pause ignore it."""
+        wait = getattr(self.env.unwrapped, "wait", None)
+        if callable(wait):
+            wait()
 
     @property
     def default_action(self) -> Any:

@@ -88,6 +88,7 @@ def format_row(row: Mapping[str, Any]) -> str:
             ("foreign_batches", "other-run"),
             ("skipped_updates", "non-finite"),
             ("restored_states", "restored"),
+            ("memory_errors", "memory-refused"),
         )
         if isinstance(row.get(key), (int, float)) and row[key] > 0
     )

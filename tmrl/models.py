@@ -28,6 +28,7 @@ __all__ = [
     "LOG_STD_MIN",
     "EnsembleQFunction",
     "MLPActorCritic",
+    "MLPQFunction",
     "QMember",
     "REDQMLPActorCritic",
     "SquashedGaussianMLPActor",
@@ -346,6 +347,29 @@ class QMember:
         return self.ensemble(obs, act, members=[self.index])[0]
 
     forward = __call__
+
+
+class MLPQFunction(nn.Module):
+    """One MLP Q function ``Q(obs, act) -> (B,)``, for models composed by hand (tmrl 0.7's
+    ``MLPQFunction``; the built-in actor-critics use :class:`EnsembleQFunction` instead).
+
+    Args:
+        observation_space: the observation space.
+        action_space: the action space (a Box).
+        hidden_sizes: widths of the hidden layers.
+        activation: activation class.
+    """
+
+    def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
+                 activation: Callable[[], nn.Module] = nn.ReLU) -> None:
+        super().__init__()
+        dim_in = space_dim(observation_space) + int(np.prod(action_space.shape))
+        self.q = mlp([dim_in, *hidden_sizes, 1], activation)
+
+    def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
+        """Q values of shape ``(B,)``."""
+        x = torch.cat((flatten_obs(obs), act.reshape(act.shape[0], -1).to(torch.float32)), dim=-1)
+        return self.q(x).squeeze(-1)
 
 
 class MLPActorCritic(nn.Module):

@@ -43,8 +43,9 @@ from typing import Any, ClassVar
 import numpy as np
 
 from tmrl.errors import UserError
-from tmrl.util import RateLimitedLog
+from tmrl.util import RateLimitedLog, show_progress_on_console
 from tmrl.spaces import (  # noqa: F401 (re-exported: their home was this module)
+    PinnedSampleSchema,
     Rows,
     SampleRejected,
     SampleSchema,
@@ -93,6 +94,16 @@ class _FromConfig:
 
 
 FROM_CONFIG: Any = _FromConfig()
+
+
+class _NotGiven:
+    """Default of an argument whose ``None`` has a meaning of its own and whose absence too."""
+
+    def __repr__(self) -> str:
+        return "<not given>"
+
+
+NOT_GIVEN: Any = _NotGiven()
 
 
 def _cfg(name: str, value: Any, fallback: Any = None) -> Any:
@@ -853,6 +864,8 @@ class Server:
     ):
         from tmrl.transport import RelayServer
 
+        show_progress_on_console()
+
         port = int(_cfg("PORT", port, 55555))
         password = _cfg("PASSWORD", password, "")
         header_size = int(_cfg("HEADER_SIZE", header_size, 10))
@@ -1273,11 +1286,14 @@ class Trainer:
         updater_fn: ``fn(run_instance, training_cls) -> run_instance`` applied after loading a
             checkpoint, for example to change hyperparameters of a resumed run.
         obs_preprocessor, sample_compressor: the workers' (``OBS_PREPROCESSOR`` and
-            ``SAMPLE_COMPRESSOR`` of the built-in pipelines). With the spaces of the training
-            instance (``run_instance.agent.observation_space`` and ``action_space``) they give the
-            run's :class:`~tmrl.spaces.SampleSchema`: sample batches that do not fit it are dropped
-            before the memory sees them. Workers that compress samples need the same compressor
-            here.
+            ``SAMPLE_COMPRESSOR`` of the built-in pipelines; ``None``: the workers use none). With
+            the spaces of the training instance (``run_instance.agent.observation_space`` and
+            ``action_space``) they give the run's :class:`~tmrl.spaces.SampleSchema`: sample
+            batches that do not fit it are dropped before the memory sees them. When neither is
+            given (tmrl 0.7's scripts), batches are still checked (numbers, finite values, actions
+            in bounds) but their shapes are fixed by the first batch received
+            (:class:`~tmrl.spaces.PinnedSampleSchema`); ``python -m tmrl --trainer`` always gives
+            them.
 
     A run has an identity (:attr:`run_id`): created for a new run, kept in the default
     checkpoint, stamped on every broadcast; workers stamp their samples with the identity of the
@@ -1306,9 +1322,10 @@ class Trainer:
         dump_run_instance_fn: Callable[[Any, str], None] | None = None,
         load_run_instance_fn: Callable[[str], Any] | None = None,
         updater_fn: Callable[[Any, Any], Any] | None = None,
-        obs_preprocessor: Callable[[Any], Any] | None = None,
-        sample_compressor: Callable[..., tuple] | None = None,
+        obs_preprocessor: Callable[[Any], Any] | None = NOT_GIVEN,
+        sample_compressor: Callable[..., tuple] | None = NOT_GIVEN,
     ):
+        show_progress_on_console()
         if training_cls is None:
             from tmrl.config import config_objects
 
@@ -1397,8 +1414,16 @@ class Trainer:
             if obs is not None and act is not None:
                 spaces = (obs, act)
                 break
-        if spaces is not None:
-            self.interface.schema = SampleSchema(*spaces, self.obs_preprocessor, self.sample_compressor)
+        if spaces is not None and self.obs_preprocessor is NOT_GIVEN and self.sample_compressor is NOT_GIVEN:
+            self.interface.schema = PinnedSampleSchema(spaces[1])
+            logger.info(
+                "sample batches are checked for numbers, finite values and actions in bounds, their shapes are "
+                "fixed by the first batch: give Trainer the workers' obs_preprocessor and sample_compressor "
+                "(None if they have none) to check shapes against the spaces"
+            )
+        elif spaces is not None:
+            given = [None if f is NOT_GIVEN else f for f in (self.obs_preprocessor, self.sample_compressor)]
+            self.interface.schema = SampleSchema(*spaces, *given)
             logger.info("sample batches are checked against %r", self.interface.schema)
         else:
             logger.info("the training instance names no spaces: sample batches are checked for structure only")
@@ -1553,6 +1578,7 @@ class RolloutWorker:
         keys_dir: str | os.PathLike[str] | None = None,
         hostname: str | None = None,
     ):
+        show_progress_on_console()
         self.obs_preprocessor = obs_preprocessor
         self.get_local_buffer_sample = sample_compressor
         self.env = env_cls()

@@ -19,7 +19,16 @@ from typing import Any
 from tmrl.errors import UserError
 from tmrl.networking import STOP_TIMEOUT
 
-__all__ = ["WORKER_MODES", "run_benchmark", "run_server", "run_trainer", "run_worker"]
+__all__ = [
+    "WORKER_MODES",
+    "configured_actor",
+    "run_benchmark",
+    "run_export_weights",
+    "run_import_weights",
+    "run_server",
+    "run_trainer",
+    "run_worker",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -171,14 +180,30 @@ def _env_cls() -> Any:
     return partial(GenericGymEnv, id=cc.RTGYM_VERSION, gym_kwargs={"config": co.CONFIG_DICT})
 
 
-def worker_from_config(standalone: bool = False) -> Any:
-    """The :class:`~tmrl.networking.RolloutWorker` that ``--worker`` runs, built from the config."""
+def _with_replays(env_cls: Any) -> Any:
+    """``env_cls`` with the interface's ``save_replays`` on (the simulator and TrackMania)."""
+    from tmrl.util import partial
+
+    keywords = dict(getattr(env_cls, "keywords", {}))
+    gym_kwargs = keywords.get("gym_kwargs")
+    if isinstance(gym_kwargs, Mapping) and isinstance(gym_kwargs.get("config"), Mapping):  # real-time
+        config = dict(gym_kwargs["config"])
+        config["interface_kwargs"] = {**dict(config.get("interface_kwargs") or {}), "save_replays": True}
+        return partial(env_cls.func, *env_cls.args, **{**keywords, "gym_kwargs": {**gym_kwargs, "config": config}})
+    if "interface" in keywords:  # the simulator in fast mode
+        return partial(env_cls.func, *env_cls.args, **{**keywords, "save_replays": True})
+    raise UserError("saving replays needs a simulator (SIM*) or TrackMania (TM20*) ENV.RTGYM_INTERFACE")
+
+
+def worker_from_config(standalone: bool = False, save_replays: bool = False) -> Any:
+    """The :class:`~tmrl.networking.RolloutWorker` that ``--worker`` runs, built from the config
+    (``save_replays``: with the interface's replays on, for :func:`tmrl.tools.save_replays.save_replays`)."""
     from tmrl.networking import RolloutWorker
 
     cc, co = _constants(), _objects()
     max_samples = getattr(cc, "RW_MAX_SAMPLES_PER_EPISODE", None)
     return RolloutWorker(
-        env_cls=_env_cls(),
+        env_cls=_with_replays(_env_cls()) if save_replays else _env_cls(),
         actor_module_cls=co.POLICY,
         sample_compressor=getattr(co, "SAMPLE_COMPRESSOR", None),
         device="cuda" if getattr(cc, "CUDA_INFERENCE", False) else "cpu",
@@ -191,13 +216,15 @@ def worker_from_config(standalone: bool = False) -> Any:
     )
 
 
-def run_worker(cfg: Mapping[str, Any] | None = None, mode: str = "train") -> int:
+def run_worker(cfg: Mapping[str, Any] | None = None, mode: str = "train", standalone: bool | None = None) -> int:
     """Run a rollout worker until Ctrl-C. Returns the exit code.
 
     Args:
         cfg: the loaded config dict.
         mode: ``"train"`` (``--worker``), ``"expert"`` (``--expert``) or ``"test"`` (``--test``:
             standalone, no server).
+        standalone: connect to no server (default: only in ``"test"`` mode). ``--worker --test``
+            runs ``"train"`` standalone, as tmrl 0.7 does: exploring episodes, no samples sent.
 
     Raises:
         UserError: unknown ``mode``, or bad connection settings.
@@ -205,7 +232,7 @@ def run_worker(cfg: Mapping[str, Any] | None = None, mode: str = "train") -> int
     if mode not in WORKER_MODES:
         raise UserError(f"unknown worker mode {mode!r}: use one of {', '.join(WORKER_MODES)}")
     _interrupt_on_sigterm()
-    worker = worker_from_config(standalone=mode == "test")
+    worker = worker_from_config(standalone=mode == "test" if standalone is None else standalone)
     try:
         if mode == "train":
             worker.run()
@@ -232,4 +259,51 @@ def run_benchmark(cfg: Mapping[str, Any] | None = None, nb_steps: int = 1000) ->
     finally:
         worker.close()
     print(f"benchmark ({nb_steps} steps): {res}")
+    return 0
+
+
+def configured_actor() -> Any:
+    """A fresh instance of the actor the configured workers run (``config_objects.POLICY`` on the
+    environment's spaces), on the CPU."""
+    env = _env_cls()()
+    try:
+        obs_space, act_space = env.observation_space, env.action_space
+    finally:
+        close = getattr(env, "close", None)
+        if callable(close):
+            close()
+    return _objects().POLICY(observation_space=obs_space, action_space=act_space)
+
+
+def run_import_weights(cfg: Mapping[str, Any] | None, src: str, out: str | None = None) -> int:
+    """``--import-weights FILE [--out PATH]``: convert a tmrl 0.7 weights file for the configured
+    actor and write it where the worker reads its weights (``out`` by default
+    ``MODEL_PATH_WORKER``). Returns the exit code.
+
+    Raises:
+        tmrl.legacy_weights.LegacyWeightsError: the file is not tensors only, or does not fit.
+    """
+    from tmrl.legacy_weights import import_file
+
+    target = out if out is not None else str(_constants().MODEL_PATH_WORKER)
+    path = import_file(src, target, configured_actor())
+    print(f"imported {src} into {path} (the worker and --test load it from there)")
+    return 0
+
+
+def run_export_weights(cfg: Mapping[str, Any] | None, src: str, out: str | None = None) -> int:
+    """``--export-weights FILE [--out PATH]``: write this tmrl's weights file ``FILE`` as a
+    tmrl 0.7 weights file (default ``out``: next to it, ``<name>-tmrl07.tmod``). Returns the exit
+    code.
+
+    Raises:
+        tmrl.legacy_weights.LegacyWeightsError: no such file, or weights that do not fit.
+    """
+    from pathlib import Path
+
+    from tmrl.legacy_weights import export_file
+
+    target = Path(out) if out is not None else Path(src).with_name(Path(src).stem + "-tmrl07.tmod")
+    path = export_file(src, target, configured_actor())
+    print(f"exported {src} to {path} (tmrl 0.7 reads it with torch.load)")
     return 0

@@ -33,6 +33,7 @@ __all__ = [
     "LeafSpec",
     "Rows",
     "SampleColumns",
+    "PinnedSampleSchema",
     "SampleRejected",
     "SampleSchema",
     "SpacesMismatchError",
@@ -472,3 +473,76 @@ def finite_stat(value: Any) -> float | None:
     except (OverflowError, ValueError):
         return None
     return f if math.isfinite(f) else None
+
+
+#: Largest sample a pinned schema accepts (all leaves together), in bytes.
+MAX_PINNED_SAMPLE_BYTES = 64 << 20
+
+
+def _first_sample(tree: Any) -> Any:
+    """The first sample of a tree of stacked columns (leaves ``(n, ...)``)."""
+    if isinstance(tree, Rows):
+        return tree[0]
+    if isinstance(tree, (tuple, list)):
+        return type(tree)(_first_sample(t) for t in tree)
+    if isinstance(tree, dict):
+        return {k: _first_sample(v) for k, v in tree.items()}
+    return np.asarray(tree)[0]
+
+
+class PinnedSampleSchema(SampleSchema):
+    """A schema whose observation and action shapes are fixed by the first batch it checks.
+
+    For library scripts that give the ``Trainer`` neither the workers' ``obs_preprocessor`` nor
+    their ``sample_compressor`` (tmrl 0.7's scripts do not): the trainer then cannot derive what a
+    compressed sample looks like. Every batch is still checked (numbers only, finite floats,
+    actions within the action space when they have its shape, flags, rewards), and every batch
+    after the first must have the first one's structure, shapes and dtypes, so that the memory
+    never sees two layouts. The first batch does decide the shapes here: give the ``Trainer`` the
+    workers' functions for a :class:`SampleSchema` derived from the spaces instead.
+
+    Args:
+        action_space: the run's action space (for the bounds of actions).
+    """
+
+    def __init__(self, action_space: Any):  # noqa: D107 (documented on the class)
+        self.action_space = action_space
+        self.pinned = False
+        self.action = LeafSpec("act", (), np.dtype(np.float32))
+        self.obs: Any = None
+        self.leaves: list[LeafSpec] = []
+
+    def describe(self) -> dict[str, Any]:
+        """As :meth:`SampleSchema.describe`; ``{"pinned": False}`` before the first batch."""
+        return super().describe() if self.pinned else {"pinned": False}
+
+    def __repr__(self) -> str:
+        return super().__repr__() if self.pinned else "PinnedSampleSchema(shapes fixed by the first batch)"
+
+    def _pin(self, n: int, act: Any, act_none: Any, obs: Any) -> None:
+        known = n if act_none is None else n - int(np.count_nonzero(act_none))
+        if known == 0 or act is None:
+            raise SampleRejected("the first batch has no action to fix the action's shape from")
+        try:
+            tree = _tree_from_value(_first_sample(obs), "obs")
+            action = _leaf_from_value(np.asarray(act)[0], "act")
+        except (UserError, IndexError, TypeError, ValueError) as err:
+            raise SampleRejected(f"the first batch cannot fix the sample layout ({err})") from None
+        leaves = [action, *_tree_leaves(tree)]
+        size = sum(int(np.prod(leaf.shape, dtype=np.int64)) * leaf.dtype.itemsize for leaf in leaves)
+        if any(0 in leaf.shape for leaf in leaves) or size > MAX_PINNED_SAMPLE_BYTES:
+            raise SampleRejected(f"the first batch has samples of {size} bytes or an empty array: refused")
+        self.action = _action_bounds(self.action_space, action)
+        self.obs, self.leaves, self.pinned = tree, _tree_leaves(tree), True
+
+    def _check(
+        self, n: int, act: Any, act_none: Any, obs: Any, rew: Any, terminated: Any, truncated: Any
+    ) -> SampleColumns:
+        if not self.pinned:
+            self._pin(n, act, act_none, obs)
+            try:
+                return super()._check(n, act, act_none, obs, rew, terminated, truncated)
+            except SampleRejected:
+                self.pinned = False  # a bad first batch fixes nothing
+                raise
+        return super()._check(n, act, act_none, obs, rew, terminated, truncated)

@@ -25,7 +25,7 @@ import torch
 
 from tmrl.errors import UserError
 from tmrl.metrics import MetricsLogger
-from tmrl.util import reuse_freed_memory
+from tmrl.util import RateLimitedLog, reuse_freed_memory
 
 __all__ = ["TorchTrainingOffline", "TrainingOffline"]
 
@@ -135,6 +135,8 @@ class TrainingOffline:
         self._stop = threading.Event()
         self._default_logger: MetricsLogger | None = None
         self._round_samples = 0
+        self.memory_errors = 0
+        self._memory_error_log = RateLimitedLog(_log, logging.WARNING, 60.0)
         self.memory = self.memory_cls(nb_steps=self.steps, device=self.device)
         if isinstance(self.env_cls, tuple):
             if len(self.env_cls) != 2:
@@ -210,10 +212,26 @@ class TrainingOffline:
         buffer = interface.retrieve_buffer()
         n = len(buffer)
         if n:
-            self.memory.append(buffer)
+            try:
+                self.memory.append(buffer)
+            except Exception:  # noqa: BLE001 (samples from the network must never stop the trainer)
+                self._memory_refused(n)
+                return 0
             self.total_samples += n
             self._round_samples += n
         return n
+
+    def _memory_refused(self, n: int) -> None:
+        """A buffer the memory could not store: dropped and counted, never fatal. The first one is
+        logged with its traceback (it may be a bug in a custom memory), the next ones in a line
+        a minute."""
+        self.memory_errors += 1
+        if self.memory_errors == 1:
+            _log.exception("the replay memory refused %d samples (dropped); later refusals are counted in "
+                           "memory_errors", n)
+        else:
+            self._memory_error_log("the replay memory refused %d more samples (%d refusals so far)", n,
+                                   self.memory_errors)
 
     def _ready(self) -> bool:
         if self.total_samples <= 0 or self.total_samples < self.start_training:
@@ -357,6 +375,7 @@ class TrainingOffline:
             row.update(_mean_rows(train_rows))
             row["skipped_updates"] = int(getattr(self.agent, "skipped_updates", 0))
             row["restored_states"] = self.restored_states
+            row["memory_errors"] = self.memory_errors
             counters = getattr(interface, "counters", None)
             if callable(counters):
                 row.update(counters())  # rejected_batches and the like (tmrl.networking)

@@ -27,6 +27,8 @@ __all__ = [
     "load",
     "reuse_freed_memory",
     "RateLimitedLog",
+    "last_true_in_list",
+    "show_progress_on_console",
 ]
 
 
@@ -110,6 +112,16 @@ def partial_to_dict(p: functools.partial, version: str = "3") -> dict[str, Any]:
 def prod(iterable: Iterable[Any], start: Any = 1) -> Any:
     """Product of the items (``start`` for an empty iterable), like ``math.prod``."""
     return math.prod(iterable, start=start)
+
+
+def last_true_in_list(values: Iterable[Any]) -> int | None:
+    """Index of the last truthy item of ``values``, or ``None`` when there is none (the helper
+    the original tmrl tutorial uses to find the latest end of episode in a window of samples)."""
+    last = None
+    for i, v in enumerate(values):
+        if v:
+            last = i
+    return last
 
 
 class cached_property:  # noqa: N801 (named like the builtin decorator it mirrors)
@@ -326,3 +338,45 @@ class RateLimitedLog:
         if more:
             msg += f" (and {more} more like it in the last {self.interval:g} s)"
         self.logger.log(self.level, msg, *args)
+
+
+_CONSOLE_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+def show_progress_on_console() -> bool:
+    """Show tmrl's INFO messages on stderr when nothing else would show them.
+
+    The original tmrl configured logging when imported, so a tutorial script printed its training
+    progress with no set-up. Importing this package leaves logging alone; instead, the
+    ``Server``, ``Trainer`` and ``RolloutWorker`` call this when they start. It does something
+    only when the root logger has no handler (the script configured no logging): it then gives
+    the ``tmrl`` logger a console handler at INFO level. A script that configures logging itself
+    keeps full control.
+
+    Returns:
+        Whether a handler was installed by this call.
+    """
+    import logging
+    import sys
+
+    root = logging.getLogger()
+    ours = logging.getLogger("tmrl")
+    if root.handlers or any(getattr(h, "_tmrl_console", False) for h in ours.handlers):
+        return False
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(_CONSOLE_FORMAT, datefmt="%H:%M:%S"))
+    handler._tmrl_console = True  # type: ignore[attr-defined]
+    ours.addHandler(handler)
+    if ours.level == logging.NOTSET or ours.level > logging.INFO:
+        ours.setLevel(logging.INFO)
+    return True
+
+
+def __getattr__(name: str) -> Any:
+    # Compatibility with the original ``tmrl.util.collate_torch``: the function belongs to the
+    # replay memory (a higher layer), so it is looked up there only when asked for by this name.
+    if name == "collate_torch":
+        from tmrl.memory import collate_torch
+
+        return collate_torch
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -14,6 +14,7 @@ Raises (at import):
 
 from __future__ import annotations
 
+import platform
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +61,7 @@ SERVER_IP_FOR_TRAINER: str = "127.0.0.1" if LOCALHOST_TRAINER else PUBLIC_IP_SER
 
 ENV_CONFIG: dict[str, Any] = TMRL_CONFIG["ENV"]
 RTGYM_INTERFACE: str = ENV_CONFIG["RTGYM_INTERFACE"]
+SYSTEM: str = platform.system()
 RTGYM_VERSION = "real-time-gym-ts-v1"
 PRAGMA_PROGRESS: bool = RTGYM_INTERFACE.endswith("LIDARPROGRESS")
 PRAGMA_LIDAR: bool = RTGYM_INTERFACE.endswith("LIDAR") or PRAGMA_PROGRESS

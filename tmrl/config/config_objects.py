@@ -6,10 +6,12 @@ It reads the config through :mod:`tmrl.config.config_constants` and exposes part
 
 - ``ENV_CLS``: the environment the workers run (and the trainer builds once to read its spaces)
 - ``POLICY``: the actor class the workers run; ``TRAIN_MODEL``: the actor-critic trained
-- ``MEMORY``: the replay memory; ``AGENT``: the training agent; ``TRAINER``: the training loop
+- ``MEMORY``: the replay memory (``MEM``: its class, without the config's arguments);
+  ``AGENT``: the training agent; ``TRAINER``: the training loop
 - ``SAMPLE_COMPRESSOR``, ``OBS_PREPROCESSOR``, ``SAMPLE_PREPROCESSOR``
 - ``CONFIG_DICT`` (the real-time configuration, for real-time interfaces), ``INT`` (the interface),
-  ``ALG_CONFIG``, ``ALG_NAME``, ``DUMP_RUN_INSTANCE_FN``, ``LOAD_RUN_INSTANCE_FN``, ``UPDATER_FN``
+  ``ALG_CONFIG``, ``ALG_NAME``, ``DUMP_RUN_INSTANCE_FN``, ``LOAD_RUN_INSTANCE_FN``, ``UPDATER_FN``,
+  ``CONFIG_DICT_MODIFIERS`` (``ENV.RTGYM_CONFIG`` as written in ``config.json``)
 
 Values of ``ENV.RTGYM_INTERFACE``:
 
@@ -48,12 +50,14 @@ __all__ = [
     "ALG_CONFIG",
     "ALG_NAME",
     "CONFIG_DICT",
+    "CONFIG_DICT_MODIFIERS",
     "DEVICE_INFERENCE",
     "DEVICE_TRAINING",
     "DUMP_RUN_INSTANCE_FN",
     "ENV_CLS",
     "INT",
     "LOAD_RUN_INSTANCE_FN",
+    "MEM",
     "MEMORY",
     "OBS_PREPROCESSOR",
     "POLICY",
@@ -275,6 +279,10 @@ else:  # the driving interfaces: simulator (SIM*) and TrackMania (TM20*) share t
         crc_debug=cfg.CRC_DEBUG,
         **_memory_common,
     )
+
+#: The memory class (tmrl 0.7's ``MEM``): the competition template builds its own partial of it.
+MEM: Any = MEMORY.func
+CONFIG_DICT_MODIFIERS: dict[str, Any] = dict(_rtgym)
 
 # --- algorithm -----------------------------------------------------------------------------------
 

@@ -299,6 +299,28 @@ def parse_override(text: str, source: str = "--config") -> dict[str, Any]:
     return value
 
 
+def route_rtgym_keys(override: Mapping[str, Any]) -> dict[str, Any]:
+    """``override`` with the keys of the real-time configuration moved under
+    ``ENV.RTGYM_CONFIG``.
+
+    tmrl 0.7's ``-d`` took the rtgym configuration (``{"benchmark": true}``,
+    ``{"time_step_duration": 0.1}``); ours takes ``config.json`` keys. Keys that are not
+    ``config.json``'s top-level keys but are ``ENV.RTGYM_CONFIG``'s are moved there, so both
+    spellings work (``config.json`` keys are upper case, rtgym's lower case: they never clash).
+    """
+    rtgym = schema.SCHEMA.fields["ENV"].fields["RTGYM_CONFIG"]
+    moved = {k: v for k, v in override.items() if k not in schema.SCHEMA.fields and k in rtgym.fields}
+    if not moved:
+        return dict(override)
+    out = {k: v for k, v in override.items() if k not in moved}
+    env = dict(out.get("ENV") or {}) if isinstance(out.get("ENV", {}), Mapping) else out["ENV"]
+    if isinstance(env, dict):
+        rt = env.get("RTGYM_CONFIG") or {}
+        env["RTGYM_CONFIG"] = {**dict(rt), **moved} if isinstance(rt, Mapping) else rt
+        out["ENV"] = env
+    return out
+
+
 def deep_merge(base: Mapping[str, Any], override: Mapping[str, Any], _spec: Any = None) -> dict[str, Any]:
     """A new dict: ``base`` with ``override`` merged in. Nested schema sections merge key by key;
     free-form objects (``GYM_KWARGS``, ``interface_kwargs``) and other values are replaced."""
@@ -324,7 +346,7 @@ def apply_override(cfg: Mapping[str, Any], override: Mapping[str, Any] | str,
     if isinstance(override, str):
         override = parse_override(override, source)
     try:
-        checked = schema.SCHEMA.check(override, "", fill=False)
+        checked = schema.SCHEMA.check(route_rtgym_keys(override), "", fill=False)
         merged = deep_merge(cfg, checked)
         schema.check_consistency(merged)
     except SchemaViolation as e:
@@ -343,7 +365,7 @@ def set_override_env(override: Mapping[str, Any] | str, source: str = "--config"
     if isinstance(override, str):
         override = parse_override(override, source)
     try:
-        checked = schema.SCHEMA.check(override, "", fill=False)
+        checked = schema.SCHEMA.check(route_rtgym_keys(override), "", fill=False)
     except SchemaViolation as e:
         raise _violation(source, e) from None
     previous = _env_override()

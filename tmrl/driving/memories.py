@@ -18,6 +18,7 @@ histories ``(hist_len, h, w)`` float32 scaled by 1/256 (stored as uint8, one byt
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -27,6 +28,26 @@ from tmrl.errors import UserError
 from tmrl.memory import RealTimeTorchMemory
 
 __all__ = ["HistoryMemory", "ImageMemory", "LidarMemory", "LidarProgressMemory"]
+
+logger = logging.getLogger(__name__)
+
+
+_noted_imgs_obs = False
+
+
+def _history_length(hist_len: int | None, imgs_obs: int | None) -> int:
+    """``hist_len``, or tmrl 0.7's ``imgs_obs`` (noted once in the log), or the default 4."""
+    global _noted_imgs_obs
+    if imgs_obs is None:
+        return 4 if hist_len is None else int(hist_len)
+    if hist_len is not None and int(hist_len) != int(imgs_obs):
+        raise UserError(f"imgs_obs={imgs_obs} and hist_len={hist_len} disagree: imgs_obs is the old name of "
+                        "hist_len, give only hist_len")
+    if not _noted_imgs_obs:
+        _noted_imgs_obs = True
+        logger.info("imgs_obs is tmrl 0.7's name of the memory's hist_len; it still works, hist_len is the "
+                    "name to use in new code")
+    return int(imgs_obs)
 
 
 class HistoryMemory(RealTimeTorchMemory):
@@ -39,19 +60,23 @@ class HistoryMemory(RealTimeTorchMemory):
         flatten: return histories flattened to one dimension (the lidar preprocessors' layout).
         scale: multiply rebuilt histories by this, as float32 (1/256 for uint8 images); None
             keeps the stored dtype.
+        imgs_obs: tmrl 0.7's name of ``hist_len`` (accepted, with a note in the log once).
         **kwargs: :class:`tmrl.memory.RealTimeTorchMemory`'s other arguments (``memory_size``,
             ``batch_size``, ``device``, ``sample_preprocessor``, ``dataset_path``, ``crc_debug``...).
 
     Raises:
-        UserError: ``hist_len`` or ``act_buf_len`` below 1.
+        UserError: ``hist_len`` or ``act_buf_len`` below 1, or ``imgs_obs`` and a different
+            ``hist_len`` both given.
     """
 
     frame_index: int = 1
     flatten: bool = False
     scale: float | None = None
 
-    def __init__(self, hist_len: int = 4, act_buf_len: int = 2, frame_index: int | None = None,
-                 flatten: bool | None = None, scale: float | None = None, **kwargs: Any) -> None:
+    def __init__(self, hist_len: int | None = None, act_buf_len: int = 2, frame_index: int | None = None,
+                 flatten: bool | None = None, scale: float | None = None, imgs_obs: int | None = None,
+                 **kwargs: Any) -> None:
+        hist_len = _history_length(hist_len, imgs_obs)
         if int(hist_len) < 1:
             raise UserError(f"the history length must be at least 1, got {hist_len}: fix ENV.IMG_HIST_LEN")
         super().__init__(act_buf_len=act_buf_len, **kwargs)

@@ -49,8 +49,11 @@ __all__ = [
     "LidarQFunctions",
     "REDQCNNActorCritic",
     "SquashedGaussianCNNActor",
+    "VanillaCNN",
+    "conv2d_out_dims",
     "lidar_actor_critic",
     "lidar_obs_scales",
+    "num_flat_features",
 ]
 
 #: tmrl 0.7's VanillaCNN sizes.
@@ -159,7 +162,8 @@ class SquashedGaussianCNNActor(TorchActorModule):
         self.image_index = image_index
         self.encoder = ImageEncoder(shape, channels, kernels, strides)
         dim_act = int(np.prod(action_space.shape))
-        self.net = mlp([self.encoder.out_dim + others, *hidden_sizes], nn.ReLU, nn.ReLU)
+        # As tmrl 0.7's VanillaCNN trunk: ReLU between the hidden layers, none after the last one.
+        self.net = mlp([self.encoder.out_dim + others, *hidden_sizes], nn.ReLU)
         self.mu_layer = nn.Linear(hidden_sizes[-1], dim_act)
         self.log_std_layer = nn.Linear(hidden_sizes[-1], dim_act)
         low = np.asarray(action_space.low, dtype=np.float32).reshape(-1)
@@ -262,6 +266,52 @@ class REDQCNNActorCritic(CNNActorCritic):
 
     def __init__(self, observation_space: Any, action_space: Any, n: int = 10, **kwargs: Any) -> None:
         super().__init__(observation_space, action_space, n=n, **kwargs)
+
+
+def conv2d_out_dims(conv_layer: nn.Conv2d, h_in: int, w_in: int) -> tuple[int, int]:
+    """Height and width of ``conv_layer``'s output for an ``h_in`` x ``w_in`` input."""
+    pad, dil, ker, stride = (tuple(getattr(conv_layer, a)) for a in ("padding", "dilation", "kernel_size", "stride"))
+    if not all(isinstance(p, int) for p in pad):
+        raise UserError(f"conv2d_out_dims needs numeric padding, got {conv_layer.padding!r}")
+    h_out = (h_in + 2 * pad[0] - dil[0] * (ker[0] - 1) - 1) // stride[0] + 1
+    w_out = (w_in + 2 * pad[1] - dil[1] * (ker[1] - 1) - 1) // stride[1] + 1
+    return h_out, w_out
+
+
+def num_flat_features(x: torch.Tensor) -> int:
+    """Values per sample of a batched tensor (the product of all dimensions but the first)."""
+    return int(math.prod(x.shape[1:]))
+
+
+class VanillaCNN(nn.Module):
+    """tmrl 0.7's ``VanillaCNN`` network for full observations: the image history through an
+    :class:`ImageEncoder`, then an MLP over ``(speed, gear, rpm, image features, *previous
+    actions[, action])``, concatenated in that order.
+
+    Args:
+        q_net: a critic (the action is an input too, one output) or an actor's trunk (outputs
+            ``hidden_sizes[-1]`` features).
+        image_shape: ``(hist, height, width)`` of the image history.
+        act_dim: size of an action.
+        act_buf_len: previous actions in the observation.
+        channels, kernels, strides, hidden_sizes: layer sizes (see :data:`DEFAULT_CNN`).
+    """
+
+    def __init__(self, q_net: bool, image_shape: tuple[int, int, int] = (4, 64, 64), act_dim: int = 3,
+                 act_buf_len: int = 2, channels: Sequence[int] = DEFAULT_CNN["channels"],
+                 kernels: Sequence[int] = DEFAULT_CNN["kernels"], strides: Sequence[int] = DEFAULT_CNN["strides"],
+                 hidden_sizes: Sequence[int] = DEFAULT_CNN["hidden_sizes"]) -> None:
+        super().__init__()
+        self.q_net = bool(q_net)
+        self.encoder = ImageEncoder(image_shape, channels, kernels, strides)
+        n_in = self.encoder.out_dim + 3 + act_dim * (act_buf_len + (1 if self.q_net else 0))
+        self.mlp = mlp([n_in, *hidden_sizes, *((1,) if self.q_net else ())], nn.ReLU)
+
+    def forward(self, x: Sequence[torch.Tensor]) -> torch.Tensor:
+        """``x`` = ``(speed, gear, rpm, images, *actions)``, each batched."""
+        speed, gear, rpm, images, *acts = x
+        feats = self.encoder(images.to(torch.float32))
+        return self.mlp(torch.cat((speed, gear, rpm, feats, *acts), dim=-1))
 
 
 #: Input scale of speeds (km/h) and lidar distances (pixels) in the lidar models.

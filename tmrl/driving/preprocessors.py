@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["preprocess_full_obs", "preprocess_lidar_obs", "preprocess_lidar_progress_obs"]
+__all__ = ["identity_sample", "preprocess_full_obs", "preprocess_lidar_obs", "preprocess_lidar_progress_obs"]
 
 
 def preprocess_lidar_obs(obs: tuple) -> tuple:
@@ -33,3 +33,9 @@ def preprocess_full_obs(obs: tuple) -> tuple:
         imgs,
         *obs[4:],
     )
+
+
+def identity_sample(prev_obs: object, act: object, rew: object, new_obs: object, terminated: object,
+                    truncated: object) -> tuple:
+    """A sample preprocessor that changes nothing (the place where data augmentation would go)."""
+    return prev_obs, act, rew, new_obs, terminated, truncated

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from pathlib import Path
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -75,6 +76,64 @@ DEFAULT_SIM_RTGYM_CONFIG: dict[str, Any] = {
 _DEFAULT_ACTION = np.zeros(3, dtype=np.float32)
 
 
+class ReplayRecorder:
+    """Records the car's path during an episode and saves it when a lap is completed (the
+    simulator's ``save_replays``).
+
+    Args:
+        track: the track driven.
+        folder: ``True`` for ``replays/`` in the data folder (resolved at the first save), or a
+            folder path.
+    """
+
+    def __init__(self, track: Track, folder: bool | str) -> None:
+        self.track = track
+        self.folder = None if folder is True else Path(folder)
+        self.path: list[tuple[float, float]] = []
+        self.saved: list[Path] = []
+
+    def start(self, race: Race) -> None:
+        """A new episode: forget the path, start it at the car's position."""
+        self.path = [tuple(race.car.state.position)]
+
+    def observe(self, race: Race, info: Mapping[str, Any]) -> Path | None:
+        """Record the car's position; when ``info`` says the lap was just completed, save the
+        replay and return the JSON file's path."""
+        self.path.append(tuple(race.car.state.position))
+        if not info.get("lap_completed") or "lap_time" not in info or not self.path:
+            return None
+        path, self.path = self.path, []  # a finished race stays finished: save it once
+        return self._save(path, float(info["lap_time"]))
+
+    def _save(self, path: list[tuple[float, float]], lap_time: float) -> Path:
+        import datetime
+        import json
+
+        from tmrl.sim.render import draw_trajectory, write_png
+        from tmrl.util import atomic_write_text
+
+        folder = self.folder
+        if folder is None:
+            from tmrl.config.loader import data_folder
+
+            folder = data_folder() / "replays"
+        folder.mkdir(parents=True, exist_ok=True)
+        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S-%f")
+        stem = f"sim-{self.track.name}-{stamp}-{lap_time:.2f}s"
+        record = {
+            "format": "tmrl-sim-replay",
+            "version": 1,
+            "track": self.track.name,
+            "lap_time": lap_time,
+            "xy": [[round(float(x), 4), round(float(y), 4)] for x, y in path],
+        }
+        json_path = folder / f"{stem}.json"
+        atomic_write_text(json_path, json.dumps(record))
+        write_png(folder / f"{stem}.png", draw_trajectory(track_map(self.track), np.asarray(path)))
+        self.saved.append(json_path)
+        return json_path
+
+
 class _SimInterface(RealTimeGymInterface):
     """What the three interfaces share: the race, the clock and the observation history.
 
@@ -84,11 +143,16 @@ class _SimInterface(RealTimeGymInterface):
         reward_config: ``REWARD_CONFIG`` dict (see :data:`tmrl.driving.reward.DEFAULT_REWARD_CONFIG`).
         car_params: physical constants of the car.
         clock: a function returning seconds (``time.perf_counter`` by default); tests pass a fake.
+        save_replays: save a replay of every completed lap (TrackMania's ``save_replays``): a
+            JSON file with the track, the lap time and the car's path, and a top-down PNG of the
+            lap, in ``replays/`` of the data folder (``True``) or in the folder given as a string.
+            Files are named after the time and the lap time, e.g.
+            ``sim-classic-20261123-141503-31.85s.json``.
     """
 
     def __init__(self, track: str | int | Track | None = None, img_hist_len: int = 4,
                  reward_config: Mapping[str, Any] | None = None, car_params: CarParams | None = None,
-                 clock: Callable[[], float] | None = None) -> None:
+                 clock: Callable[[], float] | None = None, save_replays: bool | str = False) -> None:
         if int(img_hist_len) < 1:
             raise UserError(f"ENV.IMG_HIST_LEN must be >= 1, got {img_hist_len}")
         self.track = track if isinstance(track, Track) else make_track(track)
@@ -99,6 +163,7 @@ class _SimInterface(RealTimeGymInterface):
         self._control = _DEFAULT_ACTION.copy()
         self._last_time: float | None = None
         self._paused = True
+        self.replays = ReplayRecorder(self.track, save_replays) if save_replays else None
 
     # -- the clock --------------------------------------------------------------------------
 
@@ -120,6 +185,8 @@ class _SimInterface(RealTimeGymInterface):
     def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[list[Any], dict]:
         """Car at rest on the start line; the history is filled with the first frame."""
         self.race.reset()
+        if self.replays is not None:
+            self.replays.start(self.race)
         self._control = _DEFAULT_ACTION.copy()
         self._paused = False
         self._last_time = self.clock()
@@ -161,6 +228,10 @@ class _SimInterface(RealTimeGymInterface):
     def _observe_and_score(self) -> tuple[list[Any], float, bool, dict]:
         rew, terminated, info = self.race.score()
         self.history.append(self._frame())
+        if self.replays is not None:
+            saved = self.replays.observe(self.race, info)
+            if saved is not None:
+                info["replay"] = str(saved)
         return self._obs(), rew, terminated, info
 
     def _speed(self) -> np.ndarray:
@@ -342,6 +413,10 @@ class SimEnv(gymnasium.Env):
         self.steps = 0
         return self._with_actions(obs), info
 
+    def wait(self) -> None:
+        """rtgym's pause between episodes: nothing to do here, the simulated clock only moves
+        when the environment steps (kept so that code written for real-time environments runs)."""
+
     def step(self, action: Any) -> tuple[tuple, float, bool, bool, dict]:
         """Apply ``action`` for one time step; returns Gymnasium's 5-tuple."""
         act = np.clip(np.asarray(action, dtype=np.float32).reshape(3), -1.0, 1.0)
@@ -406,7 +481,6 @@ def interface_kwargs(cfg: Mapping[str, Any]) -> dict[str, Any]:
     if name == "SIMFULL":
         kwargs["img_size"] = (int(env.get("IMG_WIDTH", 64)), int(env.get("IMG_HEIGHT", 64)))
     extra = dict(env.get("RTGYM_CONFIG", {}).get("interface_kwargs") or {})
-    extra.pop("save_replays", None)  # TrackMania's, found in configs written for the original
     allowed = _SIM_KWARGS | (_FULL_KWARGS if name == "SIMFULL" else _LIDAR_KWARGS)
     unknown = sorted(set(extra) - allowed)
     if unknown:
@@ -422,7 +496,7 @@ def interface_kwargs(cfg: Mapping[str, Any]) -> dict[str, Any]:
     return kwargs
 
 
-_SIM_KWARGS = frozenset({"track", "img_hist_len", "reward_config"})
+_SIM_KWARGS = frozenset({"track", "img_hist_len", "reward_config", "save_replays"})
 _LIDAR_KWARGS = frozenset({"lidar_size", "lidar_scale", "black_threshold"})
 _FULL_KWARGS = frozenset({"img_size", "view_width"})
 
