@@ -120,6 +120,26 @@ def make_worker(standalone: bool = False, render: bool = False) -> RolloutWorker
     )
 
 
+def can_render() -> bool:
+    """Pendulum's window needs pygame and a display; without them --test prints returns only."""
+    import importlib.util
+    import os
+    import sys
+
+    has_display = sys.platform in ("win32", "darwin") or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    if importlib.util.find_spec("pygame") is None or not has_display:
+        print("no window: rendering Pendulum needs pygame (pip install pygame) and a display; printing returns")
+        return False
+    return True
+
+
+def watch(episodes: int = 5) -> None:
+    """Run the trained policy without a server and print each episode's return."""
+    with make_worker(standalone=True, render=can_render()) as worker:
+        for i in range(episodes):
+            print(f"test episode {i}: return {worker.run_episode(200):.1f}")
+
+
 def run_worker(worker: RolloutWorker) -> None:
     # Pendulum can be stepped as fast as we like, so the worker keeps pace with the trainer:
     # at most 40 environment steps per model received (the trainer sends one every 20 updates).
@@ -144,7 +164,7 @@ def main() -> None:
             with make_worker() as worker:
                 run_worker(worker)
         elif args.role == "test":
-            make_worker(standalone=True, render=True).run_episodes(max_samples_per_episode=200, nb_episodes=5)
+            watch()
         else:
             server = make_server()
             worker = make_worker()

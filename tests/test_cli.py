@@ -73,6 +73,69 @@ def test_no_command_is_a_usage_error(tmrl_env):
     assert out.returncode == 2 and "choose a command" in out.stderr
 
 
+def usage_error(result: subprocess.CompletedProcess) -> list[str]:
+    """The lines of a command-line mistake: ``tmrl: error: ...``, then at most a hint line."""
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    lines = result.stderr.strip().splitlines()
+    assert lines[0].startswith("tmrl: error: ") and len(lines) <= 2 and "usage:" not in result.stderr, lines
+    return lines
+
+
+@pytest.mark.parametrize("args, first, hint", [
+    (["--serve"], "unrecognized arguments: --serve", "did you mean --server?"),  # no prefix matching
+    (["--work"], "unrecognized arguments: --work", "did you mean --worker?"),
+    (["--server", "--trainer"], "not allowed with argument", "--help"),
+    (["--install", "--env", "mars"], "argument --env: invalid choice: 'mars'", "--help"),
+    (["--worker", "--env", "simlidar"], "--env goes with --install", None),
+    (["--demo", "--minutes", "-1"], "argument --minutes: must be above 0, got -1", "--demo --help"),
+    (["--demo", "--minute", "3"], "unrecognized arguments: --minute 3", "did you mean --minutes?"),
+])
+def test_argument_mistakes_are_one_line_with_a_hint_when_it_helps(tmrl_env, args, first, hint):
+    lines = usage_error(tmrl(tmrl_env, *args))
+    assert first in lines[0]
+    assert (hint is None and len(lines) == 1) or (hint is not None and hint in lines[1])
+    assert not tmrl_env["data"].exists()  # a mistake creates nothing
+
+
+def test_demo_help_creates_nothing(tmrl_env):
+    out = tmrl(tmrl_env, "--demo", "--help")
+    assert out.returncode == 0 and "--minutes" in out.stdout
+    assert not tmrl_env["data"].exists()
+
+
+def test_demo_config_file_is_the_demos_and_a_dict_is_ours(hooked, tmp_path):
+    conf = tmp_path / "mine.json"
+    conf.write_text("{}")
+    out = tmrl(hooked, "--demo", "--config", str(conf), "--config", '{"RUN_NAME": "x"}', code=RUN_WITH_HOOKS)
+    assert out.returncode == 0, out.stderr
+    seen = hook_output(out)
+    assert seen["argv"] == ["--config", str(conf)]  # the file went to the demo...
+    assert json.loads(seen["override"])["RUN_NAME"] == "x"  # ...the dict to the override
+
+
+def test_install_env_creates_then_switches_keeping_password_and_edits(tmrl_env):
+    out = tmrl(tmrl_env, "--install", "--env", "simlidar")
+    assert out.returncode == 0, out.stderr
+    assert "created for simlidar" in out.stdout and "python -m tmrl --server" in out.stdout
+    path = tmrl_env["data"] / "config" / "config.json"
+    first = json.loads(path.read_text())
+    assert first["ENV"]["RTGYM_INTERFACE"] == "SIMLIDAR" and first["PASSWORD"] != schema.PASSWORD_PLACEHOLDER
+    assert first["MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP"] > 0  # the simulator's pacing comes with it
+    edited = dict(first, BATCH_SIZE=128, PORT=41234, TLS=True)
+    path.write_text(json.dumps(edited))
+    out = tmrl(tmrl_env, "--install", "--env", "tm20lidar")
+    assert out.returncode == 0, out.stderr
+    assert "switched to tm20lidar" in out.stdout and "BATCH_SIZE" in out.stdout and "PASSWORD" in out.stdout
+    now = json.loads(path.read_text())
+    assert now["ENV"]["RTGYM_INTERFACE"] == "TM20LIDAR" and now["ENV"]["WINDOW_WIDTH"] == 958
+    assert (now["PASSWORD"], now["BATCH_SIZE"], now["PORT"], now["TLS"]) == (first["PASSWORD"], 128, 41234, True)
+    assert now["RUN_NAME"] == "SAC_4_LIDAR_pretrained"  # never edited: the new environment's value
+    assert now["MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP"] == 0  # TrackMania runs in real time: no pacing
+    assert json.loads((path.parent / "config.previous.json").read_text()) == edited
+    again = tmrl(tmrl_env, "--install", "--env", "tm20lidar")
+    assert "already tm20lidar" in again.stdout and json.loads(path.read_text()) == now
+
+
 def test_wandb_without_trainer_is_refused(tmrl_env):
     out = tmrl(tmrl_env, "--worker", "--wandb")
     assert out.returncode == 2 and "--wandb goes with --trainer" in out.stderr
@@ -134,6 +197,7 @@ def test_bad_override_is_refused_with_its_key_path(tmrl_env):
     assert "--config: not a JSON or Python dict" in line
     line = one_error_line(tmrl(tmrl_env, "--print-config", "-d", "__import__('os').getcwd()"))
     assert "--config: not a JSON or Python dict" in line
+    assert "<ast." not in line and "object at 0x" not in line  # no Python internals in messages
 
 
 def test_install_twice_keeps_edited_config_and_password(tmrl_env):

@@ -603,3 +603,90 @@ def _child(role: str, args: dict) -> None:
 
 if __name__ == "__main__":
     _child(sys.argv[1], json.loads(sys.argv[2]))
+
+
+# ------------------------------------------------------------------------------------------------
+# pacing: workers of a fast environment keep to the trainer's budget of samples
+
+
+def _paced_training(limit: float, start: int = 50) -> Any:
+    from tmrl.algorithms.sac import SACAgent
+    from tmrl.envs import GenericGymEnv
+    from tmrl.memory import GenericTorchMemory
+    from tmrl.models import MLPActorCritic
+    from tmrl.training_offline import TorchTrainingOffline
+    from tmrl.util import partial
+
+    return partial(
+        TorchTrainingOffline, env_cls=partial(GenericGymEnv, id="Pendulum-v1"),
+        memory_cls=partial(GenericTorchMemory, memory_size=10_000, batch_size=16),
+        training_agent_cls=partial(SACAgent, model_cls=partial(MLPActorCritic, hidden_sizes=(16, 16))),
+        epochs=1, rounds=3, steps=40, update_model_interval=5, update_buffer_interval=1,
+        max_training_steps_per_env_step=1.0, start_training=start, sleep_between_buffer_retrieval_attempts=0.01,
+        device="cpu", max_env_steps_per_training_step=limit)
+
+
+def test_a_fast_worker_keeps_to_the_trainers_budget_of_samples(tmp_path, port_factory, closing):
+    from tmrl.envs import GenericGymEnv
+    from tmrl.models import SquashedGaussianMLPActor
+    from tmrl.util import partial
+
+    port = port_factory()
+    closing.append(Server(port=port, password=PW, security=None))
+    trainer = Trainer(training_cls=_paced_training(limit=2.0), server_ip="127.0.0.1", server_port=port, password=PW,
+                      security=None, model_path=str(tmp_path / "t.tmod"), checkpoint_path=None,
+                      obs_preprocessor=None, sample_compressor=None)
+    w = RolloutWorker(env_cls=partial(GenericGymEnv, id="Pendulum-v1"),
+                      actor_module_cls=partial(SquashedGaussianMLPActor, hidden_sizes=(16, 16)),
+                      server_ip="127.0.0.1", server_port=port, password=PW, security=None,
+                      model_path=str(tmp_path / "w.tmod"), max_samples_per_episode=200)
+    closing.append(w)
+    threading.Thread(target=w.run, daemon=True).start()
+    trainer.run()  # 120 updates; returns: the worker and the trainer never waited for each other forever
+    run = trainer.run_instance
+    assert run.total_updates == 120
+    # Unpaced, Pendulum runs thousands of steps a second; here the trainer holds at most what its
+    # last budget allowed: 2 samples per update plus the 50 it starts with (and one reset sample).
+    assert run.total_samples <= 2 * run.total_updates + 50 + 2, run.total_samples
+    assert w.pace.active and w.pace.limit == 2.0
+
+
+def test_pace_takes_the_trainers_fields_and_turns_off_without_them():
+    from tmrl.networking import Pace
+
+    pace = Pace()
+    assert not pace.active and not pace.exhausted()
+    pace.update({"pace_limit": 3.0, "pace_budget": 1060, "pace_received": 1000})
+    assert pace.active and pace.allowance == 60
+    pace.count(59)
+    assert not pace.exhausted()
+    pace.count(1)
+    assert pace.exhausted()
+    pace.update({"pace_limit": 3.0, "pace_budget": 1120, "pace_received": 1060})  # new weights: a new budget
+    assert pace.collected == 0 and not pace.exhausted()
+    for bad in ({}, {"pace_limit": float("nan"), "pace_budget": 1, "pace_received": 0},
+                {"pace_limit": 3.0, "pace_budget": -1, "pace_received": 0}, {"pace_limit": "x"}):
+        pace.update(bad)  # a trainer without pacing, or a malformed header: no pacing
+        assert not pace.active and not pace.exhausted()
+
+
+def test_the_trainer_budget_and_its_broadcast_when_it_waits():
+    run = _paced_training(limit=3.0, start=40)()
+    assert run.pace() == {"pace_limit": 3.0, "pace_budget": 40, "pace_received": 0}
+    run.total_updates, run.total_samples = 20, 90
+    assert run.pace() == {"pace_limit": 3.0, "pace_budget": 100, "pace_received": 90}
+    sent = []
+
+    class Waiting:
+        def retrieve_buffer(self):
+            from tmrl.networking import Buffer
+
+            run.stop()  # nothing arrives: stop after the first wait
+            return Buffer()
+
+        def broadcast_model(self, actor):
+            sent.append(run.total_updates)
+
+    run.total_samples = 10  # 20 updates > 10 samples: the trainer must wait
+    assert run.check_ratio(Waiting()) is False and sent == [20]  # workers get the current count first
+    assert _paced_training(limit=0.0)().pace() is None

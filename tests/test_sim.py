@@ -374,7 +374,8 @@ def test_fast_env_and_realtime_config_from_a_config():
 
 
 def test_trajectory_picture_and_learning_curve():
-    from tmrl.sim.render import draw_trajectory, line_chart
+    from tmrl.sim.charts import lap_image, learning_curve_image
+    from tmrl.sim.render import draw_trajectory
 
     env = SimEnv("SIMLIDAR", track="oval", img_hist_len=1)
     env.reset()
@@ -389,13 +390,32 @@ def test_trajectory_picture_and_learning_curve():
     assert red.sum() > 50  # the path is drawn
     px = tmap.to_topdown_pixels(np.array(path[-1:]), 300)[0]
     assert red[max(px[0] - 2, 0):px[0] + 3, max(px[1] - 2, 0):px[1] + 3].any()  # where the car ended
-    chart = line_chart(np.arange(10), np.array([0, 1, 3, 2, 5, 4, 8, 7, 9, 12.0]), 200, 100)
-    assert chart.shape == (100, 200, 3)
-    blue = (chart[:, :, 2] == 200) & (chart[:, :, 0] == 30)
-    # the curve rises: its highest pixel is on the right, its lowest on the left
-    rows, cols = np.nonzero(blue)
-    assert cols[np.argmin(rows)] > 150 and cols[np.argmax(rows)] < 50
+    lap = lap_image(env.race.track, np.array(path), "BEST LAP", ["LAP TIME 12.34 S"])
+    assert ((lap[:, :, 0] == 230) & (lap[:, :, 1] == 40)).sum() > 50
+    header, footer = lap[:40], lap[-20:]
+    assert (header.sum(axis=2) == 0).sum() > 100 and (footer.sum(axis=2) == 0).sum() > 50  # title, scale bar
+    chart = learning_curve_image([0, 1, 3, 2, 5, 4, 8, 7, 9, 12.0] * 3, "TITLE", ["A KEY FIGURE"])
+    assert chart.shape == (480, 800, 3)
+    mean = (chart[:, :, 0] == 20) & (chart[:, :, 1] == 60) & (chart[:, :, 2] == 180)
+    rows, cols = np.nonzero(mean[100:])  # below the legend's sample: the curve itself
+    assert len(rows) > 100
     assert encode_png(chart)[:4] == b"\x89PNG"
+
+
+def test_chart_text_is_drawn_with_a_glyph_per_character():
+    from tmrl.sim.charts import _FONT, _render, draw_label, text_width
+
+    assert all(m.shape == (7, 5) for m in _FONT.values()) and len({m.tobytes() for m in _FONT.values()}) == len(_FONT)
+    assert _render("lap", 1).shape == (7, 18) and (_render("lap", 1) == _render("LAP", 1)).all()
+    assert not _render("~", 1).any()  # unknown characters are spaces
+    img = np.full((40, 200, 3), 255, dtype=np.uint8)
+    draw_label(img, "RETURN", 2, 2, scale=2)
+    ink = np.nonzero(img.sum(axis=2) == 0)
+    assert ink[1].max() < 2 + text_width("RETURN") and ink[0].max() < 2 + 14
+    tall = np.full((120, 40, 3), 255, dtype=np.uint8)
+    draw_label(tall, "RETURN", 90, 2, vertical=True)  # a y-axis title: written upwards
+    rows, cols = np.nonzero(tall.sum(axis=2) == 0)
+    assert rows.max() - rows.min() > cols.max() - cols.min()
 
 
 # -- the demo ---------------------------------------------------------------------------------
@@ -426,14 +446,17 @@ def test_demo_runs_end_to_end_with_a_tiny_budget(tmp_path):
     assert "updates/s" in proc.stdout and "samples/s" in proc.stdout
     assert "tmrl demo finished" in proc.stdout
     w, h = _png_size(out / "learning_curve.png")
-    assert (w, h) == (640, 360)
+    assert (w, h) == (800, 480)
     w, h = _png_size(out / "best_lap.png")
     assert w > 100 and h > 100
     from safetensors.torch import load_file
 
     weights = load_file(str(out / "weights.safetensors"))
     assert any(k.startswith("net.") for k in weights)
-    assert (out / "logs" / "trainer.log").exists()
+    # the role logs say what each role did, not just a warning
+    trainer_log = (out / "logs" / "trainer.log").read_text()
+    assert "training starts" in trainer_log and "INFO" in trainer_log
+    assert "train episode 0:" in (out / "logs" / "worker.log").read_text()
 
 
 def test_check_environment_writes_what_the_policy_sees(tmp_path):
@@ -477,6 +500,23 @@ def test_demo_reads_the_environment_from_a_config(tmp_path):
     assert env["RTGYM_CONFIG"]["interface_kwargs"]["track"] == "technical"
     path.write_text(json.dumps({"ENV": {"RTGYM_INTERFACE": "TM20FULL"}}))
     with pytest.raises(UserError, match="SIMLIDAR"):
-        demo.main(["--config", str(path), "--minutes", "0"])
+        demo.main(["--config", str(path), "--minutes", "0.1"])
     with pytest.raises(UserError, match="unknown track"):
         demo.main(["--track", "nowhere"])
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--minutes", "-1"], "argument --minutes: must be above 0, got -1"),
+    (["--minutes", "0"], "argument --minutes: must be above 0, got 0"),
+    (["--minutes", "soon"], "argument --minutes: 'soon' is not a number"),
+    (["--steps", "-5"], "argument --steps: must be at least 0, got -5"),
+    (["--start-training", "0"], "argument --start-training: must be at least 1, got 0"),
+])
+def test_demo_refuses_budgets_that_make_no_sense(tmp_path, monkeypatch, args, expected):
+    from tmrl.sim import demo
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(UserError) as err:
+        demo.main(args)
+    assert str(err.value) == expected
+    assert list(tmp_path.iterdir()) == []  # nothing was created

@@ -59,7 +59,7 @@ def test_without_the_game_every_failure_has_a_fix(port_factory, monkeypatch):
         base_cfg(PORT=port_factory()), out=out, openplanet_port=port_factory(), openplanet_wait=0.3
     )
     text = out.getvalue()
-    assert code == 1
+    assert code == doctor.CHECKS_FAILED == 3  # 1 stays reserved for bugs in tmrl
     assert "Traceback" not in text
     lines = text.splitlines()
     fails = [i for i, line in enumerate(lines) if line.startswith("[FAIL]")]
@@ -79,9 +79,39 @@ def test_doctor_in_a_subprocess_prints_no_traceback(tmp_path, port_factory):
     )
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
-    assert proc.returncode == 1
+    assert proc.returncode == 3
     assert "Traceback" not in proc.stdout + proc.stderr
     assert "[FAIL] OpenPlanet telemetry" in proc.stdout and "fix:" in proc.stdout
+
+
+def test_other_interfaces_skip_the_game_checks_and_see_packages_and_data_folder(tmp_path, monkeypatch):
+    cfg = base_cfg()
+    cfg["ENV"]["RTGYM_INTERFACE"] = "SIMLIDAR"
+    monkeypatch.setenv("TMRL_DATA", str(tmp_path / "missing"))
+    results = {r.name: r for r in run_checks(cfg, only=("packages", "data", "config", "openplanet", "window",
+                                                        "gamepad", "capture", "reward"))}
+    assert results["packages"].status == "pass" and "torch" in results["packages"].detail
+    assert results["data folder"].status == "skip" and "--install" in results["data folder"].detail
+    assert results["config"].status == "pass" and "SIMLIDAR" in results["config"].detail
+    for name in ("OpenPlanet telemetry", "game window", "gamepad driver", "capture time", "reward file"):
+        assert results[name].status == "skip" and "not needed for SIMLIDAR" in results[name].detail
+    assert not (tmp_path / "missing").exists()  # the doctor creates nothing
+    (tmp_path / "missing" / "config").mkdir(parents=True)
+    (res,) = run_checks(cfg, only=("data",))
+    assert res.status == "fail" and "--install" in res.fix  # a folder without config.json
+    (tmp_path / "missing" / "config" / "config.json").write_text("{}")
+    (res,) = run_checks(cfg, only=("data",))
+    assert res.status == "pass"
+
+
+def test_missing_trackmania_extras_fail_the_packages_check(monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "mss" else real(name, *a))
+    assert doctor.check_packages("SIMLIDAR").status == "pass"
+    res = doctor.check_packages("TM20LIDAR")
+    assert res.status == "fail" and "mss" in res.detail and 'tmrl[trackmania]' in res.fix
 
 
 def test_a_crashing_check_becomes_a_failure(monkeypatch):

@@ -42,9 +42,10 @@ import logging
 import os
 import sys
 import traceback
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, NoReturn
 
+from tmrl.config.loader import ENVIRONMENTS
 from tmrl.config.schema import PASSWORD_PLACEHOLDER
 from tmrl.errors import UserError
 
@@ -110,13 +111,45 @@ configuration (one line says what to change), 130 interrupted.
 """
 
 
+class UsageError(UserError):
+    """A mistake in the command line (reported as one line, exit code 2)."""
+
+    def __init__(self, message: str, hint: str = "") -> None:
+        super().__init__(message)
+        self.hint = hint
+
+
+class Parser(argparse.ArgumentParser):
+    """``argparse`` that raises :class:`UsageError` instead of printing its usage block and that
+    never accepts an abbreviation of a long option (``--serve`` is not ``--server``)."""
+
+    def __init__(self, *args: Any, hint: str = "", **kwargs: Any) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+        self.hint = hint
+
+    def error(self, message: str) -> NoReturn:  # type: ignore[override]
+        hint = self.hint
+        if message.startswith("unrecognized arguments: "):
+            import difflib
+
+            options = [o for action in self._actions for o in action.option_strings if o.startswith("--")]
+            for word in message.split(": ", 1)[1].split():
+                close = difflib.get_close_matches(word.split("=")[0], options, n=1)
+                if close:
+                    hint = f"did you mean {close[0]}? {hint}".strip()
+                    break
+        raise UsageError(message, hint)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``python -m tmrl`` (exactly one command per run)."""
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="python -m tmrl",
         description=_DESCRIPTION,
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+        hint="`python -m tmrl --help` lists the commands",
     )
     commands = parser.add_argument_group("commands (choose one)")
     group = commands.add_mutually_exclusive_group()
@@ -166,6 +199,10 @@ def build_parser() -> argparse.ArgumentParser:
     options.add_argument("--wandb", action="store_true",
                          help="with --trainer: log metrics to Weights & Biases (WANDB_* keys of config.json; "
                               "needs pip install \"tmrl[wandb]\")")
+    options.add_argument("--env", metavar="NAME", type=str.lower, choices=tuple(ENVIRONMENTS),
+                         help="with --install: the environment of config.json, one of " + ", ".join(ENVIRONMENTS)
+                              + " (shipped configs); on an existing data folder it switches config.json to it, "
+                              "keeping PASSWORD and your other edits (the old file is kept as config.previous.json)")
     options.add_argument("--out", metavar="PATH",
                          help="with --import-weights or --export-weights: where to write the converted file")
     options.add_argument("--use-keyboard", action="store_true",
@@ -218,10 +255,35 @@ def _hidden(cfg: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _install() -> int:
-    from tmrl.config import loader
+def _config_state(loader: Any, report: Any, env: str | None) -> str:
+    """What ``--install`` did to config.json, in words (switching it when ``env`` asks)."""
+    if report.created_config:
+        return f"created for {env or 'tm20full'}, with a fresh random PASSWORD"
+    if env is None:
+        return "kept as it was"
+    switch = loader.switch_environment(env, report.paths.root)
+    if not switch.changed:
+        return f"kept as it was: already {env}"
+    kept = ", ".join(switch.kept) if switch.kept else "nothing else"
+    return f"switched to {env}; kept your {kept}; the former file is {switch.previous.name}"
 
-    report = loader.install()
+
+def _next_steps(cfg: Mapping[str, Any] | None) -> list[str]:
+    interface = str(cfg["ENV"]["RTGYM_INTERFACE"]) if cfg is not None else ""
+    if interface.startswith("TM20"):
+        return ["Next: set up TrackMania 2020 (docs/trackmania.md), check it with `python -m tmrl --doctor`, then run",
+                "`python -m tmrl --server`, `--trainer` and `--worker` (three terminals, or three machines).",
+                "No game? `python -m tmrl --install --env simlidar` switches to the built-in simulator."]
+    return ["Next: run `python -m tmrl --server`, `python -m tmrl --trainer` and `python -m tmrl --worker` in three",
+            "terminals (or on three machines with the same config.json)."]
+
+
+def _install(env: str | None = None) -> int:
+    from tmrl.config import loader
+    from tmrl.transport import ensure_credentials
+
+    report = loader.install(env=env)
+    state = _config_state(loader, report, env)
     error: UserError | None = None
     try:
         cfg: dict[str, Any] | None = loader.load_config()
@@ -229,26 +291,15 @@ def _install() -> int:
         # Still say where everything is: the fix is usually an edit of that config.json.
         error, cfg = e, None
     paths = loader.data_paths(cfg, report.paths.root)
-    credentials_note = "not generated: tmrl.transport.ensure_credentials is not available yet"
-    try:
-        transport = importlib.import_module("tmrl.transport")
-    except ModuleNotFoundError as e:
-        if not (e.name or "").startswith("tmrl"):
-            raise
-        transport = None
-    ensure = getattr(transport, "ensure_credentials", None) if transport is not None else None
-    if callable(ensure) and cfg is not None:
-        import inspect
-
-        if "hostname" in inspect.signature(ensure).parameters:
-            ensure(paths.credentials, hostname=cfg["TLS_HOSTNAME"])
-        else:
-            ensure(paths.credentials)
+    credentials_note = "not prepared: fix config.json first"
+    if cfg is not None:
+        ensure_credentials(paths.credentials, hostname=cfg["TLS_HOSTNAME"])
         credentials_note = "key and certificate ready; existing files are kept"
-    state = "created, with a fresh random PASSWORD" if report.created_config else "kept as it was"
+    current = loader.environment_of(cfg) if cfg is not None else None
     lines = [
         f"tmrl data folder: {paths.root}",
         f"  config        {paths.config_file}  ({state})",
+        f"  environment   {current or (cfg['ENV']['RTGYM_INTERFACE'] if cfg else '?')}",
         f"  weights       {paths.weights}",
         f"  checkpoints   {paths.checkpoints}",
         f"  dataset       {paths.dataset}",
@@ -257,7 +308,9 @@ def _install() -> int:
         f"  logs          {paths.logs}",
         "Edit config.json to configure runs (`python -m tmrl --print-config` shows the result; docs/config.md",
         "of the tmrl repository lists every key). Use the same PASSWORD on every machine of a run.",
+        f"Switch environments with `python -m tmrl --install --env NAME` ({', '.join(loader.ENVIRONMENTS)}).",
         "Set TMRL_DATA to use another data folder.",
+        *_next_steps(cfg),
     ]
     print("\n".join(lines))
     if error is not None:
@@ -280,16 +333,15 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
     for text in args.config:
         loader.set_override_env(text, source="--config")
     if command == "install":
-        return _install()
+        return _install(args.env)
     if command == "print_config":
         return _print_quietly(json.dumps(_hidden(loader.load_config()), indent=2))
 
     flag = _flag(command)
     if command == "demo":
-        hook = _resolve_hook(command, flag)
-        loader.load_config()  # a configuration mistake is reported before anything is created
-        loader.ensure_data_folder()  # before the demo starts its processes, which all read it
-        return int(hook(list(extra)) or 0)
+        # The demo checks its arguments and the configuration, then prepares the data folder
+        # itself: --demo --help or a mistake creates nothing.
+        return int(_resolve_hook(command, flag)(list(extra)) or 0)
     if command == "doctor":
         # The doctor reports on the data folder; it must not create it.
         cfg = loader.load_config()
@@ -307,7 +359,8 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
     # Read again: config.json may just have been written (by us or by a process started beside us,
     # e.g. by the demo) with a fresh PASSWORD.
     cfg = loader.load_config()
-    if cfg["PASSWORD"] == PASSWORD_PLACEHOLDER and command in ("server", "trainer", "worker", "expert"):
+    if cfg["PASSWORD"] == PASSWORD_PLACEHOLDER and command in ("server", "trainer", "worker", "expert") \
+            and not args.standalone:
         logger.warning("PASSWORD is the public placeholder %r: anyone who can reach the server can join; put a "
                        "random one in %s (the same on every machine)", PASSWORD_PLACEHOLDER, loader.config_path())
     if command == "trainer":
@@ -327,6 +380,16 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
     return int(result or 0)
 
 
+def _report_user_error(e: UserError) -> int:
+    """One line on stderr (plus a hint line for command-line mistakes); the exit code."""
+    message = " ".join(str(e).split()) or type(e).__name__
+    print(f"tmrl: error: {message}", file=sys.stderr)
+    hint = getattr(e, "hint", "")
+    if hint:
+        print(f"({hint})", file=sys.stderr)
+    return getattr(e, "exit_code", 2) or 2
+
+
 def _print_quietly(text: str) -> int:
     """Print ``text``; a reader that stops early (``| head``) ends the command quietly, with
     code 0, instead of a BrokenPipeError traceback."""
@@ -344,26 +407,35 @@ def _print_quietly(text: str) -> int:
 
 
 def _check_combinations(parser: argparse.ArgumentParser, args: argparse.Namespace, extra: list[str]) -> None:
+    """Refuse options that do not go with the command (:class:`UsageError`, one line)."""
     for command in ("import_weights", "export_weights"):
         if getattr(args, command) is not None:
             args.command = command
-    if args.out is not None and args.command not in ("import_weights", "export_weights"):
-        parser.error("--out goes with --import-weights or --export-weights")
     if args.command is None:
-        parser.error("choose a command, e.g. --demo, --install or --server (see --help)")
+        raise UsageError("choose a command, e.g. --demo, --install or --server", "`python -m tmrl --help` lists them")
     if extra and args.command != "demo":
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
-    if args.wandb and args.command != "trainer":
-        parser.error("--wandb goes with --trainer")
-    if args.use_keyboard and args.command != "record_reward":
-        parser.error("--use-keyboard goes with --record-reward")
-    if args.verbose and args.quiet:
-        parser.error("choose one of --verbose and --quiet")
+    wrong = [
+        (args.out is not None and args.command not in ("import_weights", "export_weights"),
+         "--out goes with --import-weights or --export-weights"),
+        (args.env is not None and args.command != "install", "--env goes with --install (python -m tmrl --install --env simlidar)"),
+        (args.wandb and args.command != "trainer", "--wandb goes with --trainer"),
+        (args.use_keyboard and args.command != "record_reward", "--use-keyboard goes with --record-reward"),
+        (args.verbose and args.quiet, "choose one of --verbose and --quiet"),
+    ]
+    for bad, message in wrong:
+        if bad:
+            raise UsageError(message)
+
+
+def _is_dict_text(value: str) -> bool:
+    return value.lstrip().startswith("{")
 
 
 def _split_demo_args(argv: list[str]) -> tuple[list[str], list[str]]:
-    """Arguments after ``--demo`` belong to the demo's own parser, except ``-d/--config`` (with
-    its value), which stays ours so that ``--demo -d '{...}'`` overrides the config as anywhere."""
+    """Arguments after ``--demo`` belong to the demo's own parser, except ``-d DICT`` and
+    ``--config DICT`` (a dict), which stay ours so that ``--demo -d '{...}'`` overrides the
+    config as anywhere. ``--demo --config FILE`` (a file name) is the demo's own option."""
     if "--demo" not in argv:
         return argv, []
     i = argv.index("--demo")
@@ -372,11 +444,12 @@ def _split_demo_args(argv: list[str]) -> tuple[list[str], list[str]]:
     j = 0
     while j < len(tail):
         token = tail[j]
-        if token in ("-d", "--config") and j + 1 < len(tail):
-            ours += [token, tail[j + 1]]
+        value = tail[j + 1] if j + 1 < len(tail) else ""
+        if (token == "-d" or (token == "--config" and _is_dict_text(value))) and j + 1 < len(tail):
+            ours += [token, value]
             j += 2
             continue
-        if token.startswith("--config="):
+        if token.startswith("--config=") and _is_dict_text(token.split("=", 1)[1]):
             ours.append(token)
         else:
             extra.append(token)
@@ -396,18 +469,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run ``python -m tmrl`` with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
-    argv, extra = _split_demo_args(argv)
-    argv, standalone = _split_standalone_test(argv)
-    args = parser.parse_args(argv)
-    args.standalone = standalone
-    _check_combinations(parser, args, extra)
+    try:
+        argv, extra = _split_demo_args(argv)
+        argv, standalone = _split_standalone_test(argv)
+        args = parser.parse_args(argv)
+        args.standalone = standalone
+        _check_combinations(parser, args, extra)
+    except UserError as e:
+        return _report_user_error(e)
     _configure_logging(args.verbose, args.quiet)
     try:
         return _run(args, extra)
     except UserError as e:
-        message = " ".join(str(e).split()) or type(e).__name__
-        print(f"tmrl: error: {message}", file=sys.stderr)
-        return getattr(e, "exit_code", 2) or 2
+        return _report_user_error(e)
     except KeyboardInterrupt:
         print("tmrl: interrupted", file=sys.stderr)
         return 130

@@ -897,9 +897,10 @@ class Server:
         """Whether the relay process is running."""
         return bool(self._relay.running)
 
-    def stop(self) -> None:
-        """Stop the relay (idempotent)."""
-        self._relay.stop()
+    def stop(self, timeout: float = 15.0) -> None:
+        """Stop the relay (idempotent): it may flush for up to ``timeout`` seconds, then it is
+        killed."""
+        self._relay.stop(timeout)
         if self in Server._alive:
             Server._alive.remove(self)
 
@@ -1105,6 +1106,8 @@ class TrainerInterface:
         self.received_samples = 0
         self.skipped_broadcasts = 0
         self.weights_version = 0
+        self.pace_source: Callable[[], dict[str, Any] | None] | None = None
+        """Gives the pacing fields broadcast with the weights (``TrainingOffline.pace``)."""
         self._reject_log = RateLimitedLog(logger, logging.WARNING, 1.0)
         self._foreign_log = RateLimitedLog(logger, logging.INFO, 1.0)
         self._last_weights: bytes | None = None
@@ -1248,7 +1251,8 @@ class TrainerInterface:
             describe_spaces(obs_space, act_space) if obs_space is not None and act_space is not None else None
         )
         self.weights_version += 1
-        envelope = pack_weights(data, spaces, self.weights_version, run=self.run_id, key=self._key)
+        pace = self.pace_source() if self.pace_source is not None else None
+        envelope = pack_weights(data, spaces, self.weights_version, run=self.run_id, meta=pace, key=self._key)
         with self._weights_lock:
             self._last_weights = envelope
             self._link.broadcast_weights(envelope)
@@ -1407,6 +1411,8 @@ class Trainer:
         workers that (re)connect get this run's weights (and identity) without waiting for the
         next training step, which may itself wait for their samples."""
         self.interface.run_id = self.run_id
+        pace = getattr(run_instance, "pace", None)
+        self.interface.pace_source = pace if callable(pace) else None
         agent = getattr(run_instance, "agent", None)
         spaces = None
         for holder in (agent, run_instance):
@@ -1522,6 +1528,98 @@ class Trainer:
 # Rollout worker
 
 
+class EpisodeLog:
+    """The worker's episode reports: every episode at DEBUG level; at ``level`` (INFO by
+    default) the first one, then one summary line every ``interval`` seconds, so that a fast
+    environment does not print a wall of lines (thousands an hour).
+
+    Args:
+        kind: ``"train"`` or ``"expert"``.
+        level: level of the first line and the summaries.
+        interval: seconds between two summaries.
+    """
+
+    def __init__(self, kind: str, level: int = logging.INFO, interval: float = 30.0) -> None:
+        self.kind = kind
+        self.level = level
+        self.interval = interval
+        self._last = -math.inf
+        self._returns: list[float] = []
+        self._first = 0
+        self._sent = 0
+        self._test: tuple[float, int] | None = None
+
+    def test(self, ret: float, steps: int) -> None:
+        """A test episode's return and length (reported with the next summary)."""
+        logger.debug("test episode: return %.1f in %d steps", ret, steps)
+        self._test = (ret, steps)
+
+    def train(self, episode: int, ret: float, steps: int, sent: int, version: int) -> None:
+        """A finished episode: its index, return, length, samples sent, weights version."""
+        logger.debug("%s episode %d: return %.1f in %d steps; %d samples sent; weights version %d",
+                     self.kind, episode, ret, steps, sent, version)
+        if not self._returns:
+            self._first = episode
+        self._returns.append(float(ret))
+        self._sent += sent
+        now = time.monotonic()
+        if now - self._last < self.interval:
+            return
+        self._last = now
+        returns = self._returns
+        span = f"episode {episode}" if len(returns) == 1 else f"episodes {self._first}-{episode}"
+        test = "" if self._test is None else f"; test return {self._test[0]:.1f}"
+        logger.log(self.level, "%s %s: return last %.1f, mean %.1f, best %.1f%s; %d samples sent; weights version %d",
+                   self.kind, span, returns[-1], sum(returns) / len(returns), max(returns), test, self._sent, version)
+        self._returns, self._sent, self._test = [], 0, None
+
+
+class Pace:
+    """The worker's side of the trainer's sample budget (Reverb's rate limiter, simplified).
+
+    With ``MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP`` set, the trainer sends with its weights how
+    many samples it accepts to have received by now (``pace_budget``) and how many it has
+    (``pace_received``). The worker counts the samples it collects after those weights and
+    pauses once the budget is used up, until new weights raise it. With several workers each may
+    use the whole budget of one broadcast, so they overshoot by at most one budget each; the
+    trainer's own ratio (``MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP``) bounds the rest.
+    """
+
+    def __init__(self) -> None:
+        self.limit = 0.0
+        self.allowance = 0
+        self.collected = 0
+
+    @property
+    def active(self) -> bool:
+        """Whether the trainer asked for pacing."""
+        return self.limit > 0
+
+    def update(self, header: dict[str, Any]) -> None:
+        """Take the pacing fields of a weights header (a header without them turns pacing off)."""
+        fields = [header.get(k) for k in ("pace_limit", "pace_budget", "pace_received")]
+        if not all(finite_stat(v) is not None and v >= 0 for v in fields):
+            self.limit = 0.0
+            return
+        limit, budget, received = fields
+        self.limit = float(limit)
+        self.allowance = int(budget) - int(received)
+        self.collected = 0
+
+    def count(self, n: int) -> None:
+        """``n`` more samples collected."""
+        self.collected += n
+
+    def exhausted(self) -> bool:
+        """Whether the samples collected since the last weights used up the budget."""
+        return self.active and self.collected >= self.allowance
+
+
+def _is_real_time(env: Any) -> bool:
+    """Whether ``env`` runs on the wall clock (an rtgym-style environment with ``benchmarks()``)."""
+    return callable(getattr(getattr(env, "unwrapped", env), "benchmarks", None))
+
+
 class RolloutWorker:
     """Runs the current policy in an environment; sends the samples to the server and loads the
     weights the trainer broadcasts. In standalone mode (``standalone=True``) it connects to
@@ -1603,6 +1701,8 @@ class RolloutWorker:
         self.weights_version = 0
         self.run_id: str | None = None
         """The run identity of the weights this worker acts with (stamped on its samples)."""
+        self.pace = Pace()
+        self._paused_mid_episode = not _is_real_time(self.env)
         self.rejected_weights = 0
         self._weights_log = RateLimitedLog(logger, logging.ERROR, 10.0)
         self._keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
@@ -1685,6 +1785,7 @@ class RolloutWorker:
                 info["crc_sample"] = (None, act, new_obs, 0.0, False, False)
                 info["crc_sample_ts"] = (self.debug_ts_cpt, self.debug_ts_res_cpt)
             self._record(act, new_obs, 0.0, False, False, info)
+            self.pace.count(1)
         return new_obs, info
 
     def step(self, obs: Any, test: bool, collect_samples: bool, last_step: bool = False) -> tuple:
@@ -1712,7 +1813,32 @@ class RolloutWorker:
                 info["crc_sample"] = (obs, act, new_obs, rew, terminated, truncated)
                 info["crc_sample_ts"] = (self.debug_ts_cpt, self.debug_ts_res_cpt)
             self._record(act, new_obs, rew, terminated, truncated, info)
+            if self.pace.active:
+                self._keep_pace(end_of_episode=terminated or truncated)
         return new_obs, rew, terminated, truncated, info
+
+    def _wait_first_weights(self) -> None:
+        """After its first episode, a training worker waits for the trainer's first weights: they
+        say which run the samples are for and how fast the trainer wants them (its pace); a
+        fast environment would otherwise fill the memory with thousands of samples of the
+        initial policy before the trainer has even started."""
+        if self._link is None:
+            return
+        logger.info("waiting for the trainer's first weights")
+        while self.weights_version == 0 and not self._closed:
+            self.update_actor_weights(verbose=False, blocking=True)
+
+    def _keep_pace(self, end_of_episode: bool) -> None:
+        """Pause while this worker is ahead of the trainer's budget of samples (see :class:`Pace`):
+        send what it has, then wait for weights that raise the budget. A real-time environment is
+        only paused between episodes (its clock must not stop mid-episode)."""
+        self.pace.count(1)
+        if not self.pace.exhausted() or not (self._paused_mid_episode or end_of_episode):
+            return
+        while self.pace.exhausted() and self._link is not None and not self._closed:
+            if len(self.buffer):
+                self.send_and_clear_buffer()
+            self.update_actor_weights(verbose=False, blocking=True)
 
     @staticmethod
     def _steps(max_samples: float) -> Iterable[int]:
@@ -1775,7 +1901,7 @@ class RolloutWorker:
             verbose: log one line per episode at INFO level (DEBUG otherwise).
             expert: send samples but never load weights nor run test episodes.
         """
-        log = logger.info if verbose else logger.debug
+        summary = EpisodeLog("expert" if expert else "train", level=logging.INFO if verbose else logging.DEBUG)
         for episode in self._steps(nb_episodes):
             if (
                 not expert
@@ -1784,21 +1910,17 @@ class RolloutWorker:
                 and not self.crc_debug
             ):
                 ret = self.run_episode(self.max_samples_per_episode, train=False)
-                log("test episode: return %.1f in %d steps", ret, self.buffer.stat_test_steps)
+                summary.test(ret, self.buffer.stat_test_steps)
             self.collect_train_episode(self.max_samples_per_episode)
-            n = len(self.buffer)
+            n = len(self.buffer) if self._link is not None else 0  # standalone: nothing is sent
             self.send_and_clear_buffer()
-            loaded = self.ignore_actor_weights() if expert else self.update_actor_weights(verbose=False)
-            # one line per episode (not per phase): readable at INFO level for short episodes too
-            log(
-                "%s episode %d: return %.1f in %d steps; %d samples sent%s",
-                "expert" if expert else "train",
-                episode,
-                self.buffer.stat_train_return,
-                self.buffer.stat_train_steps,
-                n,
-                f"; new weights (version {self.weights_version})" if loaded and not expert else "",
-            )
+            if expert:
+                self.ignore_actor_weights()
+            elif episode == 0 and self.weights_version == 0:
+                self._wait_first_weights()
+            else:
+                self.update_actor_weights(verbose=False)
+            summary.train(episode, self.buffer.stat_train_return, self.buffer.stat_train_steps, n, self.weights_version)
 
     def run_synchronous(
         self,
@@ -2006,6 +2128,7 @@ class RolloutWorker:
         self.weights_version = version if type(version) is int else self.weights_version + 1
         run = msg.get("run")
         self.run_id = run if isinstance(run, str) and 0 < len(run) <= 64 else None
+        self.pace.update(msg)
         if verbose:
             logger.info("weights updated (version %d)", self.weights_version)
         return True

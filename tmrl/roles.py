@@ -104,7 +104,9 @@ def run_server(cfg: Mapping[str, Any] | None = None, stop_event: threading.Event
                 _say(f"tmrl: the server on port {server.port} stopped unexpectedly")
                 return 1
     except KeyboardInterrupt as err:
-        server.stop()
+        # why: a stopped server must be gone within seconds; the relay's default flush budget
+        # (15 s) outlasted a loaded machine's patience (a Ctrl-C'd server alive 20 s later).
+        server.stop(STOP_TIMEOUT)
         return _stopped("server", err)
     finally:
         server.stop()

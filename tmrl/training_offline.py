@@ -90,6 +90,9 @@ class TrainingOffline:
         agent_scheduler: ``f(agent, epoch)`` called at the start of each epoch, or ``None``.
         start_training: samples to receive before the first training step.
         device: device of the memory's batches and of the agent (``None``: left to them).
+        max_env_steps_per_training_step: the workers' side of the ratio (0: no limit): samples
+            collected per training step may not exceed this, plus ``start_training``. Sent to the
+            workers with the weights (:meth:`pace`); for environments faster than real time.
 
     Attributes:
         memory: the replay memory.
@@ -120,6 +123,7 @@ class TrainingOffline:
     agent_scheduler: Callable[[Any, int], None] | None = None
     start_training: int = 0
     device: str | None = None
+    max_env_steps_per_training_step: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("env_cls", "memory_cls", "training_agent_cls"):
@@ -135,6 +139,10 @@ class TrainingOffline:
         self._stop = threading.Event()
         self._default_logger: MetricsLogger | None = None
         self._round_samples = 0
+        self._broadcast_at = 0  # total_updates at the last broadcast
+        if float(self.max_env_steps_per_training_step) < 0:
+            raise UserError("TrainingOffline max_env_steps_per_training_step must be >= 0 (0: no limit), got "
+                            f"{self.max_env_steps_per_training_step}")
         self.memory_errors = 0
         self._memory_error_log = RateLimitedLog(_log, logging.WARNING, 60.0)
         self.memory = self.memory_cls(nb_steps=self.steps, device=self.device)
@@ -233,6 +241,23 @@ class TrainingOffline:
             self._memory_error_log("the replay memory refused %d more samples (%d refusals so far)", n,
                                    self.memory_errors)
 
+    def pace(self) -> dict[str, Any] | None:
+        """What the workers need to keep pace with training, sent with the weights (``None``
+        when ``max_env_steps_per_training_step`` is 0): the limit, the most samples the trainer
+        accepts to have received by now (``limit * total_updates + start_training``, rounded
+        down; at least 1 before any update) and how many it has received."""
+        limit = float(self.max_env_steps_per_training_step)
+        if limit <= 0:
+            return None
+        budget = math.floor(limit * self.total_updates) + max(int(self.start_training), 1)
+        return {"pace_limit": limit, "pace_budget": int(budget), "pace_received": int(self.total_samples)}
+
+    def _broadcast(self, interface: Any) -> None:
+        """Send the actor to the workers, unless its parameters are not finite."""
+        if self.ensure_finite():
+            interface.broadcast_model(self.agent.get_actor())
+            self._broadcast_at = self.total_updates
+
     def _ready(self) -> bool:
         if self.total_samples <= 0 or self.total_samples < self.start_training:
             return False
@@ -253,7 +278,16 @@ class TrainingOffline:
         """
         if self._ready():
             return not self._stop.is_set()
-        logger.info("waiting for samples (%d received, %d updates done)", self.total_samples, self.total_updates)
+        if self.max_env_steps_per_training_step > 0 and self.total_updates != self._broadcast_at:
+            # Paced workers wait for the trainer's count of updates: give them the current one, or
+            # both sides could wait for each other.
+            self._broadcast(interface)
+        waiting_to_start = self.total_updates == 0
+        if waiting_to_start:
+            logger.info("waiting for samples: training starts after %d (%d received)",
+                        max(int(self.start_training), 1), self.total_samples)
+        else:  # the ratio of updates to samples is reached: a short, normal pause
+            logger.debug("waiting for samples (%d received, %d updates done)", self.total_samples, self.total_updates)
         start = last_log = time.monotonic()
         while True:
             self.update_buffer(interface)
@@ -271,7 +305,10 @@ class TrainingOffline:
             # Event.wait rather than time.sleep: stop() ends the wait at once.
             if self._stop.wait(max(0.0, float(self.sleep_between_buffer_retrieval_attempts))):
                 return False
-        logger.info("resuming training (%d samples received)", self.total_samples)
+        if waiting_to_start:
+            logger.info("%d samples received: training starts", self.total_samples)
+        else:
+            logger.debug("resuming training (%d samples received)", self.total_samples)
         return not self._stop.is_set()
 
     # --- the loop ------------------------------------------------------------------------------
@@ -339,8 +376,8 @@ class TrainingOffline:
                 train_rows.append(self.agent.train(batch) or {})
                 training += time.perf_counter() - t_train
                 self.total_updates += 1
-                if self.total_updates % self.update_model_interval == 0 and self.ensure_finite():
-                    interface.broadcast_model(self.agent.get_actor())
+                if self.total_updates % self.update_model_interval == 0:
+                    self._broadcast(interface)
                 t_wait = time.perf_counter()
                 if not self.check_ratio(interface):
                     stopped = True

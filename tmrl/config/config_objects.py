@@ -329,6 +329,7 @@ TRAINER = partial(
     max_training_steps_per_env_step=cfg.TMRL_CONFIG["MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP"],
     start_training=cfg.TMRL_CONFIG["ENVIRONMENT_STEPS_BEFORE_TRAINING"],
     device=DEVICE_TRAINING,
+    max_env_steps_per_training_step=cfg.TMRL_CONFIG["MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP"],
 )
 
 # --- checkpoints (the original's hooks; none are needed by the built-in pipelines) ---------------

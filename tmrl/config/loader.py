@@ -33,11 +33,13 @@ from tmrl.config.schema import ConfigError, SchemaViolation
 
 __all__ = [
     "DATA_ENV",
+    "ENVIRONMENTS",
     "LAYOUT",
     "OVERRIDE_ENV",
     "ConfigError",
     "DataPaths",
     "InstallReport",
+    "SwitchReport",
     "apply_override",
     "config_path",
     "data_folder",
@@ -46,10 +48,13 @@ __all__ = [
     "default_config",
     "dumps",
     "ensure_data_folder",
+    "environment_of",
     "install",
     "load_config",
     "parse_override",
     "set_override_env",
+    "shipped_config",
+    "switch_environment",
     "validate",
 ]
 
@@ -178,10 +183,114 @@ def _create_exclusive(path: Path, text: str) -> bool:
             pass
 
 
-def _fresh_config_text() -> str:
-    cfg = schema.defaults()
+#: ``--install --env NAME``: the shipped config file each name selects (``config/`` of the
+#: repository, generated from the schema).
+ENVIRONMENTS: dict[str, str] = {
+    "simlidar": "config_simlidar.json",
+    "simlidarprogress": "config_simlidarprogress.json",
+    "simfull": "config_simfull.json",
+    "pendulum": "config_gym_pendulum.json",
+    "drone": "config_drone.json",
+    "tm20full": "config.json",
+    "tm20lidar": "config_tm20lidar.json",
+}
+
+
+def shipped_config(env: str) -> dict[str, Any]:
+    """The complete shipped config of an environment name of :data:`ENVIRONMENTS` (placeholder
+    password).
+
+    Raises:
+        ConfigError: an unknown name.
+    """
+    name = ENVIRONMENTS.get(str(env).lower())
+    if name is None:
+        raise ConfigError(f"--env {env!r} is not a shipped environment: use one of {', '.join(ENVIRONMENTS)}")
+    text = schema.default_config_json() if name == "config.json" else schema.example_json(name)
+    return json.loads(text)
+
+
+def environment_of(cfg: Mapping[str, Any]) -> str | None:
+    """The name in :data:`ENVIRONMENTS` whose shipped config has the same environment as ``cfg``
+    (interface, and the Gymnasium id for ``GYM``), or ``None``."""
+    env = cfg.get("ENV", {})
+    for name in ENVIRONMENTS:
+        shipped = shipped_config(name)["ENV"]
+        if shipped["RTGYM_INTERFACE"] == env.get("RTGYM_INTERFACE") and (
+            shipped["RTGYM_INTERFACE"] != "GYM" or shipped["GYM_ID"] == env.get("GYM_ID")
+        ):
+            return name
+    return None
+
+
+def _fresh_config_text(env: str | None = None) -> str:
+    cfg = schema.defaults() if env is None else shipped_config(env)
     cfg["PASSWORD"] = secrets.token_urlsafe(24)
     return dumps(cfg)
+
+
+def _kept_edits(current: Mapping[str, Any], origin: Mapping[str, Any], target: dict[str, Any],
+                path: str = "") -> list[str]:
+    """Copy into ``target`` every value of ``current`` that differs from ``origin`` (the user's
+    edits), outside ``ENV``; returns their key paths."""
+    kept = []
+    for key, value in current.items():
+        full = f"{path}{key}"
+        if full in ("ENV", "__VERSION__") or key not in target:
+            continue
+        if isinstance(value, Mapping) and isinstance(origin.get(key), Mapping) and isinstance(target[key], dict):
+            kept += _kept_edits(value, origin[key], target[key], full + ".")
+        elif value != origin.get(key):
+            target[key] = value
+            kept.append(full)
+    return kept
+
+
+@dataclass(frozen=True)
+class SwitchReport:
+    """What :func:`switch_environment` did.
+
+    Attributes:
+        env: the environment name now in ``config.json``.
+        changed: whether ``config.json`` was rewritten (False: it already had this environment).
+        kept: key paths of the user's edits carried over (``PASSWORD`` among them).
+        previous: where the former ``config.json`` was kept (``None`` when unchanged).
+    """
+
+    env: str
+    changed: bool
+    kept: list[str]
+    previous: Path | None
+
+
+def switch_environment(env: str, folder: str | os.PathLike[str] | None = None) -> SwitchReport:
+    """Give the existing ``config.json`` the environment of the shipped config ``env``, keeping
+    the user's own edits: every key outside ``ENV`` whose value differs from the shipped config
+    the file came from (``PASSWORD``, TLS and network settings, changed hyperparameters...) keeps
+    its value; ``ENV`` and the keys the user never changed take the new shipped values. The
+    former file is kept as ``config.previous.json``.
+
+    Raises:
+        ConfigError: an unknown name, or a ``config.json`` that does not validate.
+    """
+    target = shipped_config(env)
+    root = Path(folder) if folder is not None else data_folder()
+    cfg_file = config_path(root)
+    current = _read_config_file(cfg_file)
+    if environment_of(current) == env.lower():
+        return SwitchReport(env.lower(), False, [], None)
+    origin_name = environment_of(current)
+    origin = shipped_config(origin_name) if origin_name is not None else schema.defaults()
+    kept = _kept_edits(current, origin, target)
+    if target["PASSWORD"] == schema.PASSWORD_PLACEHOLDER:  # the file had the placeholder too
+        target["PASSWORD"] = secrets.token_urlsafe(24)
+    validate(target, source=str(cfg_file))
+    previous = cfg_file.with_name("config.previous.json")
+    from tmrl.util import atomic_write_text
+
+    atomic_write_text(previous, cfg_file.read_text(encoding="utf-8"))
+    atomic_write_text(cfg_file, dumps(target))
+    return SwitchReport(env.lower(), True, kept, previous)
 
 
 @dataclass(frozen=True)
@@ -197,13 +306,17 @@ class InstallReport:
     created_config: bool
 
 
-def install(folder: str | os.PathLike[str] | None = None) -> InstallReport:
+def install(folder: str | os.PathLike[str] | None = None, env: str | None = None) -> InstallReport:
     """Create the data folder layout and, when ``config.json`` is missing, write the default one
-    with a fresh random ``PASSWORD``. An existing ``config.json`` is never modified.
+    (or the shipped config of ``env``, see :data:`ENVIRONMENTS`) with a fresh random
+    ``PASSWORD``. An existing ``config.json`` is never modified here (see
+    :func:`switch_environment`).
 
     Raises:
-        ConfigError: the folder cannot be created (a file is in the way, no permission).
+        ConfigError: the folder cannot be created (a file is in the way, no permission), or an
+            unknown ``env``.
     """
+    text = _fresh_config_text(env)  # an unknown env fails before anything is created
     root = Path(folder) if folder is not None else data_folder()
     try:
         for sub in LAYOUT:
@@ -211,7 +324,7 @@ def install(folder: str | os.PathLike[str] | None = None) -> InstallReport:
         created = False
         cfg_file = config_path(root)
         if not cfg_file.exists():
-            created = _create_exclusive(cfg_file, _fresh_config_text())
+            created = _create_exclusive(cfg_file, text)
             if created:
                 logger.info("wrote %s with a fresh random PASSWORD", cfg_file)
     except FileExistsError as e:
@@ -286,8 +399,14 @@ def parse_override(text: str, source: str = "--config") -> dict[str, Any]:
     except ValueError:
         try:
             value = ast.literal_eval(text)
-        except (ValueError, SyntaxError, TypeError, MemoryError, RecursionError) as e:
-            reason = " ".join(str(e).split()) or type(e).__name__
+        except ValueError:  # an expression that is not a literal, e.g. a call: never evaluated
+            raise ConfigError(
+                f"{source}: not a JSON or Python dict (it holds an expression that is not a plain value: only "
+                "numbers, strings, True/False/None, lists and dicts are allowed); write it like "
+                "'{\"ALG\": {\"LR_ACTOR\": 0.0001}}'"
+            ) from None
+        except (SyntaxError, TypeError, MemoryError, RecursionError) as e:
+            reason = _syntax_reason(e)
             raise ConfigError(
                 f"{source}: not a JSON or Python dict ({reason}); write it like "
                 "'{\"ALG\": {\"LR_ACTOR\": 0.0001}}'"
@@ -319,6 +438,14 @@ def route_rtgym_keys(override: Mapping[str, Any]) -> dict[str, Any]:
         env["RTGYM_CONFIG"] = {**dict(rt), **moved} if isinstance(rt, Mapping) else rt
         out["ENV"] = env
     return out
+
+
+def _syntax_reason(err: BaseException) -> str:
+    """A short reason for a text that is not a dict, without Python's internals."""
+    if isinstance(err, SyntaxError):
+        where = f" at column {err.offset}" if err.offset else ""
+        return f"{err.msg}{where}"
+    return type(err).__name__
 
 
 def deep_merge(base: Mapping[str, Any], override: Mapping[str, Any], _spec: Any = None) -> dict[str, Any]:
@@ -379,6 +506,29 @@ def _env_override() -> dict[str, Any]:
     return parse_override(text, source=f"--config (via {OVERRIDE_ENV})") if text.strip() else {}
 
 
+def _read_config_file(file: Path) -> dict[str, Any]:
+    """The validated content of one config file (no override applied).
+
+    Raises:
+        ConfigError: unreadable file, invalid JSON, or a value the schema refuses (one line).
+    """
+    source = _source_name(file)
+    try:
+        text = file.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{source}: not UTF-8 text (byte {e.start}); save it as UTF-8 JSON") from None
+    except OSError as e:
+        raise ConfigError(f"{source}: cannot be read ({e.strerror}); check its permissions") from None
+    try:
+        raw = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ConfigError(
+            f"{source}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}; "
+            "fix the file (comments and trailing commas are not allowed)"
+        ) from None
+    return validate(raw, source)
+
+
 def load_config(path: str | os.PathLike[str] | None = None,
                 overrides: Mapping[str, Any] | str | None = None) -> dict[str, Any]:
     """Load and validate ``config.json``.
@@ -401,20 +551,7 @@ def load_config(path: str | os.PathLike[str] | None = None,
     file = Path(path) if path is not None else config_path()
     source = _source_name(file)
     if file.is_file():
-        try:
-            text = file.read_text(encoding="utf-8-sig")
-        except UnicodeDecodeError as e:
-            raise ConfigError(f"{source}: not UTF-8 text (byte {e.start}); save it as UTF-8 JSON") from None
-        except OSError as e:
-            raise ConfigError(f"{source}: cannot be read ({e.strerror}); check its permissions") from None
-        try:
-            raw = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise ConfigError(
-                f"{source}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}; "
-                "fix the file (comments and trailing commas are not allowed)"
-            ) from None
-        cfg = validate(raw, source)
+        cfg = _read_config_file(file)
     elif file.exists():
         raise ConfigError(f"{source}: is not a file; remove it or run `python -m tmrl --install`")
     elif explicit:

@@ -604,6 +604,10 @@ SCHEMA = Section(
         "TRAINING_STEPS_PER_ROUND": Int(200, "training steps per round", min=1),
         "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": Number(4.0, "training pauses when updates per collected "
                                                                "sample exceed this", min=0, min_open=True),
+        "MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP": Number(
+            0.0, "workers pause when samples collected per training step exceed this (0: never); for "
+            "environments faster than real time, like the simulator in fast mode; real-time environments "
+            "pause only between episodes", min=0),
         "ENVIRONMENT_STEPS_BEFORE_TRAINING": Int(1000, "samples collected before training starts", min=0),
         "UPDATE_MODEL_INTERVAL": Int(200, "training steps between two broadcasts of the weights", min=1),
         "UPDATE_BUFFER_INTERVAL": Int(200, "training steps between two retrievals of new samples", min=1),
@@ -640,6 +644,14 @@ def check_consistency(cfg: Mapping[str, Any]) -> None:
             "ALG.UPDATE_ORDER",
             f'ALG.UPDATE_ORDER must be "simultaneous" when ALG.ALGORITHM is "REDQSAC" (the sequential order is '
             f"SAC's), got {show(alg['UPDATE_ORDER'])}",
+        )
+    pace, ratio = cfg["MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP"], cfg["MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP"]
+    if pace and pace * ratio < 1.0:
+        raise SchemaViolation(
+            "MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP",
+            f"MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP ({_fmt(pace)}) times MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP "
+            f"({_fmt(ratio)}) must be at least 1, or workers and trainer would wait for each other; raise one of "
+            "them or set MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP to 0",
         )
     env = cfg["ENV"]
     name = env["RTGYM_INTERFACE"]
@@ -706,6 +718,8 @@ _SIM_TRAINING: dict[str, Any] = {
     "UPDATE_MODEL_INTERVAL": 20,
     "UPDATE_BUFFER_INTERVAL": 20,
     "MEMORY_SIZE": 200000,
+    # The fast simulator runs far faster than the trainer: keep three samples per update at most.
+    "MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP": 3.0,
 }
 _SIM_RTGYM: dict[str, Any] = {
     "time_step_duration": 0.05,

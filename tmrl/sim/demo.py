@@ -44,10 +44,10 @@ DEMO_SETTINGS: dict[str, Any] = dict(
     img_hist_len=4, act_buf_len=2, ep_max_length=1000, batch_size=256, memory_size=200_000,
     lr=1e-3, gamma=0.99, polyak=0.995, alpha=0.2, steps_per_round=200, rounds=10,
     update_model_interval=20, update_buffer_interval=20, max_training_steps_per_env_step=1.0,
-    start_training=1000, worker_steps_per_update=60,
+    start_training=1000, max_env_steps_per_training_step=3.0,
 )
-# update_model_interval: a model every 20 updates keeps the worker moving smoothly (it waits for a
-# model after each `worker_steps_per_update` steps).
+# The worker keeps pace with the trainer (MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP, carried with the
+# weights): at most 3 samples per update; a model every 20 updates keeps the worker moving smoothly.
 
 _INTERFACES = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
 
@@ -205,6 +205,7 @@ def _training_cls(interface: str, track: str, workdir: Path) -> Any:
         update_buffer_interval=s["update_buffer_interval"], update_model_interval=s["update_model_interval"],
         max_training_steps_per_env_step=s["max_training_steps_per_env_step"],
         start_training=s["start_training"], device="cpu",
+        max_env_steps_per_training_step=s["max_env_steps_per_training_step"],
     )
 
 
@@ -234,11 +235,9 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
             sample_compressor=parts["sample_compressor"], obs_preprocessor=parts["obs_preprocessor"],
             server_ip="127.0.0.1", server_port=port, max_samples_per_episode=math.inf,
             model_path=str(workdir / "weights_worker.tmod"), model_history=0, **common)
-        if realtime:
-            worker.run()  # the clock sets the pace
-        else:
-            worker.run_synchronous(initial_steps=DEMO_SETTINGS["start_training"],
-                                   max_steps_per_update=DEMO_SETTINGS["worker_steps_per_update"], end_episodes=False)
+        # Fast mode: the trainer's pace (sent with the weights) holds the worker back; real time:
+        # the clock sets the pace, and the worker pauses between episodes only.
+        worker.run()
 
 
 # ------------------------------------------------------------------------------------------------
@@ -282,8 +281,17 @@ def _status_line(elapsed: float, worker: dict[str, Any], trainer: dict[str, Any]
             f"{updates / max(elapsed, 1e-9):6.1f} updates/s | {steps / max(elapsed, 1e-9):6.1f} samples/s")
 
 
-def _finish(workdir: Path, out: Path, track: str, worker: dict[str, Any]) -> dict[str, Path]:
-    from tmrl.sim.render import draw_trajectory, line_chart, track_map, write_png
+def _key_figures(worker: dict[str, Any]) -> str:
+    """The run's headline, for the charts: first lap and best lap time, or how far it got."""
+    first, best = worker.get("first_lap_s"), worker.get("best_lap")
+    if first is None:
+        return f"NO LAP YET AFTER {worker.get('episodes', 0)} EPISODES"
+    return f"FIRST LAP AFTER {first:.0f} S OF TRAINING, BEST LAP {best:.2f} S"
+
+
+def _finish(workdir: Path, out: Path, track: str, interface: str, worker: dict[str, Any]) -> dict[str, Path]:
+    from tmrl.sim.charts import lap_image, learning_curve_image
+    from tmrl.sim.render import write_png
     from tmrl.sim.track import make_track
 
     out.mkdir(parents=True, exist_ok=True)
@@ -292,31 +300,50 @@ def _finish(workdir: Path, out: Path, track: str, worker: dict[str, Any]) -> dic
     if weights.exists():
         paths["weights"] = out / "weights.safetensors"
         atomic_write_bytes(paths["weights"], weights.read_bytes())
-    returns = np.asarray(worker.get("returns") or [], dtype=np.float64)
     paths["curve"] = out / "learning_curve.png"
-    write_png(paths["curve"], line_chart(np.arange(1, len(returns) + 1), returns))
+    write_png(paths["curve"], learning_curve_image(worker.get("returns") or [],
+                                                   f"TMRL DEMO: {interface} ON TRACK {track}", [_key_figures(worker)]))
     path = np.zeros((0, 2))
     try:
         path = np.load(workdir / "best_path.npy", allow_pickle=False)
     except (OSError, ValueError):
         pass
+    best = worker.get("best_lap")
+    title = f"BEST LAP ON TRACK {track}" if best is not None else f"FARTHEST RUN ON TRACK {track} (NO LAP YET)"
+    note = f"LAP TIME {best:.2f} S (SIMULATED)" if best is not None else "THE CAR'S PATH, START LINE DASHED"
     paths["lap"] = out / "best_lap.png"
-    write_png(paths["lap"], draw_trajectory(track_map(make_track(track)), path))
+    write_png(paths["lap"], lap_image(make_track(track), path, title, [note]))
     return paths
 
 
+def _number(kind: type, minimum: float, strict: bool) -> Any:
+    """An argparse type: a ``kind`` number above (``strict``) or at least ``minimum``."""
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if not math.isfinite(value) or value < minimum or (strict and value == minimum):
+            raise argparse.ArgumentTypeError(f"must be {'above' if strict else 'at least'} {minimum:g}, got {text}")
+        return value
+    return parse
+
+
 def _parse(argv: Sequence[str]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m tmrl --demo",
-                                description="Train a driving policy on the built-in simulator: server, trainer and worker "
-                                            "on this machine, no game needed.")
+    from tmrl.cli import Parser
+
+    p = Parser(prog="python -m tmrl --demo", hint="`python -m tmrl --demo --help` lists the demo's options",
+               description="Train a driving policy on the built-in simulator: server, trainer and worker on this "
+                           "machine, no game needed.")
     p.add_argument("--interface", choices=_INTERFACES, help="observations (default SIMLIDAR, or the --config's)")
     p.add_argument("--track", help="track name (oval, classic, technical) or integer seed (default classic, "
                                    "or the --config's RTGYM_CONFIG.interface_kwargs.track)")
     p.add_argument("--config", help="a config.json whose ENV section (a SIM* interface) sets the environment")
-    p.add_argument("--minutes", type=float, default=15.0, help="time budget in minutes (default 15)")
-    p.add_argument("--steps", type=int, default=0, help="stop after this many environment steps (0: no limit)")
+    p.add_argument("--minutes", type=_number(float, 0.0, True), default=15.0, help="time budget in minutes (default 15)")
+    p.add_argument("--steps", type=_number(int, 0, False), default=0,
+                   help="stop after this many environment steps (0: no limit)")
     p.add_argument("--out", default="tmrl_demo", help="output folder (default ./tmrl_demo)")
-    p.add_argument("--start-training", type=int, default=DEMO_SETTINGS["start_training"],
+    p.add_argument("--start-training", type=_number(int, 1, False), default=DEMO_SETTINGS["start_training"],
                    help="environment steps collected before training starts (default 1000)")
     p.add_argument("--realtime", action="store_true",
                    help="run the simulator in real time through tmrl.realtime (20 steps/s) instead of fast mode")
@@ -358,6 +385,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.interface = args.interface or "SIMLIDAR"
     args.track = str(args.track or "classic")
     make_track(args.track)  # a bad name fails here, in one line
+    from tmrl.config.loader import ensure_data_folder, load_config
+
+    load_config()  # a configuration mistake is reported before anything is created
+    ensure_data_folder()  # before the demo starts its processes, which read it
     out = Path(args.out).resolve()
     workdir = Path(tempfile.mkdtemp(prefix="tmrl-demo-"))
     port = _free_port()
@@ -426,7 +457,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if tty:
         print()
     worker = _read_json(workdir / "worker.json") or worker
-    paths = _finish(workdir, out, args.track, worker)
+    paths = _finish(workdir, out, args.track, args.interface, worker)
     returns = worker.get("returns") or []
     first, best = worker.get("first_lap_s"), worker.get("best_lap")
     print(f"tmrl demo {'stopped (Ctrl-C)' if interrupted else 'finished'} after {time.monotonic() - t0:.0f} s: "

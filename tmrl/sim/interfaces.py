@@ -109,7 +109,8 @@ class ReplayRecorder:
         import datetime
         import json
 
-        from tmrl.sim.render import draw_trajectory, write_png
+        from tmrl.sim.charts import lap_image
+        from tmrl.sim.render import write_png
         from tmrl.util import atomic_write_text
 
         folder = self.folder
@@ -129,7 +130,8 @@ class ReplayRecorder:
         }
         json_path = folder / f"{stem}.json"
         atomic_write_text(json_path, json.dumps(record))
-        write_png(folder / f"{stem}.png", draw_trajectory(track_map(self.track), np.asarray(path)))
+        write_png(folder / f"{stem}.png", lap_image(self.track, np.asarray(path), f"REPLAY ON TRACK {self.track.name}",
+                                                   [f"LAP TIME {lap_time:.2f} S (SIMULATED)"]))
         self.saved.append(json_path)
         return json_path
 

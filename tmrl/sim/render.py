@@ -31,8 +31,6 @@ __all__ = [
     "TrackMap",
     "draw_trajectory",
     "encode_png",
-    "draw_text",
-    "line_chart",
     "track_map",
     "write_png",
 ]
@@ -213,67 +211,6 @@ def draw_trajectory(tmap: TrackMap, xy: np.ndarray, max_size: int = 800,
     if len(xy) >= 2:
         px = tmap.to_topdown_pixels(np.asarray(xy, dtype=np.float64), max_size)
         _polyline(img, px[:, 0], px[:, 1], colour, width=2)
-    return img
-
-
-# 3x5 pixel digits for chart labels (no font files, no plotting library)
-_GLYPHS = {
-    "0": "111101101101111", "1": "010110010010111", "2": "111001111100111", "3": "111001111001111",
-    "4": "101101111001001", "5": "111100111001111", "6": "111100111101111", "7": "111001001001001",
-    "8": "111101111101111", "9": "111101111001111", "-": "000000111000000", ".": "000000000000010",
-}
-
-
-def draw_text(img: np.ndarray, text: str, row: int, col: int, scale: int = 2, colour: tuple[int, int, int] = (0, 0, 0)) -> None:
-    """Write digits, '-' and '.' on an RGB image, top-left corner at ``(row, col)`` (other
-    characters are skipped); used for chart labels."""
-    h, w = img.shape[:2]
-    x = col
-    for ch in text:
-        glyph = _GLYPHS.get(ch)
-        if glyph is not None:
-            bits = np.array([int(b) for b in glyph], dtype=bool).reshape(5, 3)
-            block = np.kron(bits, np.ones((scale, scale), dtype=bool))
-            r1, c1 = min(h, row + block.shape[0]), min(w, x + block.shape[1])
-            if r1 > row and c1 > x:
-                img[row:r1, x:c1][block[: r1 - row, : c1 - x]] = colour
-        x += 4 * scale
-
-
-def _label(v: float) -> str:
-    return f"{v:.0f}" if abs(v) >= 10 or v == int(v) else f"{v:.1f}"
-
-
-def line_chart(x: np.ndarray, y: np.ndarray, width: int = 640, height: int = 360,
-               colour: tuple[int, int, int] = (30, 90, 200)) -> np.ndarray:
-    """A plain RGB line chart of ``y`` against ``x`` (a learning curve) without any plotting
-    library: white background, grey axes and a light grid at the zero line and the extremes."""
-    img = np.full((height, width, 3), 255, dtype=np.uint8)
-    x = np.asarray(x, dtype=np.float64)
-    y = np.asarray(y, dtype=np.float64)
-    m = 30  # margin in pixels
-    img[height - m, m:width - m] = 120
-    img[m:height - m, m] = 120
-    if len(x) == 0:
-        return img
-    x0, x1 = float(x.min()), float(x.max())
-    y0, y1 = min(0.0, float(y.min())), max(0.0, float(y.max()))
-    x1 = x1 if x1 > x0 else x0 + 1.0
-    y1 = y1 if y1 > y0 else y0 + 1.0
-    cols = m + (x - x0) / (x1 - x0) * (width - 2 * m - 1)
-    rows = (height - m) - (y - y0) / (y1 - y0) * (height - 2 * m - 1)
-    zero = int(round((height - m) - (0.0 - y0) / (y1 - y0) * (height - 2 * m - 1)))
-    img[zero, m:width - m] = 200
-    if len(x) == 1:
-        _polyline(img, np.array([rows[0], rows[0]]), np.array([cols[0], cols[0]]), colour, width=3)
-    else:
-        _polyline(img, rows, cols, colour, width=2)
-    # labels: the y range on the left, the x range below the axis
-    draw_text(img, _label(y1), 4, 4)
-    draw_text(img, _label(y0), height - m + 4, 4)
-    draw_text(img, _label(x0), height - m + 14, m)
-    last = _label(x1)
-    draw_text(img, last, height - m + 14, width - m - 8 * len(last))
     return img
 
 

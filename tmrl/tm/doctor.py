@@ -1,14 +1,15 @@
-"""``--doctor``: check a TrackMania setup piece by piece, before a training run fails.
+"""``--doctor``: check this machine's setup piece by piece, before a training run fails.
 
 Each check is a plain function returning a :class:`CheckResult` (pass, fail or skip, what was
 found, and for a failure the one-line fix). :func:`run_checks` runs them in order and
-:func:`run_doctor` prints the list and returns the exit code (0: every check passed, 1: at least
-one failed). No check raises: an unexpected error becomes a failed check whose fix asks to report
-it.
+:func:`run_doctor` prints the list and returns the exit code (0: nothing failed, 3: at least one
+check failed; 1 stays reserved for bugs in tmrl). No check raises: an unexpected error becomes a
+failed check whose fix asks to report it. Nothing is created.
 
-The checks, in order: config sanity, OpenPlanet connection and frame rate, the game window and its
-size, the gamepad driver, screen-capture time per frame, the reward file, the GPU, server
-reachability, TLS credentials.
+The checks, in order: the packages, the data folder, config sanity; for TrackMania interfaces
+only, the OpenPlanet connection and frame rate, the game window and its size, the gamepad driver,
+screen-capture time per frame and the reward file (other interfaces skip them); then the GPU,
+server reachability and TLS credentials.
 """
 
 from __future__ import annotations
@@ -24,7 +25,10 @@ from typing import Any, Callable, Mapping, TextIO
 from tmrl.errors import UserError
 
 __all__ = [
+    "CHECKS_FAILED",
     "CheckResult",
+    "check_data_folder",
+    "check_packages",
     "check_capture_speed",
     "check_config",
     "check_gamepad",
@@ -42,6 +46,9 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 TM_INTERFACES = ("TM20FULL", "TM20LIDAR", "TM20LIDARPROGRESS")
+
+#: Exit code of ``--doctor`` when a check failed (0: none did; 1 is kept for bugs in tmrl).
+CHECKS_FAILED = 3
 
 
 @dataclass(frozen=True)
@@ -275,13 +282,6 @@ def check_config(cfg: Mapping[str, Any]) -> CheckResult:
     env = cfg.get("ENV", {})
     problems: list[tuple[str, str]] = []
     interface = str(env.get("RTGYM_INTERFACE", ""))
-    if interface.upper() not in TM_INTERFACES:
-        problems.append(
-            (
-                f"ENV.RTGYM_INTERFACE is {interface!r}, not a TrackMania interface",
-                f"set ENV.RTGYM_INTERFACE to one of {', '.join(TM_INTERFACES)} to train on TrackMania",
-            )
-        )
     rt = env.get("RTGYM_CONFIG", {})
     step, capture = rt.get("time_step_duration", 0.05), rt.get("start_obs_capture", 0.04)
     if capture > step:
@@ -323,10 +323,49 @@ def check_config(cfg: Mapping[str, Any]) -> CheckResult:
     if problems:
         detail = "; ".join(p[0] for p in problems)
         return _fail(name, detail, "; ".join(p[1] for p in problems))
+    if interface.upper() not in TM_INTERFACES:
+        return _pass(name, f"{interface}, step {step * 1e3:.0f} ms")
     return _pass(
         name,
         f"{interface}, window {env.get('WINDOW_WIDTH')}x{env.get('WINDOW_HEIGHT')}, step {step * 1e3:.0f} ms",
     )
+
+
+def check_packages(interface: str = "") -> CheckResult:
+    """The Python version and the packages tmrl needs (the TrackMania extras for TM20*)."""
+    import importlib.util
+    import platform
+
+    name = "packages"
+    need = ["torch", "gymnasium", "numpy", "tlspyo", "safetensors"]
+    extras = ["mss", "cv2"] + (["vgamepad"] if platform.system() == "Windows" else [])
+    missing = [m for m in need if importlib.util.find_spec(m) is None]
+    if missing:
+        return _fail(name, f"missing {', '.join(missing)}", "reinstall tmrl: pip install torch==2.13.0 && pip install tmrl")
+    if interface.upper() in TM_INTERFACES:
+        gone = [m for m in extras if importlib.util.find_spec(m) is None]
+        if gone:
+            return _fail(name, f"TrackMania needs {', '.join(gone)}", 'pip install "tmrl[trackmania]"')
+    import torch
+
+    return _pass(name, f"Python {platform.python_version()}, torch {torch.__version__}")
+
+
+def check_data_folder(cfg: Mapping[str, Any]) -> CheckResult:
+    """The data folder: there and writable (never created here)."""
+    import os
+
+    from tmrl.config.loader import data_paths
+
+    name = "data folder"
+    paths = data_paths(cfg)
+    if not paths.root.exists():
+        return _skip(name, f"{paths.root} does not exist yet: `python -m tmrl --install` creates it")
+    if not paths.root.is_dir() or not os.access(paths.root, os.W_OK):
+        return _fail(name, f"{paths.root} is not a writable folder", "set TMRL_DATA to a folder you can write")
+    if not paths.config_file.is_file():
+        return _fail(name, f"{paths.root} has no config/config.json", "run `python -m tmrl --install`")
+    return _pass(name, f"{paths.root}, config.json there")
 
 
 # ---------------------------------------------------------------------------------------- runner
@@ -354,7 +393,7 @@ def run_checks(
     server_timeout: float = 2.0,
     only: tuple[str, ...] | None = None,
 ) -> list[CheckResult]:
-    """Run every check in order (or those named in ``only``: ``config``, ``openplanet``,
+    """Run every check in order (or those named in ``only``: ``packages``, ``data``, ``config``, ``openplanet``,
     ``window``, ``gamepad``, ``capture``, ``reward``, ``gpu``, ``server``, ``tls``).
 
     Args:
@@ -395,19 +434,28 @@ def run_checks(
             step,
         )
 
+    interface = str(env.get("RTGYM_INTERFACE", ""))
+    game = interface.upper() in TM_INTERFACES
+
+    def tm_only(title: str, fn: Callable[[], CheckResult]) -> Callable[[], CheckResult]:
+        return fn if game else (lambda: _skip(title, f"not needed for {interface}"))
+
     checks: list[tuple[str, str, Callable[[], CheckResult]]] = [
+        ("packages", "packages", lambda: check_packages(interface)),
+        ("data", "data folder", lambda: check_data_folder(cfg)),
         ("config", "config", lambda: check_config(cfg)),
         (
             "openplanet",
             "OpenPlanet telemetry",
-            lambda: check_openplanet(
+            tm_only("OpenPlanet telemetry", lambda: check_openplanet(
                 openplanet_host, openplanet_port, openplanet_wait, min_rate=min_frame_rate
-            ),
+            )),
         ),
-        ("window", "game window", lambda: check_window(window_title, width, height)),
-        ("gamepad", "gamepad driver", lambda: check_gamepad(bool(cfg.get("VIRTUAL_GAMEPAD", True)))),
-        ("capture", "capture time", capture),
-        ("reward", "reward file", lambda: check_reward_file(reward_path)),
+        ("window", "game window", tm_only("game window", lambda: check_window(window_title, width, height))),
+        ("gamepad", "gamepad driver",
+         tm_only("gamepad driver", lambda: check_gamepad(bool(cfg.get("VIRTUAL_GAMEPAD", True))))),
+        ("capture", "capture time", tm_only("capture time", capture)),
+        ("reward", "reward file", tm_only("reward file", lambda: check_reward_file(reward_path))),
         ("gpu", "GPU", lambda: check_gpu(bool(cfg.get("CUDA_TRAINING")), bool(cfg.get("CUDA_INFERENCE")))),
         (
             "server",
@@ -440,8 +488,9 @@ def format_report(results: list[CheckResult]) -> str:
 
 def run_doctor(cfg: Mapping[str, Any] | None = None, out: TextIO | None = None, **kwargs: Any) -> int:
     """Run the checks, print the report to ``out`` (default stdout), return the exit code:
-    0 when nothing failed, 1 otherwise. Keyword arguments go to :func:`run_checks`."""
+    0 when nothing failed, :data:`CHECKS_FAILED` (3) otherwise. Keyword arguments go to
+    :func:`run_checks`."""
     out = sys.stdout if out is None else out
     results = run_checks(cfg, **kwargs)
     print(format_report(results), file=out, flush=True)
-    return 0 if all(r.ok for r in results) else 1
+    return 0 if all(r.ok for r in results) else CHECKS_FAILED

@@ -42,7 +42,7 @@ def _load(cfg: Mapping[str, Any] | None) -> Mapping[str, Any]:
 
 
 def doctor(cfg: Mapping[str, Any] | None = None, out: TextIO | None = None, **kwargs: Any) -> int:
-    """``--doctor``: print the pass/fail list of :mod:`tmrl.tm.doctor`; 0 when nothing failed, else 1."""
+    """``--doctor``: print the pass/fail list of :mod:`tmrl.tm.doctor`; 0 when nothing failed, else 3."""
     from tmrl.tm.doctor import run_doctor
 
     return run_doctor(_load(cfg), out=out, **kwargs)
