@@ -36,7 +36,8 @@ def _run_demo(minutes: float, work: Path) -> list[str]:
     IMAGES.mkdir(exist_ok=True)
     shutil.copyfile(out / "learning_curve.png", IMAGES / "demo_learning_curve.png")
     shutil.copyfile(out / "best_lap.png", IMAGES / "demo_best_lap.png")
-    lines = [ln for ln in proc.stdout.splitlines() if ln.strip()]
+    # the output folder is a temporary one: show it as --out names it
+    lines = [ln.replace(str(out), "<out>") for ln in proc.stdout.splitlines() if ln.strip()]
     status = [ln for ln in lines if " s | episodes" in ln]
     # the first status lines, one every minute after that, and the summary
     keep = status[:3] + status[3::6] + [ln for ln in lines if " s | episodes" not in ln]
