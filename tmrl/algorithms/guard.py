@@ -84,11 +84,19 @@ class NonFiniteGuard:
         check = loss.detach().float().sum()
         if grads:
             check = check + _sum(grads)
+        if self.finite(check):
+            return True
+        for p in params:
+            p.grad = None
+        return False
+
+    def finite(self, check: torch.Tensor) -> bool:
+        """Whether ``check`` (a sum of the update's losses and gradients: NaN or inf anywhere
+        makes it non-finite) is finite; when it is not, the update is counted and logged like in
+        :meth:`update_ok`, and the caller must not step."""
         if bool(torch.isfinite(check)):
             return True
         self.skipped += 1
-        for p in params:
-            p.grad = None
         self._log(
             "skipped a training update whose loss or gradients are not finite (%d skipped so far): "
             "the parameters are unchanged",
