@@ -651,6 +651,98 @@ def test_a_fast_worker_keeps_to_the_trainers_budget_of_samples(tmp_path, port_fa
     assert w.pace.active and w.pace.limit == 2.0
 
 
+def test_a_real_time_worker_pauses_for_the_budget_only_between_episodes(tmp_path, port_factory, closing):
+    """A real-time environment's clock must not stop mid-episode: with the budget used up, the
+    worker finishes its episode before it waits for new weights."""
+    import gymnasium
+    from gymnasium.envs.classic_control.pendulum import PendulumEnv
+
+    from tmrl.envs import GenericGymEnv
+    from tmrl.models import SquashedGaussianMLPActor
+    from tmrl.util import partial
+
+    class RealTimePendulum(PendulumEnv):
+        """Pendulum that looks like an rtgym environment (it has benchmarks()) and counts steps."""
+
+        steps = 0
+
+        def reset(self, **kw):
+            RealTimePendulum.steps = 0
+            return super().reset(**kw)
+
+        def step(self, action):
+            RealTimePendulum.steps += 1
+            return super().step(action)
+
+        def benchmarks(self):
+            return {}
+
+    env_id = "TmrlTest/RealTimePendulum-v0"
+    if env_id not in gymnasium.registry:
+        gymnasium.register(env_id, entry_point=RealTimePendulum, max_episode_steps=50)
+    port = port_factory()
+    closing.append(Server(port=port, password=PW, security=None))
+    trainer = Trainer(training_cls=_paced_training(limit=2.0), server_ip="127.0.0.1", server_port=port, password=PW,
+                      security=None, model_path=str(tmp_path / "t.tmod"), checkpoint_path=None,
+                      obs_preprocessor=None, sample_compressor=None)
+    w = RolloutWorker(env_cls=partial(GenericGymEnv, id=env_id),
+                      actor_module_cls=partial(SquashedGaussianMLPActor, hidden_sizes=(16, 16)),
+                      server_ip="127.0.0.1", server_port=port, password=PW, security=None,
+                      model_path=str(tmp_path / "w.tmod"), max_samples_per_episode=50)
+    closing.append(w)
+    waits_at: list[int] = []
+    update = w.update_actor_weights
+
+    def recording_update(verbose=True, blocking=False):
+        if blocking:
+            waits_at.append(RealTimePendulum.steps)
+        return update(verbose=verbose, blocking=blocking)
+
+    w.update_actor_weights = recording_update
+    threading.Thread(target=w.run, daemon=True).start()
+    trainer.run()
+    assert w.pace.active
+    # 120 updates at 2 samples each from 50 samples: the worker ran ahead of its budget, so it
+    # waited, and only ever at the end of an episode (step 50 of 50)
+    assert len(waits_at) > 1 and set(waits_at) == {50}, waits_at
+
+
+def test_a_worker_closed_from_another_thread_stops_its_run(tmp_path, port_factory, closing):
+    from tmrl.envs import GenericGymEnv
+    from tmrl.models import SquashedGaussianMLPActor
+    from tmrl.util import partial
+
+    import gymnasium
+
+    env_id = "TmrlTest/LongPendulum-v0"
+    if env_id not in gymnasium.registry:
+        gymnasium.register(env_id, entry_point="gymnasium.envs.classic_control.pendulum:PendulumEnv",
+                           max_episode_steps=100_000)
+    port = port_factory()
+    closing.append(Server(port=port, password=PW, security=None))
+    w = RolloutWorker(env_cls=partial(GenericGymEnv, id=env_id),
+                      actor_module_cls=partial(SquashedGaussianMLPActor, hidden_sizes=(16, 16)),
+                      server_ip="127.0.0.1", server_port=port, password=PW, security=None,
+                      model_path=str(tmp_path / "w.tmod"), max_samples_per_episode=100_000)
+    failures: list[BaseException] = []
+
+    def run():
+        try:
+            w.run()
+        except BaseException as e:  # noqa: BLE001 - the test reports it
+            failures.append(e)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while len(w.buffer) < 500 and time.monotonic() < deadline:
+        time.sleep(0.01)  # polling the worker's own counter: mid-episode, nothing to await
+    assert len(w.buffer) >= 500, "the worker never got going"
+    w.close()  # mid-episode (episodes of 100,000 steps)
+    thread.join(10)
+    assert not thread.is_alive() and not failures, failures
+
+
 def test_pace_takes_the_trainers_fields_and_turns_off_without_them():
     from tmrl.networking import Pace
 

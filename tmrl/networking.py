@@ -1856,7 +1856,7 @@ class RolloutWorker:
             )
             ret += rew
             steps += 1
-            if terminated or truncated:
+            if terminated or truncated or self._closed:
                 break
         self.buffer.stat_train_return = ret
         self.buffer.stat_train_steps = steps
@@ -1903,6 +1903,8 @@ class RolloutWorker:
         """
         summary = EpisodeLog("expert" if expert else "train", level=logging.INFO if verbose else logging.DEBUG)
         for episode in self._steps(nb_episodes):
+            if self._closed:  # close() from another thread: stop between episodes
+                break
             if (
                 not expert
                 and test_episode_interval
@@ -2042,14 +2044,21 @@ class RolloutWorker:
         """Hand the buffered samples to the network and clear the buffer.
 
         While the server is unreachable the transport keeps them (bounded) and sends them on
-        reconnection. In standalone mode the samples are simply dropped.
+        reconnection. In standalone mode, or once the worker is closed (from another thread while
+        it runs), the samples are simply dropped.
         """
-        if self._link is None:
+        if self._link is None or self._closed:
             self.buffer.clear()
             return
         try:
             payload = pack_buffer(self.buffer, self.source_id, self._seq, run=self.run_id)
-            self._link.send_samples(payload)
+            try:
+                self._link.send_samples(payload)
+            except RuntimeError:
+                if not self._closed:
+                    raise
+                self.buffer.clear()  # closed while sending: the run is over for this worker
+                return
         except TypeError as err:
             raise UserError(
                 f"a sample holds something that cannot be sent ({err}): keep observations, actions "
