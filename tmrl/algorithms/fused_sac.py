@@ -229,7 +229,14 @@ class FusedSACUpdate:
         for w, b, out in zip(weights[:-1], biases[:-1], hidden):
             torch.baddbmm(b, h, w, out=out)
             h = out.relu_()
-        return torch.linalg.vecdot(h, weights[-1].transpose(1, 2)) + biases[-1].reshape(-1, 1)
+        # The output layer (width -> 1), one matrix-vector product per critic: a batched product
+        # with one output column is slow on CPU BLAS, and a dot product over the last axis
+        # materialises the whole elementwise product first.
+        w_out, b_out = weights[-1], biases[-1]
+        q = torch.empty(self.n, h.shape[1], dtype=h.dtype, device=h.device)
+        for k in range(self.n):
+            torch.addmv(b_out[k, 0], h[k], w_out[k, :, 0], out=q[k])
+        return q
 
     @torch.no_grad()
     def __call__(self, batch: tuple, eps: torch.Tensor | None = None) -> dict[str, Any]:
