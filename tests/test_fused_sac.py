@@ -192,3 +192,19 @@ def test_a_copied_agent_trains_its_own_parameters():
     for k, v in fused_agent.model.state_dict().items():
         assert torch.equal(v, before[k]), k  # the original is untouched
     assert any(not torch.equal(v, before[k]) for k, v in copy_agent.model.state_dict().items())
+
+
+def test_the_sequential_order_guards_the_actor_step_too():
+    """The sequential order back-propagates the actor loss on its own, after the critics' step:
+    a non-finite actor gradient there must not reach the actor."""
+    obs, act = _spaces()
+    torch.manual_seed(0)
+    agent = SACAgent(obs, act, device="cpu", update_order="sequential",
+                     model_cls=partial(MLPActorCritic, hidden_sizes=(16, 16)))
+    before = [p.detach().clone() for p in agent.model.actor.parameters()]
+    handle = agent.model.actor.mu_layer.weight.register_hook(lambda g: g * float("nan"))
+    metrics = agent.train(_batch((3,), 1, 32, torch.Generator().manual_seed(11)))
+    handle.remove()
+    assert agent.skipped_updates == 1 and math.isnan(metrics["loss_actor"])
+    for p, b in zip(agent.model.actor.parameters(), before):
+        assert torch.equal(p.detach(), b)

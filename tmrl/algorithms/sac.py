@@ -422,6 +422,9 @@ class SACAgent(TrainingAgent):
             loss_actor = (alpha * logp_pi - self.critics(o, pi, detach_params=True).min(0).values).mean()
             self.pi_optimizer.zero_grad(set_to_none=True)
             loss_actor.backward()
+            # The critics have stepped already; a non-finite actor gradient skips the rest.
+            if not self.guard.update_ok(loss_actor, self.actor.parameters()):
+                return self.guard.skipped_metrics()
         self.pi_optimizer.step()
         self._update_targets()
 
