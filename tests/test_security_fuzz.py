@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -134,29 +135,38 @@ def test_random_wrong_batches_never_reach_the_memory_or_the_parameters(tmp_path,
         iface = trainer.interface
         assert iface.wait_connected(30)
         mutations = _mutations(rng)
-        hostile = genuine_samples = seq = 0
+        sent = {"hostile": 0, "genuine_samples": 0, "seq": 0}
         used: set[str] = set()
         deadline = time.monotonic() + BUDGET_S
-        while time.monotonic() < deadline:
-            for _ in range(20):
+
+        def send() -> None:
+            # Its own thread: a send blocks while the relay holds the senders back for the
+            # trainer, which this test's main thread keeps consuming (one thread would deadlock).
+            while time.monotonic() < deadline:
+                for _ in range(20):
+                    size = int(rng.integers(2, 40))
+                    payload = genuine_payload(10**6 + sent["hostile"] * 100, size, src=666, seq=sent["hostile"])
+                    mutate = mutations[int(rng.integers(len(mutations)))]
+                    mutate(payload)
+                    used.add(mutate.__name__)
+                    bad.send_samples(payload)
+                    sent["hostile"] += 1
                 size = int(rng.integers(2, 40))
-                payload = genuine_payload(10**6 + hostile * 100, size, src=666, seq=hostile)
-                mutate = mutations[int(rng.integers(len(mutations)))]
-                mutate(payload)
-                used.add(mutate.__name__)
-                bad.send_samples(payload)
-                hostile += 1
-            size = int(rng.integers(2, 40))
-            payload = genuine_payload(genuine_samples, size, src=7, seq=seq)
-            if rng.random() < 0.3:  # bad statistics on a good batch: the samples still count
-                payload["stats"] = {"stat_train_return": math.nan, "stat_test_steps": -5}
-            good.send_samples(payload)
-            genuine_samples += size
-            seq += 1
+                payload = genuine_payload(sent["genuine_samples"], size, src=7, seq=sent["seq"])
+                if rng.random() < 0.3:  # bad statistics on a good batch: the samples still count
+                    payload["stats"] = {"stat_train_return": math.nan, "stat_test_steps": -5}
+                good.send_samples(payload)
+                sent["genuine_samples"] += size
+                sent["seq"] += 1
+
+        sender = threading.Thread(target=send, daemon=True)
+        sender.start()
+        while sender.is_alive():
             run.update_buffer(iface)
             if run.memory.total >= 16:
                 for _ in range(3):
                     run.agent.train(run.memory.sample())
+        hostile, genuine_samples, seq = sent["hostile"], sent["genuine_samples"], sent["seq"]
         wait_for(
             lambda: run.update_buffer(iface) >= 0
             and run.memory.total >= genuine_samples
