@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from tmrl.sim.render import _polyline
+
 __all__ = ["Series", "draw_label", "lap_chart", "lap_image", "learning_curve_chart", "learning_curve_image",
            "text_width"]
 
@@ -101,19 +103,6 @@ def draw_label(img: np.ndarray, text: str, row: int, col: int, scale: int = 2, c
         img[r0:r1, c0:c1][mask[r0 - row: r1 - row, c0 - col: c1 - col]] = colour
 
 
-def _line(img: np.ndarray, rows: np.ndarray, cols: np.ndarray, colour: Colour, width: int = 1) -> None:
-    """A polyline through ``(rows, cols)``, ``width`` pixels thick."""
-    h, w = img.shape[:2]
-    for (r0, c0), (r1, c1) in zip(zip(rows[:-1], cols[:-1]), zip(rows[1:], cols[1:])):
-        n = int(max(abs(r1 - r0), abs(c1 - c0))) + 1
-        rr = np.rint(np.linspace(r0, r1, n)).astype(np.int64)
-        cc = np.rint(np.linspace(c0, c1, n)).astype(np.int64)
-        for dr in range(-(width // 2), width - width // 2):
-            for dc in range(-(width // 2), width - width // 2):
-                ok = (rr + dr >= 0) & (rr + dr < h) & (cc + dc >= 0) & (cc + dc < w)
-                img[rr[ok] + dr, cc[ok] + dc] = colour
-
-
 def _nice_ticks(lo: float, hi: float, count: int = 5) -> list[float]:
     """Round tick values covering ``[lo, hi]`` (steps of 1, 2 or 5 times a power of ten)."""
     span = max(hi - lo, 1e-9)
@@ -184,7 +173,7 @@ def learning_curve_chart(series: Sequence[Series], title: str, x_title: str, y_t
             rows, cols = to_px(np.asarray(s.x, dtype=np.float64), np.asarray(s.y, dtype=np.float64))
             if len(rows) == 1:  # one point: a dot
                 rows, cols = np.repeat(rows, 2), np.repeat(cols, 2)
-            _line(img, rows, cols, s.colour, s.width)
+            _polyline(img, rows, cols, s.colour, s.width)
     return img
 
 
@@ -205,7 +194,7 @@ def lap_chart(topdown: np.ndarray, path_px: np.ndarray, title: str, notes: Seque
     img = np.full((h + band + 30, max(w, 420), 3), 255, dtype=np.uint8)
     img[band:band + h, :w] = topdown[:, :, None]
     if len(path_px) >= 2:
-        _line(img, path_px[:, 0] + band, path_px[:, 1], colour, width=2)
+        _polyline(img, path_px[:, 0] + band, path_px[:, 1], colour, width=2)
     draw_label(img, title, 8, 8)
     for i, note in enumerate(notes):
         draw_label(img, note, 30 + 18 * i, 8, colour=(60, 60, 60))
