@@ -535,10 +535,13 @@ def test_relay_memory_has_a_budget_and_half_sent_objects_a_timeout(port_factory,
             time.sleep(0.05)
     # the third would take the relay past its budget: closed at once, with one line
     assert raws[2].closed(10)
-    assert any("memory budget" in r.getMessage() and "SERVER_MEMORY_BYTES" in r.getMessage() for r in caplog.records)
+    # (the relay's log lines come from its own process: wait for them rather than read them once)
+    wait_for(lambda: any("memory budget" in r.getMessage() and "SERVER_MEMORY_BYTES" in r.getMessage()
+                         for r in caplog.records), what="the memory budget line")
     # the two others are closed once their half-sent object has waited partial_timeout
     assert raws[0].closed(10) and raws[1].closed(10)
-    assert any("no part of a message for 2 s" in r.getMessage() for r in caplog.records)
+    wait_for(lambda: any("no part of a message for 2 s" in r.getMessage() for r in caplog.records),
+             what="the half-sent object timeout line")
     # the memory they held is free again: a genuine worker and trainer still get through
     worker = WorkerLink("127.0.0.1", port, PW, security=None)
     trainer = TrainerLink("127.0.0.1", port, PW, security=None)
