@@ -261,18 +261,18 @@ def test_the_two_update_orders_differ_and_unknown_orders_are_refused():
 
 
 def _reference_redq_step(ag: REDQSACAgent, batch: tuple, lr: float) -> dict[str, torch.Tensor]:
-    """REDQ-SAC with plain SGD, drawing its random numbers in the agent's order (target
-    actions, then the subset, then the policy's actions): the target is the minimum over a
+    """REDQ-SAC with plain SGD, drawing its random numbers in the agent's order (the policy's
+    actions, then the target actions, then the subset): the target is the minimum over a
     random subset of ``m`` *target* critics; every critic regresses on it; the actor maximises
     the mean of all ``n`` critics (before their step)."""
     o, a, r, o2, d, _ = batch
     alpha = ag.log_alpha.detach().exp()
+    pi, logp_pi = ag.model.actor(o)
     with torch.no_grad():
         a2, logp_a2 = ag.model.actor(o2)
         subset = torch.randperm(ag.n)[: ag.m]
         q_targ = torch.stack([ag.model_target.qs[int(i)](o2, a2) for i in subset]).min(0).values
         backup = r + ag.gamma * (1 - d) * (q_targ - alpha * logp_a2)
-    pi, logp_pi = ag.model.actor(o)
     q = torch.stack([ag.model.qs[i](o, a) for i in range(ag.n)])
     loss_q = ((q - backup) ** 2).mean(1).mean()
     critic_named = list(ag.model.qs.named_parameters())

@@ -42,6 +42,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from tmrl.config.settings import NetSettings
 from tmrl.errors import UserError
 from tmrl.util import RateLimitedLog, show_progress_on_console
 from tmrl.spaces import (  # noqa: F401 (re-exported: their home was this module)
@@ -106,52 +107,20 @@ class _NotGiven:
 NOT_GIVEN: Any = _NotGiven()
 
 
-def _cfg(name: str, value: Any, fallback: Any = None) -> Any:
-    """``value`` unless it is ``None``/``FROM_CONFIG``; otherwise ``config_constants.<name>``.
-
-    The config module is imported here, at construction time, never at import of this module.
-    ``fallback`` is used when the config module does not define ``name``.
-    """
-    if value is not None and value is not FROM_CONFIG:
-        return value
-    from tmrl.config import config_constants as cc
-
-    return getattr(cc, name, fallback)
+def _given(value: Any, default: Any) -> Any:
+    """``value`` unless it is ``None`` or ``FROM_CONFIG`` (then ``default``, from the settings)."""
+    return default if value is None or value is FROM_CONFIG else value
 
 
-def _link_options() -> dict[str, Any]:
-    """Transport options that only the config sets (plain TCP beyond localhost, pickle opt-in,
-    frame size limit)."""
-    opts: dict[str, Any] = {
-        "allow_plain_tcp": bool(_cfg("ALLOW_PLAIN_TCP", None, False)),
-        "allow_pickle": bool(_cfg("ALLOW_PICKLE", None, False)),
-    }
-    max_frame = _cfg("MAX_FRAME_BYTES", None, None)
-    if max_frame:
-        opts["max_frame_bytes"] = int(max_frame)
-    return opts
+def _given_keep_none(value: Any, default: Any) -> Any:
+    """``value`` unless it is ``FROM_CONFIG``: an explicit ``None`` means something of its own."""
+    return default if value is FROM_CONFIG else value
 
 
-def _relay_options() -> dict[str, Any]:
-    """Relay memory bounds that only the config sets (``None`` keys keep the relay's defaults)."""
-    opts: dict[str, Any] = {}
-    for key, arg in (
-        ("SERVER_MEMORY_BYTES", "max_total_bytes"),
-        ("SERVER_PARTIAL_TIMEOUT", "partial_timeout"),
-    ):
-        value = _cfg(key, None, None)
-        if value is not None:
-            opts[arg] = value
-    return opts
-
-
-def _cfg_keep_none(name: str, value: Any, fallback: Any = None) -> Any:
-    """Like :func:`_cfg`, but an explicit ``None`` is kept (only ``FROM_CONFIG`` reads config)."""
-    if value is not FROM_CONFIG:
-        return value
-    from tmrl.config import config_constants as cc
-
-    return getattr(cc, name, fallback)
+def _settings(settings: NetSettings | None) -> NetSettings:
+    """``settings``, or those of ``config.json`` (loaded now: a role reads the config when it is
+    built, never at import)."""
+    return settings if settings is not None else NetSettings.load()
 
 
 # ================================================================================================
@@ -192,7 +161,7 @@ class Buffer:
     """
 
     def __init__(self, maxlen: int | None = None):
-        self.maxlen = int(_cfg("BUFFERS_MAXLEN", maxlen, 500_000))
+        self.maxlen = int(maxlen if maxlen is not None else NetSettings.load().buffers_maxlen)
         if self.maxlen <= 0:
             raise UserError(f"Buffer maxlen must be positive, got {self.maxlen}: set BUFFERS_MAXLEN > 0")
         self._memory: list[Any] = []
@@ -861,17 +830,19 @@ class Server:
         security: str | None = FROM_CONFIG,
         keys_dir: str | os.PathLike[str] | None = None,
         max_workers: int | None = FROM_CONFIG,
+        *,
+        settings: NetSettings | None = None,
     ):
         from tmrl.transport import RelayServer
 
         show_progress_on_console()
-
-        port = int(_cfg("PORT", port, 55555))
-        password = _cfg("PASSWORD", password, "")
-        header_size = int(_cfg("HEADER_SIZE", header_size, 10))
-        security = _cfg_keep_none("SECURITY", security, "TLS")
-        keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
-        max_workers = _cfg_keep_none("NB_WORKERS", max_workers, None)
+        cfg = _settings(settings)
+        port = int(_given(port, cfg.port))
+        password = _given(password, cfg.password)
+        header_size = int(_given(header_size, cfg.header_size))
+        security = _given_keep_none(security, cfg.security)
+        keys_dir = _given(keys_dir, cfg.credentials_directory)
+        max_workers = _given_keep_none(max_workers, cfg.max_workers)
         if max_workers is not None and int(max_workers) < 0:
             max_workers = None
         self.port = port
@@ -886,8 +857,8 @@ class Server:
             keys_dir=str(keys_dir) if keys_dir is not None else None,
             max_workers=max_workers,
             trainer_key_file=Path(keys_dir) / TRAINER_PUBLIC_KEY_FILE if keys_dir is not None else None,
-            **_link_options(),
-            **_relay_options(),
+            **cfg.link_options(),
+            **cfg.relay_options(),
         )
         Server._alive.append(self)
         logger.info("server listening on port %d (%s)", port, "TLS" if security else "plain TCP")
@@ -925,22 +896,23 @@ def _make_link(
     security: str | None,
     keys_dir: str | os.PathLike[str] | None,
     hostname: str | None,
+    settings: NetSettings | None = None,
     **extra: Any,
 ) -> Any:
     """A transport link (``WorkerLink`` or ``TrainerLink``) with every unset argument taken from
-    the config, as the worker and the trainer both need; ``extra`` goes to the link as is."""
-    security = _cfg_keep_none("SECURITY", security, "TLS")
-    keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
+    the settings, as the worker and the trainer both need; ``extra`` goes to the link as is."""
+    cfg = _settings(settings)
+    keys_dir = _given(keys_dir, cfg.credentials_directory)
     return link_cls(
         server_ip,
-        int(_cfg("PORT", server_port, 55555)),
-        _cfg("PASSWORD", password, ""),
+        int(_given(server_port, cfg.port)),
+        _given(password, cfg.password),
         local_port=local_port,
-        header_size=int(_cfg("HEADER_SIZE", header_size, 10)),
-        security=security,
+        header_size=int(_given(header_size, cfg.header_size)),
+        security=_given_keep_none(security, cfg.security),
         keys_dir=str(keys_dir) if keys_dir is not None else None,
-        hostname=_cfg("HOSTNAME", hostname, "default"),
-        **_link_options(),
+        hostname=_given(hostname, cfg.hostname),
+        **cfg.link_options(),
         **extra,
     )
 
@@ -1073,15 +1045,18 @@ class TrainerInterface:
         schema: SampleSchema | None = None,
         run_id: str | None = None,
         sign_weights: bool = True,
+        *,
+        settings: NetSettings | None = None,
     ):
         from tmrl.transport import TrainerLink
 
-        self.model_path = Path(_cfg("MODEL_PATH_TRAINER", model_path, "model_trainer.tmod"))
-        self.server_ip = _cfg("SERVER_IP_FOR_TRAINER", server_ip, "127.0.0.1")
-        self.maxlen = int(_cfg("BUFFERS_MAXLEN", None, 500_000))
+        cfg = _settings(settings)
+        self.model_path = Path(_given(model_path, cfg.model_path_trainer))
+        self.server_ip = _given(server_ip, cfg.server_ip_for_trainer)
+        self.maxlen = cfg.buffers_maxlen
         self.schema = schema
         self.run_id = run_id
-        keys = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
+        keys = _given(keys_dir, cfg.credentials_directory)
         self._key: Any = None
         if sign_weights and keys is not None:
             from tmrl.transport.credentials import ensure_trainer_key
@@ -1097,6 +1072,7 @@ class TrainerInterface:
             security,
             keys_dir,
             hostname,
+            cfg,
             trainer_key=self._key,
         )
         self._stats: collections.OrderedDict[int | None, dict[str, float]] = collections.OrderedDict()
@@ -1328,14 +1304,17 @@ class Trainer:
         updater_fn: Callable[[Any, Any], Any] | None = None,
         obs_preprocessor: Callable[[Any], Any] | None = NOT_GIVEN,
         sample_compressor: Callable[..., tuple] | None = NOT_GIVEN,
+        *,
+        settings: NetSettings | None = None,
     ):
         show_progress_on_console()
+        cfg = self.settings = _settings(settings)
         if training_cls is None:
             from tmrl.config import config_objects
 
             training_cls = config_objects.TRAINER
         self.training_cls = training_cls
-        cp = _cfg_keep_none("CHECKPOINT_PATH", checkpoint_path, None)
+        cp = _given_keep_none(checkpoint_path, cfg.checkpoint_path)
         self.checkpoint_path = str(cp) if cp is not None else None
         self._default_checkpoint = dump_run_instance_fn is None and load_run_instance_fn is None
         if dump_run_instance_fn is None or load_run_instance_fn is None:
@@ -1361,6 +1340,7 @@ class Trainer:
             keys_dir=keys_dir,
             hostname=hostname,
             model_path=model_path,
+            settings=cfg,
         )
 
     def checkpoint_exists(self) -> bool:
@@ -1490,10 +1470,11 @@ class Trainer:
             raise UserError('wandb is not installed: pip install "tmrl[wandb]"') from err
         from tmrl.util import partial_to_dict
 
-        entity = _cfg("WANDB_ENTITY", entity, None)
-        project = _cfg("WANDB_PROJECT", project, "tmrl")
-        run_id = _cfg("WANDB_RUN_ID", run_id, None)
-        key = _cfg("WANDB_KEY", key, None)
+        cfg = self.settings
+        entity = _given(entity, cfg.wandb_entity)
+        project = _given(project, cfg.wandb_project)
+        run_id = _given(run_id, cfg.wandb_run_id)
+        key = _given(key, cfg.wandb_key)
         if key:
             os.environ["WANDB_API_KEY"] = key
         try:
@@ -1675,17 +1656,20 @@ class RolloutWorker:
         security: str | None = FROM_CONFIG,
         keys_dir: str | os.PathLike[str] | None = None,
         hostname: str | None = None,
+        *,
+        settings: NetSettings | None = None,
     ):
         show_progress_on_console()
+        cfg = _settings(settings)
         self.obs_preprocessor = obs_preprocessor
         self.get_local_buffer_sample = sample_compressor
         self.env = env_cls()
         obs_space = self.env.observation_space
         act_space = self.env.action_space
         self.spaces = describe_spaces(obs_space, act_space)
-        self.model_path = Path(_cfg("MODEL_PATH_WORKER", model_path, "model_worker.tmod"))
-        self.model_path_history = str(_cfg("MODEL_PATH_SAVE_HISTORY", model_path_history, "model_history_"))
-        self.model_history = int(_cfg("MODEL_HISTORY", model_history, 0))
+        self.model_path = Path(_given(model_path, cfg.model_path_worker))
+        self.model_path_history = str(_given(model_path_history, cfg.model_path_save_history))
+        self.model_history = int(_given(model_history, cfg.model_history))
         self.device = device
         self.actor = actor_module_cls(observation_space=obs_space, action_space=act_space).to_device(device)
         if self.model_path.is_file():
@@ -1694,7 +1678,7 @@ class RolloutWorker:
         self.max_samples_per_episode = max_samples_per_episode
         self.crc_debug = crc_debug
         self.source_id = secrets.randbelow(2**31 - 1) + 1
-        self.buffer = Buffer()
+        self.buffer = Buffer(cfg.buffers_maxlen)
         self.buffer.source_id = self.source_id
         self._seq = 0
         self._cur_hist_cpt = 0
@@ -1705,11 +1689,11 @@ class RolloutWorker:
         self._paused_mid_episode = not _is_real_time(self.env)
         self.rejected_weights = 0
         self._weights_log = RateLimitedLog(logger, logging.ERROR, 10.0)
-        self._keys_dir = _cfg("CREDENTIALS_DIRECTORY", keys_dir, None)
+        self._keys_dir = _given(keys_dir, cfg.credentials_directory)
         self._unsigned_warned = False
         self.debug_ts_cpt = 0
         self.debug_ts_res_cpt = 0
-        self.server_ip = _cfg("SERVER_IP_FOR_WORKER", server_ip, "127.0.0.1")
+        self.server_ip = _given(server_ip, cfg.server_ip_for_worker)
         self._link: Any = None
         self._closed = False
         if not standalone:
@@ -1725,6 +1709,7 @@ class RolloutWorker:
                 security,
                 keys_dir,
                 hostname,
+                cfg,
             )
             logger.info("worker %d connecting to the server at %s", self.source_id, self.server_ip)
 

@@ -76,6 +76,13 @@ def _constants() -> Any:
     return config_constants
 
 
+def _settings() -> Any:
+    """The roles' settings of the loaded config (the one ``config_objects`` was built from)."""
+    from tmrl.config.settings import NetSettings
+
+    return NetSettings.from_config(_constants().TMRL_CONFIG)
+
+
 def _objects() -> Any:
     from tmrl.config import config_objects
 
@@ -95,7 +102,7 @@ def run_server(cfg: Mapping[str, Any] | None = None, stop_event: threading.Event
     from tmrl.networking import Server
 
     _interrupt_on_sigterm()
-    server = Server()
+    server = Server(settings=_settings())
     stop_event = stop_event or threading.Event()
     logger.info("server running on port %d; Ctrl-C to stop", server.port)
     try:
@@ -131,12 +138,10 @@ def trainer_from_config() -> Any:
     """The :class:`~tmrl.networking.Trainer` that ``--trainer`` runs, built from the config."""
     from tmrl.networking import Trainer
 
-    cc, co = _constants(), _objects()
+    co = _objects()
     return Trainer(
         training_cls=co.TRAINER,
-        server_ip=getattr(cc, "SERVER_IP_FOR_TRAINER", None),
-        model_path=getattr(cc, "MODEL_PATH_TRAINER", None),
-        checkpoint_path=getattr(cc, "CHECKPOINT_PATH", None),
+        settings=_settings(),
         dump_run_instance_fn=getattr(co, "DUMP_RUN_INSTANCE_FN", None),
         load_run_instance_fn=getattr(co, "LOAD_RUN_INSTANCE_FN", None),
         updater_fn=getattr(co, "UPDATER_FN", None),
@@ -157,12 +162,7 @@ def run_trainer(cfg: Mapping[str, Any] | None = None, wandb: bool = False) -> in
     logger.info("trainer running %s", getattr(_objects(), "ALG_NAME", "the configured algorithm"))
     try:
         if wandb:
-            trainer.run_with_wandb(
-                entity=getattr(cc, "WANDB_ENTITY", None),
-                project=getattr(cc, "WANDB_PROJECT", None),
-                run_id=getattr(cc, "WANDB_RUN_ID", None),
-                key=getattr(cc, "WANDB_KEY", None),
-            )
+            trainer.run_with_wandb()  # entity, project, run id and key from the settings
         else:
             trainer.run()
     except KeyboardInterrupt as err:
@@ -202,19 +202,17 @@ def worker_from_config(standalone: bool = False, save_replays: bool = False) -> 
     (``save_replays``: with the interface's replays on, for :func:`tmrl.tools.save_replays.save_replays`)."""
     from tmrl.networking import RolloutWorker
 
-    cc, co = _constants(), _objects()
-    max_samples = getattr(cc, "RW_MAX_SAMPLES_PER_EPISODE", None)
+    cc, co, settings = _constants(), _objects(), _settings()
     return RolloutWorker(
         env_cls=_with_replays(_env_cls()) if save_replays else _env_cls(),
         actor_module_cls=co.POLICY,
         sample_compressor=getattr(co, "SAMPLE_COMPRESSOR", None),
         device="cuda" if getattr(cc, "CUDA_INFERENCE", False) else "cpu",
-        max_samples_per_episode=max_samples if max_samples is not None else float("inf"),
-        model_path=getattr(cc, "MODEL_PATH_WORKER", None),
+        max_samples_per_episode=settings.max_samples_per_episode,
         obs_preprocessor=getattr(co, "OBS_PREPROCESSOR", None),
         crc_debug=bool(getattr(cc, "CRC_DEBUG", False)),
         standalone=standalone,
-        server_ip=getattr(cc, "SERVER_IP_FOR_WORKER", None),
+        settings=settings,
     )
 
 

@@ -8,12 +8,16 @@ from __future__ import annotations
 
 from tmrl.algorithms.redq import REDQSACAgent
 from tmrl.algorithms.sac import SACAgent, SpinupSacAgent
+from tmrl.config.schema import AGENT_CLASSES
 from tmrl.errors import UserError
 
 __all__ = ["ALGORITHMS", "REDQSACAgent", "SACAgent", "SpinupSacAgent", "agent_class"]
 
-#: Values of ``ALG.ALGORITHM`` and the agents they select.
-ALGORITHMS: dict[str, type] = {"SAC": SACAgent, "REDQSAC": REDQSACAgent}
+#: Values of ``ALG.ALGORITHM`` and the agents they select (the names come from the settings
+#: table, :data:`tmrl.config.schema.AGENT_CLASSES`).
+ALGORITHMS: dict[str, type] = {
+    name: {cls.__name__: cls for cls in (SACAgent, REDQSACAgent)}[cls_name] for name, cls_name in AGENT_CLASSES.items()
+}
 
 
 def agent_class(name: str) -> type:

@@ -45,8 +45,9 @@ def fused_unsupported_reason(agent: Any) -> str | None:
     """Why ``agent`` cannot take the fused update (None: it can)."""
     from tmrl.algorithms.sac import SACAgent
 
-    if type(agent).train is not SACAgent.train:
-        return f"{type(agent).__name__} has its own train()"
+    for step in SACAgent.STEPS:
+        if getattr(type(agent), step) is not getattr(SACAgent, step):
+            return f"{type(agent).__name__} has its own {step}()"
     if agent.update_order != "simultaneous":
         return "update_order is not 'simultaneous'"
     actor = getattr(agent.model, "actor", None)

@@ -1,9 +1,12 @@
 """REDQ-SAC (Chen et al. 2021, "Randomized Ensembled Double Q-Learning").
 
-``n`` critics, all trained on the same targets; each target takes the minimum over a random
-subset of ``m`` target critics; the actor maximises the mean of all ``n`` critics and is updated
-once every ``q_updates_per_policy_update`` critic updates (the update-to-data ratio). The ``n``
-critics are one :class:`~tmrl.models.EnsembleQFunction`, evaluated by batched matrix products.
+SAC's update (:meth:`tmrl.algorithms.sac.SACAgent.train`) with three of its steps changed:
+``n`` critics all regress on one target, which takes the minimum over a random subset of ``m``
+target critics (:meth:`REDQSACAgent.target_q`); the actor maximises the mean of all ``n``
+critics (:meth:`REDQSACAgent.policy_q`); and the actor and the entropy coefficient are updated
+once every ``q_updates_per_policy_update`` critic updates (:meth:`REDQSACAgent.policy_update_due`,
+the update-to-data ratio). The ``n`` critics are one :class:`~tmrl.models.EnsembleQFunction`,
+evaluated by batched matrix products.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from typing import Any
 import torch
 
 from tmrl.algorithms.sac import SACAgent, _build_model
+from tmrl.config.schema import redq_subset_problem
 from tmrl.errors import UserError
 from tmrl.models import REDQMLPActorCritic
 
@@ -21,8 +25,9 @@ __all__ = ["REDQSACAgent"]
 
 
 class REDQSACAgent(SACAgent):
-    """REDQ-SAC. Takes every argument of :class:`~tmrl.algorithms.sac.SACAgent` (same meaning;
-    ``model_cls`` defaults to :class:`~tmrl.models.REDQMLPActorCritic`) plus:
+    """REDQ-SAC. Takes every argument of :class:`~tmrl.algorithms.sac.SACAgent` but
+    ``update_order`` and ``fused`` (same meaning; ``model_cls`` defaults to
+    :class:`~tmrl.models.REDQMLPActorCritic`) plus:
 
     Args:
         n: number of critics; passed to ``model_cls`` as ``n=`` when it accepts it.
@@ -61,13 +66,15 @@ class REDQSACAgent(SACAgent):
         self.n = int(n)
         self.m = int(m)
         self.q_updates_per_policy_update = int(q_updates_per_policy_update)
-        if not 1 <= self.m <= self.n:
-            raise UserError(f"REDQ needs 1 <= m <= n, got n={n}, m={m}: fix ALG.REDQ_M / ALG.REDQ_N")
+        problem = redq_subset_problem(self.n, self.m)
+        if problem:
+            raise UserError(f"REDQ-SAC needs 1 <= m <= n, got n={n}, m={m}: {problem}")
         if self.q_updates_per_policy_update < 1:
             raise UserError(
                 f"q_updates_per_policy_update={q_updates_per_policy_update} must be >= 1 "
                 "(ALG.REDQ_Q_UPDATES_PER_POLICY_UPDATE)"
             )
+        self.i_update = 0
         super().__init__(
             observation_space=observation_space,
             action_space=action_space,
@@ -93,90 +100,40 @@ class REDQSACAgent(SACAgent):
                 f"REDQ was asked for n={self.n} critics but {getattr(model_cls, '__name__', model_cls)} built "
                 f"{len(self.critics)}: give the model an `n` argument or set ALG.REDQ_N={len(self.critics)}"
             )
-        self.i_update = 0
-        self.loss_pi = torch.zeros((), device=self.device)
-        self.loss_alpha = torch.zeros((), device=self.device)
 
     def _make_model(self) -> torch.nn.Module:
         return _build_model(self.model_cls, self.observation_space, self.action_space, n=self.n)
 
-    def train(self, batch: tuple) -> dict[str, Any]:
-        """One REDQ critic update, plus an actor (and entropy) update every
-        ``q_updates_per_policy_update`` calls.
+    # --- the steps that differ from SAC ---------------------------------------------------------
 
-        Returns:
-            Same metrics as :meth:`SACAgent.train`; ``loss_actor`` and ``loss_entropy_coef``
-            are those of the latest actor update.
-        """
+    def policy_update_due(self) -> bool:
+        """Counts the update; true once every ``q_updates_per_policy_update`` of them."""
         self.i_update += 1
-        update_policy = self.i_update % self.q_updates_per_policy_update == 0
-        o, a, r, o2, d, _ = batch  # the truncated flag is deliberately unused
-        r = r.reshape(-1)
-        d = d.reshape(-1)
-        alpha = self._entropy_coef()  # defined on every update, learned or not
+        return self.i_update % self.q_updates_per_policy_update == 0
 
-        with torch.no_grad():
-            a2, logp_a2 = self.actor(o2)
-            # Global torch RNG, so that torch.manual_seed makes runs reproducible.
-            subset = torch.randperm(self.n)[: self.m]
-            q_targ = self.critics_target(o2, a2, members=subset).min(0).values
-            # Bootstrap unless terminated; truncated transitions keep their future value.
-            backup = r + self.gamma * (1.0 - d) * (q_targ - alpha * logp_a2)
+    def target_q(self, next_obs: Any, next_act: torch.Tensor) -> torch.Tensor:
+        """The minimum over a random subset of ``m`` of the ``n`` target critics (drawn from the
+        global torch generator, so that ``torch.manual_seed`` makes runs reproducible)."""
+        subset = torch.randperm(self.n)[: self.m]
+        return self.critics_target(next_obs, next_act, members=subset).min(0).values
 
-        pi = logp_pi = None
-        if update_policy:
-            pi, logp_pi = self.actor(o)
-        # q (n, B); on policy updates also Q(o, pi) with the critic weights detached.
-        q, q_pi_all = self.critics.with_policy_values(o, a, pi)
-        loss_critic = (q - backup).square().mean()  # mean over critics: homogeneous with SAC
-        loss = loss_critic
+    def policy_q(self, q_pi_all: torch.Tensor) -> torch.Tensor:
+        """The mean over all ``n`` critics."""
+        return q_pi_all.mean(0)
 
-        if q_pi_all is not None and logp_pi is not None:
-            # Mean over all n critics: this loss moves the actor only.
-            q_pi = q_pi_all.mean(0)
-            loss_actor = (alpha * logp_pi - q_pi).mean()
-            loss = loss + loss_actor
-            self.loss_pi = loss_actor.detach()
-            if self.log_alpha is not None:
-                loss_alpha = -(self.log_alpha * (logp_pi.detach() + self.target_entropy)).mean()
-                loss = loss + loss_alpha
-                self.loss_alpha = loss_alpha.detach()
-
-        self.q_optimizer.zero_grad(set_to_none=True)
-        if update_policy:
-            self.pi_optimizer.zero_grad(set_to_none=True)
-            if self.alpha_optimizer is not None:
-                self.alpha_optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if not self.guard.update_ok(loss, self._guarded):
-            return self.guard.skipped_metrics()
-        self.q_optimizer.step()
-        if update_policy:
-            self.pi_optimizer.step()
-            if self.alpha_optimizer is not None:
-                self.alpha_optimizer.step()
-        self._update_targets()
-
-        metrics: dict[str, Any] = {
-            "loss_actor": self.loss_pi,
-            "loss_critic": loss_critic.detach(),
-            "entropy_coef": alpha,
-            "debug_q": q.detach().mean(),
-            "debug_backup": backup.mean(),
-        }
-        if logp_pi is not None:
-            metrics["debug_log_pi"] = logp_pi.detach().mean()
-        if self.log_alpha is not None:
-            metrics["loss_entropy_coef"] = self.loss_alpha
-        return metrics
+    # --- checkpointing ------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """:meth:`SACAgent.state_dict` plus the update counter (it decides actor updates)."""
+        """:meth:`SACAgent.state_dict` plus the update counter (it decides policy updates) and
+        the losses of the latest policy update (reported until the next one)."""
         state = super().state_dict()
         state["i_update"] = self.i_update
         state["loss_actor"] = self.loss_pi
+        state["loss_entropy_coef"] = self.loss_alpha
         return state
 
     def _load_extra_state(self, state: dict[str, Any]) -> None:
         self.i_update = int(state["i_update"])
-        self.loss_pi = torch.as_tensor(state.get("loss_actor", 0.0), device=self.device).reshape(())
+        for attr, key in (("loss_pi", "loss_actor"), ("loss_alpha", "loss_entropy_coef")):
+            value = torch.as_tensor(state.get(key, 0.0), device=self.device).reshape(())
+            setattr(self, attr, value)

@@ -33,6 +33,8 @@ import torch
 from tmrl.actor import TorchActorModule
 from tmrl.algorithms.fused_sac import FusedSACUpdate
 from tmrl.algorithms.guard import NonFiniteGuard
+from tmrl.batch import Batch
+from tmrl.config.schema import OPTIMIZERS, UPDATE_ORDERS
 from tmrl.custom.utils.nn import copy_shared, no_grad
 from tmrl.errors import UserError
 from tmrl.models import EnsembleQFunction, MLPActorCritic
@@ -41,11 +43,9 @@ from tmrl.util import cached_property
 
 __all__ = ["UPDATE_ORDERS", "CriticSet", "SACAgent", "SpinupSacAgent", "make_optimizer"]
 
-UPDATE_ORDERS = ("simultaneous", "sequential")
-"""Values of ``SACAgent(update_order=...)`` (config ``ALG.UPDATE_ORDER``)."""
-
 logger = logging.getLogger(__name__)
 
+#: The optimizer of each name of :data:`tmrl.config.schema.OPTIMIZERS` (a test checks they match).
 _OPTIMIZERS: dict[str, Callable[..., torch.optim.Optimizer]] = {
     "adam": torch.optim.Adam,
     "adamw": torch.optim.AdamW,
@@ -76,7 +76,7 @@ def make_optimizer(
     """
     key = str(name).lower()
     if key not in _OPTIMIZERS:
-        raise UserError(f"{what}={name!r} is not a known optimizer: use one of 'adam', 'adamw', 'sgd'")
+        raise UserError(f"{what}={name!r} is not a known optimizer: use one of {', '.join(map(repr, OPTIMIZERS))}")
     params = list(params)
     kwargs: dict[str, Any] = {"lr": float(lr)}
     if betas is not None and key in ("adam", "adamw"):
@@ -254,6 +254,10 @@ class SACAgent(TrainingAgent):
 
     model_nograd = cached_property(lambda self: no_grad(copy_shared(self.model)))
 
+    #: The steps a subclass may override; the fused update computes SAC's own and is used only
+    #: when none of them is overridden.
+    STEPS = ("train", "policy_update_due", "target_q", "policy_q", "target_value", "actor_loss", "entropy_loss")
+
     def __init__(
         self,
         observation_space: Any = None,
@@ -341,6 +345,9 @@ class SACAgent(TrainingAgent):
         # Non-finite losses or gradients skip the update (tmrl/algorithms/guard.py).
         self.guard = NonFiniteGuard()
         self._guarded: list[torch.Tensor] = self._params + ([self.log_alpha] if self.log_alpha is not None else [])
+        # The losses of the latest policy update (reported by updates that do not update it).
+        self.loss_pi = torch.zeros((), device=device)
+        self.loss_alpha = torch.zeros((), device=device)
         self.fused_update: FusedSACUpdate | None = FusedSACUpdate.for_agent(self) if fused else None
 
     @property
@@ -365,79 +372,159 @@ class SACAgent(TrainingAgent):
         # target <- polyak * target + (1 - polyak) * online, every tensor in one call.
         torch._foreach_lerp_(self._target_params, self._params, 1.0 - self.polyak)
 
+    # --- one update, top to bottom ------------------------------------------------------------
+
     def train(self, batch: tuple) -> dict[str, Any]:
-        """One SAC update on ``batch = (obs, act, rew, next_obs, terminated, truncated)``.
+        """One update on ``batch`` (a :class:`~tmrl.batch.Batch`, or any 6-tuple ``(obs, act,
+        rew, next_obs, terminated, truncated)``), in the order of the SAC paper: the soft
+        Bellman target from the target critics, the critics' regression on it, then (when
+        :meth:`policy_update_due`) the actor and the entropy coefficient, and Polyak averaging.
+        Subclasses change the steps below, not this method.
 
         Returns:
-            ``loss_actor``, ``loss_critic``, ``entropy_coef`` (the coefficient used in this
-            update), ``loss_entropy_coef`` (SAC v2) and a few ``debug_*`` means, all 0-dim
-            tensors (``float()`` them to log).
+            ``loss_actor`` and ``loss_entropy_coef`` (SAC v2) of the latest policy update,
+            ``loss_critic``, ``entropy_coef`` (the coefficient used in this update) and a few
+            ``debug_*`` means, all 0-dim tensors (``float()`` them to log).
         """
-        fused = self.fused_update
+        fused = self._fused()
         if fused is not None:
-            if fused.agent is not self:  # this agent is a copy (copy.deepcopy) of fused.agent
-                fused = self.fused_update = FusedSACUpdate.for_agent(self)
-            if fused is not None:
-                return fused(batch)
-        o, a, r, o2, d, _ = batch  # the truncated flag is deliberately unused
-        r = r.reshape(-1)
-        d = d.reshape(-1)
+            return fused(batch)
+        b = Batch(*batch)
         alpha = self._entropy_coef()
-
-        pi, logp_pi = self.actor(o)
-        with torch.no_grad():
-            # Target actions come from the current policy, values from the target critics.
-            a2, logp_a2 = self.actor(o2)
-            q_targ = self.critics_target(o2, a2).min(0).values
-            # Bootstrap unless the episode *terminated*: a truncated episode would have gone on,
-            # so its last transition keeps its future value.
-            backup = r + self.gamma * (1.0 - d) * (q_targ - alpha * logp_a2)
-
+        update_policy = self.policy_update_due()
         simultaneous = self.update_order == "simultaneous"
-        # q (2, B) for the critic loss; Q(o, pi) with the critic weights detached, so that the
-        # actor loss moves the actor only.
-        q, q_pi_all = self.critics.with_policy_values(o, a, pi if simultaneous else None)
-        loss_critic = (q - backup).square().mean()  # mean of the two critics' MSE
-        loss = loss_critic
-        loss_alpha = None
-        if self.log_alpha is not None:
-            loss_alpha = -(self.log_alpha * (logp_pi.detach() + self.target_entropy)).mean()
-            loss = loss + loss_alpha
-        if simultaneous:
-            loss_actor = (alpha * logp_pi - cast(torch.Tensor, q_pi_all).min(0).values).mean()
-            loss = loss + loss_actor
-            self.pi_optimizer.zero_grad(set_to_none=True)
+        # a ~ pi(.|o), reparameterised: what the actor and entropy losses differentiate through
+        pi, logp_pi = self.actor(b.obs) if update_policy else (None, None)
+        backup = self.target_value(b, alpha)
+        # Q(o, a) of every critic; in the simultaneous order also Q(o, pi) with the critic weights
+        # detached, so that the actor loss moves the actor only.
+        q, q_pi_all = self.critics.with_policy_values(b.obs, b.act, pi if simultaneous else None)
+        loss_critic = (q - backup).square().mean()  # mean over critics: one scale for SAC and REDQ
+        loss_alpha = self.entropy_loss(logp_pi) if logp_pi is not None else None
+        loss_actor = self.actor_loss(alpha, logp_pi, q_pi_all) if q_pi_all is not None else None
+        if not self._step(loss_critic, loss_actor, loss_alpha, update_policy):
+            return self.guard.skipped_metrics()
+        if update_policy and not simultaneous:
+            loss_actor = self._actor_step_after_critics(b.obs, alpha, pi, logp_pi)
+            if loss_actor is None:
+                return self.guard.skipped_metrics()
+        self._update_targets()
+        if loss_actor is not None:
+            self.loss_pi = loss_actor.detach()
+        if loss_alpha is not None:
+            self.loss_alpha = loss_alpha.detach()
+        return self._metrics(alpha, loss_critic, q, backup, logp_pi)
 
-        self.q_optimizer.zero_grad(set_to_none=True)
-        if self.alpha_optimizer is not None:
-            self.alpha_optimizer.zero_grad(set_to_none=True)
+    # --- the steps (REDQ and other agents override these) -------------------------------------
+
+    def policy_update_due(self) -> bool:
+        """Whether this update also steps the actor and the entropy coefficient. Called once at
+        the start of every update. SAC: always."""
+        return True
+
+    def target_q(self, next_obs: Any, next_act: torch.Tensor) -> torch.Tensor:
+        """``Q_targ(o', a')``, shape ``(B,)``. SAC: the minimum over the target critics (clipped
+        double Q)."""
+        return self.critics_target(next_obs, next_act).min(0).values
+
+    def policy_q(self, q_pi_all: torch.Tensor) -> torch.Tensor:
+        """The value the actor maximises, from the critics' ``Q(o, pi)`` ``(k, B)``. SAC: their
+        minimum."""
+        return q_pi_all.min(0).values
+
+    @torch.no_grad()
+    def target_value(self, batch: Batch, alpha: torch.Tensor) -> torch.Tensor:
+        """The soft Bellman target ``r + gamma (1 - terminated) (Q_targ(o', a') - alpha log pi(a'|o'))``
+        with ``a' ~ pi(.|o')`` from the current policy, shape ``(B,)``.
+
+        Bootstraps unless the episode *terminated*: a truncated episode would have gone on, so
+        its last transition keeps its future value (the truncated flag is deliberately unused).
+        """
+        a2, logp_a2 = self.actor(batch.next_obs)
+        r, d = batch.rew.reshape(-1), batch.terminated.reshape(-1)
+        return r + self.gamma * (1.0 - d) * (self.target_q(batch.next_obs, a2) - alpha * logp_a2)
+
+    def actor_loss(self, alpha: torch.Tensor, logp_pi: torch.Tensor, q_pi_all: torch.Tensor) -> torch.Tensor:
+        """``mean(alpha log pi(a|o) - policy_q(Q(o, a)))``, ``a ~ pi(.|o)``."""
+        return (alpha * logp_pi - self.policy_q(q_pi_all)).mean()
+
+    def entropy_loss(self, logp_pi: torch.Tensor) -> torch.Tensor | None:
+        """SAC v2's loss of ``log(alpha)`` toward ``target_entropy`` (None when alpha is fixed)."""
+        if self.log_alpha is None:
+            return None
+        return -(self.log_alpha * (logp_pi.detach() + self.target_entropy)).mean()
+
+    # --- mechanics ------------------------------------------------------------------------------
+
+    def _fused(self) -> FusedSACUpdate | None:
+        """The fused update when this agent takes it (rebuilt for a copy of the agent)."""
+        fused = self.fused_update
+        if fused is not None and fused.agent is not self:  # this agent is a copy (copy.deepcopy)
+            fused = self.fused_update = FusedSACUpdate.for_agent(self)
+        return fused
+
+    def _step(
+        self,
+        loss_critic: torch.Tensor,
+        loss_actor: torch.Tensor | None,
+        loss_alpha: torch.Tensor | None,
+        update_policy: bool,
+    ) -> bool:
+        """One backward pass through the sum of the losses, then a step of each optimizer whose
+        loss is in it (the entropy coefficient's and the actor's only when ``update_policy``);
+        False (and no step) when a loss or gradient is not finite."""
+        if not update_policy:
+            loss_actor = loss_alpha = None
+        loss = loss_critic
+        optimizers = [self.q_optimizer]
+        if loss_alpha is not None:
+            loss = loss + loss_alpha
+            optimizers.append(cast(torch.optim.Optimizer, self.alpha_optimizer))
+        if loss_actor is not None:
+            loss = loss + loss_actor
+            optimizers.append(self.pi_optimizer)
+        for opt in optimizers:
+            opt.zero_grad(set_to_none=True)
         loss.backward()
         if not self.guard.update_ok(loss, self._guarded):
-            return self.guard.skipped_metrics()
-        self.q_optimizer.step()
-        if self.alpha_optimizer is not None:
-            self.alpha_optimizer.step()
-        if not simultaneous:
-            # The original's order: the actor loss reads the critics after their step.
-            loss_actor = (alpha * logp_pi - self.critics(o, pi, detach_params=True).min(0).values).mean()
-            self.pi_optimizer.zero_grad(set_to_none=True)
-            loss_actor.backward()
-            # The critics have stepped already; a non-finite actor gradient skips the rest.
-            if not self.guard.update_ok(loss_actor, self.actor.parameters()):
-                return self.guard.skipped_metrics()
-        self.pi_optimizer.step()
-        self._update_targets()
+            return False
+        for opt in optimizers:
+            opt.step()
+        return True
 
+    def _actor_step_after_critics(
+        self, obs: Any, alpha: torch.Tensor, pi: torch.Tensor, logp_pi: torch.Tensor
+    ) -> torch.Tensor | None:
+        """The sequential order (the original tmrl SAC): the actor loss reads the critics after
+        their step, with a backward pass of its own. None when its gradient is not finite (the
+        critics have stepped already; the actor and the targets do not)."""
+        loss_actor = self.actor_loss(alpha, logp_pi, self.critics(obs, pi, detach_params=True))
+        self.pi_optimizer.zero_grad(set_to_none=True)
+        loss_actor.backward()
+        if not self.guard.update_ok(loss_actor, self.actor.parameters()):
+            return None
+        self.pi_optimizer.step()
+        return loss_actor
+
+    def _metrics(
+        self,
+        alpha: torch.Tensor,
+        loss_critic: torch.Tensor,
+        q: torch.Tensor,
+        backup: torch.Tensor,
+        logp_pi: torch.Tensor | None,
+    ) -> dict[str, Any]:
         metrics: dict[str, Any] = {
-            "loss_actor": loss_actor.detach(),
+            "loss_actor": self.loss_pi,
             "loss_critic": loss_critic.detach(),
             "entropy_coef": alpha,
-            "debug_log_pi": logp_pi.detach().mean(),
-            "debug_q": q.detach().mean(),
-            "debug_backup": backup.mean(),
         }
-        if loss_alpha is not None:
-            metrics["loss_entropy_coef"] = loss_alpha.detach()
+        if logp_pi is not None:
+            metrics["debug_log_pi"] = logp_pi.detach().mean()
+        metrics["debug_q"] = q.detach().mean()
+        metrics["debug_backup"] = backup.mean()
+        if self.log_alpha is not None:
+            metrics["loss_entropy_coef"] = self.loss_alpha
         return metrics
 
     # --- checkpointing ------------------------------------------------------------------------

@@ -6,7 +6,9 @@ that file does not exist yet, plus ``$TMRL_CONFIG_OVERRIDE``) and exposes the va
 original names. Unlike the original it creates no folder, downloads nothing, sets no environment
 variable and configures no logging; paths are :class:`pathlib.Path` objects.
 
-New code should call :func:`~tmrl.config.loader.load_config` and pass the dict around instead.
+New code should call :func:`~tmrl.config.loader.load_config` and pass the dict around, or hand
+:class:`tmrl.config.settings.NetSettings` to the roles, instead. The networking values below are
+taken from :class:`~tmrl.config.settings.NetSettings`, where they are derived once.
 
 Raises (at import):
     tmrl.config.loader.ConfigError: the configuration is invalid (one line naming the key).
@@ -19,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from tmrl.config.loader import data_paths, load_config
+from tmrl.config.settings import NetSettings
 
 __compatibility__ = "0.6.0"
 
@@ -28,6 +31,7 @@ CONFIG_VERSION: str = TMRL_CONFIG["__VERSION__"]
 # --- data folder ---------------------------------------------------------------------------------
 
 _PATHS = data_paths(TMRL_CONFIG)
+_NET = NetSettings.from_config(TMRL_CONFIG)
 TMRL_FOLDER: Path = _PATHS.root
 PATH_DATA: Path = TMRL_FOLDER
 CONFIG_FOLDER: Path = TMRL_FOLDER / "config"
@@ -54,8 +58,8 @@ SEED: int | None = TMRL_CONFIG["SEED"]
 LOCALHOST_WORKER: bool = TMRL_CONFIG["LOCALHOST_WORKER"]
 LOCALHOST_TRAINER: bool = TMRL_CONFIG["LOCALHOST_TRAINER"]
 PUBLIC_IP_SERVER: str = TMRL_CONFIG["PUBLIC_IP_SERVER"]
-SERVER_IP_FOR_WORKER: str = "127.0.0.1" if LOCALHOST_WORKER else PUBLIC_IP_SERVER
-SERVER_IP_FOR_TRAINER: str = "127.0.0.1" if LOCALHOST_TRAINER else PUBLIC_IP_SERVER
+SERVER_IP_FOR_WORKER: str = _NET.server_ip_for_worker
+SERVER_IP_FOR_TRAINER: str = _NET.server_ip_for_trainer
 
 # --- environment ---------------------------------------------------------------------------------
 
@@ -100,37 +104,37 @@ DEBUG_MODE: bool = TMRL_CONFIG["DEBUG_MODE"]
 
 # --- files ---------------------------------------------------------------------------------------
 
-MODEL_HISTORY: int = TMRL_CONFIG["SAVE_MODEL_EVERY"]
-MODEL_PATH_WORKER: Path = _PATHS.model_worker
-MODEL_PATH_SAVE_HISTORY: Path = _PATHS.model_history_prefix
-MODEL_PATH_TRAINER: Path = _PATHS.model_trainer
-CHECKPOINT_PATH: Path = _PATHS.checkpoint
+MODEL_HISTORY: int = _NET.model_history
+MODEL_PATH_WORKER: Path = _NET.model_path_worker
+MODEL_PATH_SAVE_HISTORY: Path = _NET.model_path_save_history
+MODEL_PATH_TRAINER: Path = _NET.model_path_trainer
+CHECKPOINT_PATH: Path = _NET.checkpoint_path
 DATASET_PATH: Path = _PATHS.dataset
 REWARD_PATH: Path = _PATHS.reward_file
 
 # --- wandb ---------------------------------------------------------------------------------------
 
-WANDB_RUN_ID: str = RUN_NAME
-WANDB_PROJECT: str = TMRL_CONFIG["WANDB_PROJECT"]
-WANDB_ENTITY: str = TMRL_CONFIG["WANDB_ENTITY"]
-WANDB_KEY: str = TMRL_CONFIG["WANDB_KEY"]
+WANDB_RUN_ID: str = _NET.wandb_run_id
+WANDB_PROJECT: str = _NET.wandb_project
+WANDB_ENTITY: str = _NET.wandb_entity
+WANDB_KEY: str = _NET.wandb_key
 
 # --- networking ----------------------------------------------------------------------------------
 
 PRINT_BYTESIZES = True
-PORT: int = TMRL_CONFIG["PORT"]
+PORT: int = _NET.port
 LOCAL_PORT_SERVER: int = TMRL_CONFIG["LOCAL_PORT_SERVER"]
 LOCAL_PORT_TRAINER: int = TMRL_CONFIG["LOCAL_PORT_TRAINER"]
 LOCAL_PORT_WORKER: int = TMRL_CONFIG["LOCAL_PORT_WORKER"]
-PASSWORD: str = TMRL_CONFIG["PASSWORD"]
-SECURITY: str | None = "TLS" if TMRL_CONFIG["TLS"] else None
-CREDENTIALS_DIRECTORY: Path = CREDENTIALS_FOLDER
-HOSTNAME: str = TMRL_CONFIG["TLS_HOSTNAME"]
-NB_WORKERS: int | None = None if TMRL_CONFIG["NB_WORKERS"] < 0 else TMRL_CONFIG["NB_WORKERS"]
+PASSWORD: str = _NET.password
+SECURITY: str | None = _NET.security
+CREDENTIALS_DIRECTORY: Path = _NET.credentials_directory
+HOSTNAME: str = _NET.hostname
+NB_WORKERS: int | None = _NET.max_workers
 BUFFER_SIZE: int = TMRL_CONFIG["BUFFER_SIZE"]
-HEADER_SIZE: int = TMRL_CONFIG["HEADER_SIZE"]
-ALLOW_PLAIN_TCP: bool = TMRL_CONFIG["ALLOW_PLAIN_TCP"]
-ALLOW_PICKLE: bool = TMRL_CONFIG["ALLOW_PICKLE"]
-MAX_FRAME_BYTES: int = TMRL_CONFIG["MAX_FRAME_BYTES"]
-SERVER_MEMORY_BYTES: int = TMRL_CONFIG["SERVER_MEMORY_BYTES"]
-SERVER_PARTIAL_TIMEOUT: float = TMRL_CONFIG["SERVER_PARTIAL_TIMEOUT"]
+HEADER_SIZE: int = _NET.header_size
+ALLOW_PLAIN_TCP: bool = _NET.allow_plain_tcp
+ALLOW_PICKLE: bool = _NET.allow_pickle
+MAX_FRAME_BYTES: int = _NET.max_frame_bytes
+SERVER_MEMORY_BYTES: int = _NET.server_memory_bytes
+SERVER_PARTIAL_TIMEOUT: float = _NET.server_partial_timeout

@@ -41,7 +41,7 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 import tmrl.config.config_constants as cfg
-from tmrl.config.schema import ConfigError
+from tmrl.config.schema import AGENT_CLASSES, ConfigError, arguments
 from tmrl.errors import UserError
 from tmrl.util import partial
 
@@ -185,10 +185,7 @@ DEVICE_INFERENCE: str = _device(cfg.CUDA_INFERENCE)
 
 _rtgym: dict[str, Any] = cfg.ENV_CONFIG["RTGYM_CONFIG"]
 _GenericGymEnv = _attr("tmrl.envs", "GenericGymEnv")
-_memory_common: dict[str, Any] = {
-    "memory_size": cfg.TMRL_CONFIG["MEMORY_SIZE"],
-    "batch_size": cfg.TMRL_CONFIG["BATCH_SIZE"],
-}
+_memory_common: dict[str, Any] = arguments(cfg.TMRL_CONFIG, "GenericTorchMemory")
 
 INT: Any = None
 CONFIG_DICT: dict[str, Any] | None = None
@@ -286,33 +283,10 @@ CONFIG_DICT_MODIFIERS: dict[str, Any] = dict(_rtgym)
 
 # --- algorithm -----------------------------------------------------------------------------------
 
-_agent_kwargs: dict[str, Any] = {
-    "model_cls": TRAIN_MODEL,
-    "lr_actor": ALG_CONFIG["LR_ACTOR"],
-    "lr_critic": ALG_CONFIG["LR_CRITIC"],
-    "lr_entropy": ALG_CONFIG["LR_ENTROPY"],
-    "gamma": ALG_CONFIG["GAMMA"],
-    "polyak": ALG_CONFIG["POLYAK"],
-    "learn_entropy_coef": ALG_CONFIG["LEARN_ENTROPY_COEF"],
-    "target_entropy": ALG_CONFIG["TARGET_ENTROPY"],
-    "alpha": ALG_CONFIG["ALPHA"],
-    "optimizer_actor": ALG_CONFIG["OPTIMIZER_ACTOR"],
-    "optimizer_critic": ALG_CONFIG["OPTIMIZER_CRITIC"],
-    "betas_actor": list(ALG_CONFIG["BETAS_ACTOR"]),
-    "betas_critic": list(ALG_CONFIG["BETAS_CRITIC"]),
-    "l2_actor": ALG_CONFIG["L2_ACTOR"],
-    "l2_critic": ALG_CONFIG["L2_CRITIC"],
-}
-if ALG_NAME == "SAC":
-    AGENT = partial(_attr("tmrl.algorithms.sac", "SACAgent"), **_agent_kwargs, update_order=ALG_CONFIG["UPDATE_ORDER"])
-else:
-    AGENT = partial(
-        _attr("tmrl.algorithms.redq", "REDQSACAgent"),
-        **_agent_kwargs,
-        n=ALG_CONFIG["REDQ_N"],
-        m=ALG_CONFIG["REDQ_M"],
-        q_updates_per_policy_update=ALG_CONFIG["REDQ_Q_UPDATES_PER_POLICY_UPDATE"],
-    )
+# Every ALG key reaches its agent argument by the settings table (tmrl/config/schema.py, ``feeds``).
+_agent_name = AGENT_CLASSES[ALG_NAME]
+_agent_module = "tmrl.algorithms.sac" if ALG_NAME == "SAC" else "tmrl.algorithms.redq"
+AGENT = partial(_attr(_agent_module, _agent_name), model_cls=TRAIN_MODEL, **arguments(cfg.TMRL_CONFIG, _agent_name))
 
 # --- training loop -------------------------------------------------------------------------------
 
@@ -321,15 +295,8 @@ TRAINER = partial(
     env_cls=ENV_CLS,
     memory_cls=MEMORY,
     training_agent_cls=AGENT,
-    epochs=cfg.TMRL_CONFIG["MAX_EPOCHS"],
-    rounds=cfg.TMRL_CONFIG["ROUNDS_PER_EPOCH"],
-    steps=cfg.TMRL_CONFIG["TRAINING_STEPS_PER_ROUND"],
-    update_buffer_interval=cfg.TMRL_CONFIG["UPDATE_BUFFER_INTERVAL"],
-    update_model_interval=cfg.TMRL_CONFIG["UPDATE_MODEL_INTERVAL"],
-    max_training_steps_per_env_step=cfg.TMRL_CONFIG["MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP"],
-    start_training=cfg.TMRL_CONFIG["ENVIRONMENT_STEPS_BEFORE_TRAINING"],
     device=DEVICE_TRAINING,
-    max_env_steps_per_training_step=cfg.TMRL_CONFIG["MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP"],
+    **arguments(cfg.TMRL_CONFIG, "TorchTrainingOffline"),
 )
 
 # --- checkpoints (the original's hooks; none are needed by the built-in pipelines) ---------------

@@ -43,7 +43,14 @@ __all__ = [
     "Section",
     "Spec",
     "Str",
+    "AGENT_CLASSES",
+    "NO_CLASS_DEFAULT",
+    "OPTIMIZERS",
+    "UPDATE_ORDERS",
+    "arguments",
     "check_consistency",
+    "fed_arguments",
+    "redq_subset_problem",
     "default_config_json",
     "defaults",
     "example_json",
@@ -65,6 +72,15 @@ class SchemaViolation(Exception):
         super().__init__(message)
         self.path = path
         self.message = message
+
+
+class _NoClassDefault:
+    def __repr__(self) -> str:
+        return "<no class default>"
+
+
+NO_CLASS_DEFAULT: Any = _NoClassDefault()
+"""``Spec.class_default`` of a key whose argument has no default of its own in the class."""
 
 
 def show(value: Any, limit: int = 80) -> str:
@@ -95,14 +111,30 @@ class Spec:
         default: the value a missing key takes (deep-copied on use).
         doc: one-line meaning, shown in ``docs/config.md``.
         nullable: ``null`` (Python ``None``) is accepted as well.
+        feeds: the constructor arguments this key sets, as ``"Class.argument"`` (for example
+            ``"SACAgent.lr_actor"``); :func:`arguments` collects them for one class, and a test
+            checks that each class takes each argument.
+        class_default: the default of that argument in the class's own signature, when the class
+            has one of its own (a script that builds ``SACAgent(...)`` without the argument gets
+            it; ``config.json`` gets ``default``). A test checks the signatures against it.
     """
 
     kind = "value"
 
-    def __init__(self, default: Any, doc: str, *, nullable: bool = False):
+    def __init__(
+        self,
+        default: Any,
+        doc: str,
+        *,
+        nullable: bool = False,
+        feeds: Sequence[str] = (),
+        class_default: Any = NO_CLASS_DEFAULT,
+    ):
         self.default = default
         self.doc = doc
         self.nullable = nullable
+        self.feeds = tuple(feeds)
+        self.class_default = class_default
 
     @property
     def expected(self) -> str:
@@ -164,8 +196,9 @@ class Int(Spec):
         min: int | None = None,
         max: int | None = None,
         nullable: bool = False,
+        **table: Any,
     ):
-        super().__init__(default, doc, nullable=nullable)
+        super().__init__(default, doc, nullable=nullable, **table)
         self.min = min
         self.max = max
 
@@ -215,8 +248,9 @@ class Number(Spec):
         min_open: bool = False,
         max_open: bool = False,
         nullable: bool = False,
+        **table: Any,
     ):
-        super().__init__(default, doc, nullable=nullable)
+        super().__init__(default, doc, nullable=nullable, **table)
         self.min = min
         self.max = max
         self.min_open = min_open
@@ -261,8 +295,8 @@ class Str(Spec):
     kind = "string"
 
     def __init__(self, default: Any, doc: str, *, nonempty: bool = False, forbid: str = "",
-                 nullable: bool = False):
-        super().__init__(default, doc, nullable=nullable)
+                 nullable: bool = False, **table: Any):
+        super().__init__(default, doc, nullable=nullable, **table)
         self.nonempty = nonempty
         self.forbid = forbid
 
@@ -289,8 +323,9 @@ class Choice(Spec):
 
     kind = "choice"
 
-    def __init__(self, default: str, doc: str, options: Sequence[str], *, nullable: bool = False):
-        super().__init__(default, doc, nullable=nullable)
+    def __init__(self, default: str, doc: str, options: Sequence[str], *, nullable: bool = False,
+                 **table: Any):
+        super().__init__(default, doc, nullable=nullable, **table)
         self.options = tuple(options)
 
     @property
@@ -311,8 +346,9 @@ class NumberList(Spec):
 
     kind = "list"
 
-    def __init__(self, default: Any, doc: str, *, length: int, item: Number, nullable: bool = False):
-        super().__init__(default, doc, nullable=nullable)
+    def __init__(self, default: Any, doc: str, *, length: int, item: Number, nullable: bool = False,
+                 **table: Any):
+        super().__init__(default, doc, nullable=nullable, **table)
         self.length = length
         self.item = item
 
@@ -446,41 +482,63 @@ progress), the built-in simulated track (same three observations), any Gymnasium
 (``ENV.GYM_ID``), and the real-time simulated drone of :mod:`tmrl.realtime`."""
 
 ALGORITHMS = ("SAC", "REDQSAC")
+"""Values of ``ALG.ALGORITHM``."""
 
 PASSWORD_PLACEHOLDER = "YourRandomPasswordHere"
 """The password of the shipped file; ``python -m tmrl --install`` replaces it by a random one."""
 
-_OPTIMIZERS = ("adam", "adamw", "sgd")
+OPTIMIZERS = ("adam", "adamw", "sgd")
+"""Values of ``ALG.OPTIMIZER_ACTOR`` and ``ALG.OPTIMIZER_CRITIC`` (:func:`tmrl.algorithms.sac.make_optimizer`)."""
+
+UPDATE_ORDERS = ("simultaneous", "sequential")
+"""Values of ``ALG.UPDATE_ORDER`` (``SACAgent(update_order=...)``)."""
+
+AGENT_CLASSES = {"SAC": "SACAgent", "REDQSAC": "REDQSACAgent"}
+"""The agent class each value of ``ALG.ALGORITHM`` selects (:data:`tmrl.algorithms.ALGORITHMS`)."""
+
 _MIB = 1024 * 1024
+
+
+def _agents(arg: str, class_default: Any) -> dict[str, Any]:
+    """``feeds`` and ``class_default`` of an ``ALG`` key that both agents take."""
+    return {"feeds": tuple(f"{cls}.{arg}" for cls in AGENT_CLASSES.values()), "class_default": class_default}
+
 
 _ALG = Section(
     {
-        "ALGORITHM": Choice("SAC", "training algorithm", ALGORITHMS),
-        "LEARN_ENTROPY_COEF": Bool(False, "learn the entropy coefficient (SAC v2) instead of keeping ALPHA fixed"),
-        "LR_ACTOR": Number(1e-05, "learning rate of the actor", min=0, min_open=True),
-        "LR_CRITIC": Number(5e-05, "learning rate of the critic(s)", min=0, min_open=True),
+        "ALGORITHM": Choice("SAC", "training algorithm (SAC: SACAgent, REDQSAC: REDQSACAgent)", ALGORITHMS),
+        "LEARN_ENTROPY_COEF": Bool(False, "learn the entropy coefficient (SAC v2) instead of keeping ALPHA fixed",
+                                   **_agents("learn_entropy_coef", True)),
+        "LR_ACTOR": Number(1e-05, "learning rate of the actor", min=0, min_open=True, **_agents("lr_actor", 1e-3)),
+        "LR_CRITIC": Number(5e-05, "learning rate of the critic(s)", min=0, min_open=True,
+                            **_agents("lr_critic", 1e-3)),
         "LR_ENTROPY": Number(0.0003, "learning rate of the entropy coefficient (when learned)", min=0,
-                             min_open=True),
-        "GAMMA": Number(0.995, "discount factor", min=0, max=1),
+                             min_open=True, **_agents("lr_entropy", 1e-3)),
+        "GAMMA": Number(0.995, "discount factor", min=0, max=1, **_agents("gamma", 0.99)),
         "POLYAK": Number(0.995, "weight of the old target critic in each soft update (1: never updated)",
-                         min=0, max=1),
+                         min=0, max=1, **_agents("polyak", 0.995)),
         "TARGET_ENTROPY": Number(-0.5, "target entropy when LEARN_ENTROPY_COEF is true (null: minus the action size)",
-                                 nullable=True),
-        "ALPHA": Number(0.01, "entropy coefficient (fixed, or initial value when learned)", min=0),
-        "REDQ_N": Int(10, "number of critics in the REDQ ensemble", min=1),
-        "REDQ_M": Int(2, "number of critics drawn at random for each REDQ target", min=1),
-        "REDQ_Q_UPDATES_PER_POLICY_UPDATE": Int(20, "REDQ critic updates for each actor update", min=1),
-        "OPTIMIZER_ACTOR": Choice("adam", "optimizer of the actor", _OPTIMIZERS),
-        "OPTIMIZER_CRITIC": Choice("adam", "optimizer of the critic(s)", _OPTIMIZERS),
+                                 nullable=True, **_agents("target_entropy", None)),
+        "ALPHA": Number(0.01, "entropy coefficient (fixed, or initial value when learned)", min=0,
+                         **_agents("alpha", 0.2)),
+        "REDQ_N": Int(10, "number of critics in the REDQ ensemble", min=1, feeds=("REDQSACAgent.n",), class_default=10),
+        "REDQ_M": Int(2, "number of critics drawn at random for each REDQ target", min=1, feeds=("REDQSACAgent.m",),
+                      class_default=2),
+        "REDQ_Q_UPDATES_PER_POLICY_UPDATE": Int(20, "REDQ critic updates for each actor update", min=1,
+                                                feeds=("REDQSACAgent.q_updates_per_policy_update",), class_default=1),
+        "OPTIMIZER_ACTOR": Choice("adam", "optimizer of the actor", OPTIMIZERS, **_agents("optimizer_actor", "adam")),
+        "OPTIMIZER_CRITIC": Choice("adam", "optimizer of the critic(s)", OPTIMIZERS,
+                                   **_agents("optimizer_critic", "adam")),
         "BETAS_ACTOR": NumberList([0.997, 0.997], "Adam/AdamW betas of the actor", length=2,
-                                  item=Number(0, "", min=0, max=1, max_open=True)),
+                                  item=Number(0, "", min=0, max=1, max_open=True), **_agents("betas_actor", None)),
         "BETAS_CRITIC": NumberList([0.997, 0.997], "Adam/AdamW betas of the critic(s)", length=2,
-                                   item=Number(0, "", min=0, max=1, max_open=True)),
-        "L2_ACTOR": Number(0.0, "weight decay of the actor optimizer", min=0),
-        "L2_CRITIC": Number(0.0, "weight decay of the critic optimizer", min=0),
+                                   item=Number(0, "", min=0, max=1, max_open=True), **_agents("betas_critic", None)),
+        "L2_ACTOR": Number(0.0, "weight decay of the actor optimizer", min=0, **_agents("l2_actor", None)),
+        "L2_CRITIC": Number(0.0, "weight decay of the critic optimizer", min=0, **_agents("l2_critic", None)),
         "UPDATE_ORDER": Choice("simultaneous", "SAC only: \"simultaneous\" evaluates the actor loss on the critics "
                                "before their step (one backward pass), \"sequential\" after it (the original tmrl "
-                               "SAC)", ("simultaneous", "sequential")),
+                               "SAC)", UPDATE_ORDERS, feeds=("SACAgent.update_order",),
+                               class_default="simultaneous"),
     },
     "the training algorithm and its hyperparameters",
 )
@@ -559,8 +617,9 @@ SCHEMA = Section(
                         nonempty=True, forbid="/\\"),
         "RESET_TRAINING": Bool(False, "start training from scratch instead of resuming the checkpoint"),
         "BUFFERS_MAXLEN": Int(500000, "maximum number of samples held in a network buffer (not the replay memory)",
-                              min=1),
-        "RW_MAX_SAMPLES_PER_EPISODE": Int(1000, "a worker truncates episodes longer than this", min=1),
+                              min=1, feeds=("Buffer.maxlen",)),
+        "RW_MAX_SAMPLES_PER_EPISODE": Int(1000, "a worker truncates episodes longer than this", min=1,
+                                          feeds=("RolloutWorker.max_samples_per_episode",)),
         "CUDA_TRAINING": Bool(False, "train on the GPU when one is available"),
         "CUDA_INFERENCE": Bool(False, "run the workers' policy on the GPU when one is available"),
         "VIRTUAL_GAMEPAD": Bool(True, "drive TrackMania with a virtual gamepad (false: keyboard)"),
@@ -568,7 +627,7 @@ SCHEMA = Section(
         "LOCALHOST_TRAINER": Bool(True, "the trainer reaches the server on 127.0.0.1 (false: PUBLIC_IP_SERVER)"),
         "PUBLIC_IP_SERVER": Str("0.0.0.0", "address of the server when it is on another machine", nonempty=True),
         "PASSWORD": Str(PASSWORD_PLACEHOLDER, "shared secret of the server, trainer and workers (same everywhere)",
-                        nonempty=True),
+                        nonempty=True, feeds=("Server.password", "Trainer.password", "RolloutWorker.password")),
         "TLS": Bool(False, "encrypt and authenticate connections with TLS (needed on public networks)"),
         "TLS_HOSTNAME": Str("default", "host name in the TLS certificate", nonempty=True),
         "TLS_CREDENTIALS_DIRECTORY": Str("", "folder of the TLS key and certificate (empty: credentials/ in the "
@@ -578,7 +637,8 @@ SCHEMA = Section(
         "ALLOW_PICKLE": Bool(False, "accept pickled messages from the network (trusted networks only: "
                                     "pickle can run code)"),
         "MAX_FRAME_BYTES": Int(64 * _MIB, "largest message accepted from the network, in bytes", min=1024),
-        "NB_WORKERS": Int(64, "maximum number of workers connected to the server at once (negative: no limit)"),
+        "NB_WORKERS": Int(64, "maximum number of workers connected to the server at once (negative: no limit)",
+                          feeds=("Server.max_workers",)),
         "SERVER_MEMORY_BYTES": Int(1536 * _MIB, "most memory the server spends on samples waiting for the trainer "
                                                 "and on messages being received, in bytes; a connection that "
                                                 "would exceed it is closed", min=64 * _MIB),
@@ -587,7 +647,8 @@ SCHEMA = Section(
         "WANDB_PROJECT": Str("tmrl", "wandb project of --trainer --wandb"),
         "WANDB_ENTITY": Str("tmrl", "wandb entity (user or team) of --trainer --wandb"),
         "WANDB_KEY": Str("YourWandbApiKey", "wandb API key of --trainer --wandb"),
-        "PORT": Int(55555, "public port of the server", min=1, max=65535),
+        "PORT": Int(55555, "public port of the server", min=1, max=65535,
+                    feeds=("Server.port", "Trainer.server_port", "RolloutWorker.server_port")),
         "LOCAL_PORT_SERVER": Int(55556, "local port of the server's relay (must differ from the others)",
                                  min=1, max=65535),
         "LOCAL_PORT_TRAINER": Int(55557, "local port of the trainer's relay (must differ from the others)",
@@ -596,24 +657,33 @@ SCHEMA = Section(
                                         "machine)", min=1, max=65535),
         "BUFFER_SIZE": Int(536870912, "socket buffer size of the transport, in bytes (not the replay memory)",
                            min=1),
-        "HEADER_SIZE": Int(12, "size of the transport's message header, in bytes", min=1),
+        "HEADER_SIZE": Int(12, "size of the transport's message header, in bytes", min=1,
+                           feeds=("Server.header_size", "Trainer.header_size", "RolloutWorker.header_size")),
         "SEED": Int(None, "seed of the random generators (null: a fresh random seed each run)", nullable=True),
         "DEBUG_MODE": Bool(False, "extra consistency checks and verbose logs"),
-        "MAX_EPOCHS": Int(10000, "number of training epochs (a checkpoint is saved after each)", min=1),
-        "ROUNDS_PER_EPOCH": Int(100, "rounds per epoch (metrics are reported after each)", min=1),
-        "TRAINING_STEPS_PER_ROUND": Int(200, "training steps per round", min=1),
+        "MAX_EPOCHS": Int(10000, "number of training epochs (a checkpoint is saved after each)", min=1,
+                          feeds=("TorchTrainingOffline.epochs",), class_default=10),
+        "ROUNDS_PER_EPOCH": Int(100, "rounds per epoch (metrics are reported after each)", min=1,
+                                feeds=("TorchTrainingOffline.rounds",), class_default=50),
+        "TRAINING_STEPS_PER_ROUND": Int(200, "training steps per round", min=1, feeds=("TorchTrainingOffline.steps",), class_default=2000),
         "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": Number(4.0, "training pauses when updates per collected "
-                                                               "sample exceed this", min=0, min_open=True),
+                                                               "sample exceed this", min=0, min_open=True,
+                                                        feeds=("TorchTrainingOffline.max_training_steps_per_env_step",), class_default=1.0),
         "MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP": Number(
             0.0, "workers pause when samples collected per training step exceed this (0: never); for "
             "environments faster than real time, like the simulator in fast mode; real-time environments "
-            "pause only between episodes", min=0),
-        "ENVIRONMENT_STEPS_BEFORE_TRAINING": Int(1000, "samples collected before training starts", min=0),
-        "UPDATE_MODEL_INTERVAL": Int(200, "training steps between two broadcasts of the weights", min=1),
-        "UPDATE_BUFFER_INTERVAL": Int(200, "training steps between two retrievals of new samples", min=1),
-        "SAVE_MODEL_EVERY": Int(0, "workers keep a copy of every N-th received model (0: none)", min=0),
-        "MEMORY_SIZE": Int(1000000, "capacity of the replay memory, in samples", min=1),
-        "BATCH_SIZE": Int(256, "training batch size", min=1),
+            "pause only between episodes", min=0, feeds=("TorchTrainingOffline.max_env_steps_per_training_step",), class_default=0.0),
+        "ENVIRONMENT_STEPS_BEFORE_TRAINING": Int(1000, "samples collected before training starts", min=0,
+                                                 feeds=("TorchTrainingOffline.start_training",), class_default=0),
+        "UPDATE_MODEL_INTERVAL": Int(200, "training steps between two broadcasts of the weights", min=1,
+                                     feeds=("TorchTrainingOffline.update_model_interval",), class_default=100),
+        "UPDATE_BUFFER_INTERVAL": Int(200, "training steps between two retrievals of new samples", min=1,
+                                      feeds=("TorchTrainingOffline.update_buffer_interval",), class_default=100),
+        "SAVE_MODEL_EVERY": Int(0, "workers keep a copy of every N-th received model (0: none)", min=0,
+                                feeds=("RolloutWorker.model_history",)),
+        "MEMORY_SIZE": Int(1000000, "capacity of the replay memory, in samples", min=1,
+                           feeds=("GenericTorchMemory.memory_size",), class_default=1000000),
+        "BATCH_SIZE": Int(256, "training batch size", min=1, feeds=("GenericTorchMemory.batch_size",), class_default=256),
         "ALG": _ALG,
         "ENV": _ENV,
         "__VERSION__": Str("0.6.0", "format version of this file (do not edit)", nonempty=True),
@@ -627,6 +697,61 @@ def defaults() -> dict[str, Any]:
     return SCHEMA.default_value()
 
 
+def _fed(section: Section, cfg: Mapping[str, Any], cls: str, out: dict[str, Any]) -> None:
+    for name, spec in section.fields.items():
+        if isinstance(spec, Section):
+            _fed(spec, cfg[name], cls, out)
+            continue
+        for target in spec.feeds:
+            owner, _, arg = target.partition(".")
+            if owner == cls:
+                out[arg] = copy.deepcopy(cfg[name])
+
+
+def arguments(cfg: Mapping[str, Any], cls: str) -> dict[str, Any]:
+    """The constructor arguments of class ``cls`` (``"SACAgent"``, ``"TorchTrainingOffline"``,
+    ...) that a loaded config sets, by the ``feeds`` of the table: ``{"lr_actor": 1e-05, ...}``.
+
+    Args:
+        cfg: a complete, validated config (:func:`tmrl.config.loader.load_config`).
+        cls: the class name as written in ``feeds``.
+    """
+    out: dict[str, Any] = {}
+    _fed(SCHEMA, cfg, cls, out)
+    return out
+
+
+def fed_arguments() -> dict[str, dict[str, tuple[str, Any]]]:
+    """For each class named in ``feeds``: ``{argument: (key path, class default)}`` (the class
+    default is :data:`NO_CLASS_DEFAULT` where the table declares none). The tests check every
+    class's signature against it."""
+    table: dict[str, dict[str, tuple[str, Any]]] = {}
+
+    def walk(section: Section, path: str) -> None:
+        for name, spec in section.fields.items():
+            key = _join(path, name)
+            if isinstance(spec, Section):
+                walk(spec, key)
+                continue
+            for target in spec.feeds:
+                owner, _, arg = target.partition(".")
+                table.setdefault(owner, {})[arg] = (key, spec.class_default)
+
+    walk(SCHEMA, "")
+    return table
+
+
+def redq_subset_problem(n: int, m: int) -> str | None:
+    """Why REDQ's ``m`` (critics drawn per target) does not fit its ``n`` critics, or None when
+    ``1 <= m <= n``. The one place this rule is written: the config check and ``REDQSACAgent``
+    both call it."""
+    if int(m) < 1:
+        return f"ALG.REDQ_M must be at least 1, got {int(m)}"
+    if int(m) > int(n):
+        return f"ALG.REDQ_M must be at most ALG.REDQ_N ({int(n)}), got {int(m)}"
+    return None
+
+
 def check_consistency(cfg: Mapping[str, Any]) -> None:
     """Checks that involve several keys of a complete, validated config.
 
@@ -634,11 +759,9 @@ def check_consistency(cfg: Mapping[str, Any]) -> None:
         SchemaViolation: naming the key to change.
     """
     alg = cfg["ALG"]
-    if alg["ALGORITHM"] == "REDQSAC" and alg["REDQ_M"] > alg["REDQ_N"]:
-        raise SchemaViolation(
-            "ALG.REDQ_M",
-            f"ALG.REDQ_M must be at most ALG.REDQ_N ({alg['REDQ_N']}), got {alg['REDQ_M']}",
-        )
+    problem = redq_subset_problem(alg["REDQ_N"], alg["REDQ_M"]) if alg["ALGORITHM"] == "REDQSAC" else None
+    if problem:
+        raise SchemaViolation("ALG.REDQ_M", problem)
     if alg["ALGORITHM"] == "REDQSAC" and alg["UPDATE_ORDER"] != "simultaneous":
         raise SchemaViolation(
             "ALG.UPDATE_ORDER",
@@ -801,15 +924,29 @@ def _md_escape(text: str) -> str:
     return text.replace("|", "\\|")
 
 
+def _feeds_cell(spec: Spec) -> str:
+    """``SACAgent(lr_actor=0.001)``-style list of the arguments a key sets, with the class's own
+    default where it has one."""
+    parts = []
+    for target in spec.feeds:
+        owner, _, arg = target.partition(".")
+        if spec.class_default is NO_CLASS_DEFAULT:
+            parts.append(f"`{owner}({arg})`")
+        else:
+            parts.append(f"`{owner}({arg}={show(spec.class_default, 30)})`")
+    return ", ".join(parts)
+
+
 def _rows(section: Section, path: str, rows: list[str]) -> None:
     for name, spec in section.fields.items():
         key = _join(path, name)
         if isinstance(spec, Section):
-            rows.append(f"| `{key}` | object | | {_md_escape(spec.doc)} (keys below) |")
+            rows.append(f"| `{key}` | object | | {_md_escape(spec.doc)} (keys below) | |")
             _rows(spec, key, rows)
         else:
             default = "" if spec.default is None and not spec.nullable else f"`{show(spec.default, 60)}`"
-            rows.append(f"| `{key}` | {_md_escape(spec.describe())} | {_md_escape(default)} | {_md_escape(spec.doc)} |")
+            rows.append(f"| `{key}` | {_md_escape(spec.describe())} | {_md_escape(default)} | {_md_escape(spec.doc)} "
+                        f"| {_md_escape(_feeds_cell(spec))} |")
 
 
 def markdown_reference() -> str:
@@ -833,8 +970,13 @@ def markdown_reference() -> str:
         "  `interface_kwargs`) are replaced as a whole. `python -m tmrl --print-config` shows the result.",
         "- Choices (`ALGORITHM`, `RTGYM_INTERFACE`, optimizers) are matched without regard to case.",
         "",
-        "| key | expected | default | meaning |",
-        "|---|---|---|---|",
+        "- The last column names the constructor argument each key sets when `python -m tmrl` builds",
+        "  the objects, and that argument's own default in the class (what a script gets when it builds",
+        "  the class itself without that argument; the defaults of tmrl 0.7.1's classes and of its",
+        "  `config.json` differ in places, and both are kept).",
+        "",
+        "| key | expected | default | meaning | sets (class default) |",
+        "|---|---|---|---|---|",
     ]
     return "\n".join(head + rows) + "\n"
 
