@@ -223,3 +223,65 @@ def test_with_the_real_sac_agent():
     stats = training.run_epoch(FakeInterface(endless=10))
     assert training.total_updates == 5
     assert np.isfinite(stats[0]["loss_critic"]) and np.isfinite(stats[0]["loss_actor"])
+
+
+# --- seams: rounds as data, callbacks, profiling ----------------------------------------------------
+
+
+def test_a_round_is_a_function_returning_its_metrics():
+    from tmrl.training_offline import RoundMetrics
+
+    training = make_training()
+    interface = FakeInterface(endless=10)
+    interface.training = training
+    result = training.run_round(interface, rnd=0)
+    assert isinstance(result, RoundMetrics) and not result.stopped
+    assert result.updates == 10 and result.total_updates == 10 and result.round == 0
+    assert result.agent["loss_actor"] == 0.5 and "entropy_coef" not in result.agent  # None values skipped
+    row = result.as_row()
+    assert row["updates_per_second"] == pytest.approx(10 / result.round_time)
+    # the epoch's rows are the rounds' rows, same keys in the same order
+    epoch_rows = make_training().run_epoch(FakeInterface(endless=10))
+    assert list(epoch_rows[0]) == list(row)
+
+
+def test_callbacks_see_every_round_and_can_end_the_epoch():
+    from tmrl.training_offline import TrainingCallback
+
+    events: list[tuple] = []
+
+    class Recorder(TrainingCallback):
+        def on_epoch_start(self, training):
+            events.append(("start", training.epoch))
+
+        def on_round_end(self, training, metrics):
+            events.append(("round", metrics.round, metrics.total_updates))
+
+        def on_epoch_end(self, training, rows):
+            events.append(("end", len(rows)))
+
+    training = make_training()
+    training.add_callback(Recorder())
+    seen = []
+    training.add_callback(lambda m: seen.append(m.round))  # a plain function: called after each round
+    training.run_epoch(FakeInterface(endless=10))
+    assert events == [("start", 0), ("round", 0, 10), ("round", 1, 20), ("end", 2)]
+    assert seen == [0, 1] and training.epoch == 1
+
+    # a callback that returns False ends the epoch after that round, uncounted (like stop())
+    training.add_callback(lambda m: False if m.round == 0 else None)
+    rows = training.run_epoch(FakeInterface(endless=10))
+    assert len(rows) == 1 and training.epoch == 1 and training.total_updates == 30
+
+
+def test_profiling_is_a_context_manager_that_logs_only_when_enabled(caplog):
+    from tmrl.training_offline import profiled
+
+    caplog.set_level(logging.INFO, logger="tmrl.training_offline")
+    with profiled(False, "nothing"):
+        sum(range(1000))
+    assert not any("profile of" in r.getMessage() for r in caplog.records)
+    with profiled(True, "the block"):
+        sorted(range(1000), key=lambda x: -x)
+    (line,) = [r.getMessage() for r in caplog.records if "profile of the block" in r.getMessage()]
+    assert "cumulative" in line

@@ -9,6 +9,7 @@ just as well with an in-process interface (tests, benchmarks, single-machine tra
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import cProfile
 import io
@@ -17,8 +18,8 @@ import math
 import pstats
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -27,10 +28,9 @@ from tmrl.errors import UserError
 from tmrl.metrics import MetricsLogger
 from tmrl.util import RateLimitedLog, reuse_freed_memory
 
-__all__ = ["TorchTrainingOffline", "TrainingOffline"]
+__all__ = ["RoundMetrics", "TorchTrainingOffline", "TrainingCallback", "TrainingOffline", "profiled"]
 
 logger = logging.getLogger(__name__)
-_log = logger  # run_epoch's `logger` argument shadows the module logger inside it
 
 _WAIT_LOG_INTERVAL_S = 30.0
 
@@ -64,6 +64,143 @@ def _mean_rows(rows: list[dict[str, Any]]) -> dict[str, float]:
         if nums:
             out[key] = sum(nums) / len(nums)
     return out
+
+
+@dataclass
+class RoundMetrics:
+    """What one round of training did (:meth:`TrainingOffline.run_round`).
+
+    Attributes:
+        epoch, round, rounds: where the round is (``round`` counts from 0 within the epoch).
+        total_updates, total_samples, memory_len: totals after the round.
+        return_train, return_test, episode_length_train, episode_length_test: the workers'
+            latest episode statistics.
+        round_time: wall time of the round (s); ``idle_time`` of it waiting for samples,
+            ``sampling_time`` building batches, ``training_time`` in ``agent.train``.
+        updates, samples: training steps done and samples received during the round.
+        agent: the means of the agent's metrics over the round (``loss_actor``, ...).
+        skipped_updates: updates with a non-finite loss or gradient, so far.
+        restored_states: non-finite parameters replaced by the last good ones, so far.
+        memory_errors: sample batches the memory refused, so far.
+        counters: the interface's ``counters()`` (``rejected_batches``...), when it has them.
+        stopped: :meth:`TrainingOffline.stop` cut the round short.
+    """
+
+    epoch: int
+    round: int
+    rounds: int
+    total_updates: int
+    total_samples: int
+    memory_len: int
+    return_train: float
+    return_test: float
+    episode_length_train: float
+    episode_length_test: float
+    round_time: float
+    idle_time: float
+    sampling_time: float
+    training_time: float
+    updates: int
+    samples: int
+    agent: dict[str, float] = field(default_factory=dict)
+    skipped_updates: int = 0
+    restored_states: int = 0
+    memory_errors: int = 0
+    counters: dict[str, Any] = field(default_factory=dict)
+    stopped: bool = False
+
+    @property
+    def updates_per_second(self) -> float:
+        return self.updates / self.round_time if self.round_time > 0 else math.nan
+
+    @property
+    def samples_per_second(self) -> float:
+        return self.samples / self.round_time if self.round_time > 0 else math.nan
+
+    def as_row(self) -> dict[str, Any]:
+        """The round as one flat row of metrics, as :meth:`TrainingOffline.run_epoch` returns and
+        logs it: ``epoch``, ``round``, ``rounds``, the totals, the episode statistics, the times,
+        ``updates_per_second``, ``samples_per_second``, the agent's means, ``skipped_updates``,
+        ``restored_states``, ``memory_errors`` and the counters."""
+        row: dict[str, Any] = {
+            "epoch": self.epoch,
+            "round": self.round,
+            "rounds": self.rounds,
+            "total_updates": self.total_updates,
+            "total_samples": self.total_samples,
+            "memory_len": self.memory_len,
+            "return_train": self.return_train,
+            "return_test": self.return_test,
+            "episode_length_train": self.episode_length_train,
+            "episode_length_test": self.episode_length_test,
+            "round_time": self.round_time,
+            "idle_time": self.idle_time,
+            "sampling_time": self.sampling_time,
+            "training_time": self.training_time,
+            "updates_per_second": self.updates_per_second,
+            "samples_per_second": self.samples_per_second,
+        }
+        row.update(self.agent)
+        row["skipped_updates"] = self.skipped_updates
+        row["restored_states"] = self.restored_states
+        row["memory_errors"] = self.memory_errors
+        row.update(self.counters)
+        return row
+
+
+class TrainingCallback:
+    """Observes the training loop without subclassing it (like Stable-Baselines3's callbacks).
+    Override what you need and pass an instance to :meth:`TrainingOffline.add_callback`; each
+    method gets the :class:`TrainingOffline` (its ``agent``, ``memory``, totals).
+    """
+
+    def on_epoch_start(self, training: TrainingOffline) -> None:
+        """Before the first round of an epoch."""
+
+    def on_round_end(self, training: TrainingOffline, metrics: RoundMetrics) -> bool | None:
+        """After each round, once its row is logged. Return False to end the epoch now (it is
+        then not counted, as after :meth:`TrainingOffline.stop`)."""
+        return None
+
+    def on_epoch_end(self, training: TrainingOffline, rows: list[dict[str, Any]]) -> None:
+        """After the last round of an epoch (or the round that stopped it)."""
+
+
+class _RoundFunction(TrainingCallback):
+    """A plain function ``f(metrics)`` as a callback called after each round."""
+
+    def __init__(self, fn: Callable[[RoundMetrics], Any]) -> None:
+        self.fn = fn
+
+    def on_round_end(self, training: TrainingOffline, metrics: RoundMetrics) -> bool | None:
+        return self.fn(metrics)
+
+
+@dataclass
+class _RoundClock:
+    """Seconds of a round spent waiting for samples, building batches and training."""
+
+    idle: float = 0.0
+    sampling: float = 0.0
+    training: float = 0.0
+
+
+@contextlib.contextmanager
+def profiled(enabled: bool, label: str, top: int = 25) -> Iterator[None]:
+    """Profile the block with cProfile when ``enabled`` and log its ``top`` functions by
+    cumulative time (``label`` names the block in the log line)."""
+    if not enabled:
+        yield
+        return
+    profiler = cProfile.Profile()
+    profiler.enable()
+    try:
+        yield
+    finally:
+        profiler.disable()
+        text = io.StringIO()
+        pstats.Stats(profiler, stream=text).sort_stats("cumulative").print_stats(top)
+        logger.info("profile of %s:\n%s", label, text.getvalue())
 
 
 @dataclass(eq=False)
@@ -140,11 +277,12 @@ class TrainingOffline:
         self._default_logger: MetricsLogger | None = None
         self._round_samples = 0
         self._broadcast_at = 0  # total_updates at the last broadcast
+        self.callbacks: list[TrainingCallback] = []
         if float(self.max_env_steps_per_training_step) < 0:
             raise UserError("TrainingOffline max_env_steps_per_training_step must be >= 0 (0: no limit), got "
                             f"{self.max_env_steps_per_training_step}")
         self.memory_errors = 0
-        self._memory_error_log = RateLimitedLog(_log, logging.WARNING, 60.0)
+        self._memory_error_log = RateLimitedLog(logger, logging.WARNING, 60.0)
         self.memory = self.memory_cls(nb_steps=self.steps, device=self.device)
         if isinstance(self.env_cls, tuple):
             if len(self.env_cls) != 2:
@@ -187,11 +325,11 @@ class TrainingOffline:
             self._last_good_state = copy.deepcopy(state)
             return True
         if self._last_good_state is None:
-            _log.error("the agent's parameters are not finite and there is no earlier good state to restore")
+            logger.error("the agent's parameters are not finite and there is no earlier good state to restore")
             return False
         self.agent.load_state_dict(copy.deepcopy(self._last_good_state))
         self.restored_states += 1
-        _log.error(
+        logger.error(
             "the agent's parameters were not finite: restored the last good state (%d restores so far)",
             self.restored_states,
         )
@@ -235,7 +373,7 @@ class TrainingOffline:
         a minute."""
         self.memory_errors += 1
         if self.memory_errors == 1:
-            _log.exception("the replay memory refused %d samples (dropped); later refusals are counted in "
+            logger.exception("the replay memory refused %d samples (dropped); later refusals are counted in "
                            "memory_errors", n)
         else:
             self._memory_error_log("the replay memory refused %d more samples (%d refusals so far)", n,
@@ -322,12 +460,15 @@ class TrainingOffline:
             self._default_logger = MetricsLogger(run_name="", folder=None, tensorboard=False)
         return self._default_logger
 
-    def run_epoch(self, interface: Any, logger: MetricsLogger | None = None) -> list[dict[str, Any]]:
-        """Run one epoch: ``rounds`` rounds of ``steps`` training steps.
+    def add_callback(self, callback: TrainingCallback | Callable[[RoundMetrics], Any]) -> None:
+        """Observe the loop: ``callback`` is a :class:`TrainingCallback`, or a function called
+        with each round's :class:`RoundMetrics` (as :meth:`TrainingCallback.on_round_end`)."""
+        if not isinstance(callback, TrainingCallback):
+            callback = _RoundFunction(callback)
+        self.callbacks.append(callback)
 
-        Every ``update_buffer_interval`` steps the samples received are moved into the memory,
-        every ``update_model_interval`` steps the actor is broadcast, and after each step the loop
-        waits while training is ahead of the samples (see :meth:`check_ratio`).
+    def run_epoch(self, interface: Any, logger: MetricsLogger | None = None) -> list[dict[str, Any]]:
+        """Run one epoch: ``rounds`` rounds of ``steps`` training steps (see :meth:`run_round`).
 
         Args:
             interface: has ``retrieve_buffer() -> Buffer`` and ``broadcast_model(actor)``.
@@ -335,94 +476,115 @@ class TrainingOffline:
                 line through ``logging``.
 
         Returns:
-            One dict per round completed: ``epoch``, ``round``, ``rounds``, ``total_updates``,
-            ``total_samples``, ``memory_len``, ``return_train``, ``return_test``,
-            ``episode_length_train``, ``episode_length_test``, ``round_time`` (s), ``idle_time``
-            (s spent waiting for samples), ``sampling_time`` and ``training_time`` (s in the
-            round), ``updates_per_second`` and ``samples_per_second`` (over the round's wall
-            time), then the means of the agent's metrics (``loss_actor``, ``loss_critic``,
-            ``entropy_coef``...), ``skipped_updates`` (updates with a non-finite loss or gradient,
-            so far), ``restored_states`` (non-finite parameters replaced by the last good ones)
-            and the interface's ``counters()`` when it has them (``rejected_batches``...). After :meth:`stop`, the rounds done so far; the epoch is then
-            not counted.
+            One dict per round completed (:meth:`RoundMetrics.as_row`). After :meth:`stop` (or a
+            callback that returned False), the rounds done so far; the epoch is then not counted.
         """
-        metrics = self._logger(logger)
-        stats: list[dict[str, Any]] = []
+        sink = self._logger(logger)
         if self.agent_scheduler is not None:
             self.agent_scheduler(self.agent, self.epoch)
+        for callback in self.callbacks:
+            callback.on_epoch_start(self)
+        rows: list[dict[str, Any]] = []
         stopped = False
         for rnd in range(self.rounds):
-            t0 = time.perf_counter()
-            self._round_samples = 0
-            updates_before = self.total_updates
-            if not self.check_ratio(interface):
+            result = self.run_round(interface, rnd)
+            if result is None:  # stopped before the round trained at all
                 stopped = True
                 break
-            idle = time.perf_counter() - t0
-            profiler = cProfile.Profile() if self.profiling else None
-            if profiler is not None:
-                profiler.enable()
-            train_rows: list[dict[str, Any]] = []
-            sampling = training = 0.0
-            t_prev = time.perf_counter()
-            for batch in self.memory:
-                t_sample = time.perf_counter()
-                sampling += t_sample - t_prev
-                if self.total_updates % self.update_buffer_interval == 0:
-                    self.update_buffer(interface)
-                if self.total_updates == 0:
-                    _log.info("starting training")
-                t_train = time.perf_counter()
-                train_rows.append(self.agent.train(batch) or {})
-                training += time.perf_counter() - t_train
-                self.total_updates += 1
-                if self.total_updates % self.update_model_interval == 0:
-                    self._broadcast(interface)
-                t_wait = time.perf_counter()
-                if not self.check_ratio(interface):
-                    stopped = True
-                    break
-                t_prev = time.perf_counter()
-                idle += t_prev - t_wait
-            if profiler is not None:
-                profiler.disable()
-                text = io.StringIO()
-                pstats.Stats(profiler, stream=text).sort_stats("cumulative").print_stats(25)
-                _log.info("profile of round %d:\n%s", rnd, text.getvalue())
-            round_time = time.perf_counter() - t0
-            updates = self.total_updates - updates_before
-            row: dict[str, Any] = {
-                "epoch": self.epoch,
-                "round": rnd,
-                "rounds": self.rounds,
-                "total_updates": self.total_updates,
-                "total_samples": self.total_samples,
-                "memory_len": len(self.memory),
-                "return_train": self.memory.stat_train_return,
-                "return_test": self.memory.stat_test_return,
-                "episode_length_train": self.memory.stat_train_steps,
-                "episode_length_test": self.memory.stat_test_steps,
-                "round_time": round_time,
-                "idle_time": idle,
-                "sampling_time": sampling,
-                "training_time": training,
-                "updates_per_second": updates / round_time if round_time > 0 else math.nan,
-                "samples_per_second": self._round_samples / round_time if round_time > 0 else math.nan,
-            }
-            row.update(_mean_rows(train_rows))
-            row["skipped_updates"] = int(getattr(self.agent, "skipped_updates", 0))
-            row["restored_states"] = self.restored_states
-            row["memory_errors"] = self.memory_errors
-            counters = getattr(interface, "counters", None)
-            if callable(counters):
-                row.update(counters())  # rejected_batches and the like (tmrl.networking)
-            stats.append(row)
-            metrics.log_round(row)
-            if stopped:
+            row = result.as_row()
+            rows.append(row)
+            sink.log_round(row)
+            wanted = [callback.on_round_end(self, result) for callback in self.callbacks]
+            if result.stopped or any(w is False for w in wanted):
+                stopped = True
                 break
         if not stopped:
             self.epoch += 1
-        return stats
+        for callback in self.callbacks:
+            callback.on_epoch_end(self, rows)
+        return rows
+
+    def run_round(self, interface: Any, rnd: int = 0) -> RoundMetrics | None:
+        """One round: up to ``steps`` training steps. Every ``update_buffer_interval`` steps the
+        samples received are moved into the memory, every ``update_model_interval`` steps the
+        actor is broadcast, and after each step the loop waits while training is ahead of the
+        samples (:meth:`check_ratio`).
+
+        Returns:
+            The round's metrics (``stopped`` is set when :meth:`stop` cut it short), or None
+            when it was stopped before its first step.
+        """
+        t0 = time.perf_counter()
+        self._round_samples = 0
+        updates_before = self.total_updates
+        if not self.check_ratio(interface):
+            return None
+        clock = _RoundClock(idle=time.perf_counter() - t0)
+        rows: list[dict[str, Any]] = []
+        with profiled(self.profiling, f"round {rnd}"):
+            stopped = self._train_steps(interface, rows, clock)
+        return self._round_metrics(interface, rnd, t0, updates_before, rows, clock, stopped)
+
+    def _train_steps(self, interface: Any, rows: list[dict[str, Any]], clock: _RoundClock) -> bool:
+        """The training steps of a round (their metrics go to ``rows``, their times to ``clock``).
+        Returns True when :meth:`stop` ended them."""
+        t_prev = time.perf_counter()
+        for batch in self.memory:
+            t_sample = time.perf_counter()
+            clock.sampling += t_sample - t_prev
+            if self.total_updates % self.update_buffer_interval == 0:
+                self.update_buffer(interface)
+            if self.total_updates == 0:
+                logger.info("starting training")
+            t_train = time.perf_counter()
+            rows.append(self.agent.train(batch) or {})
+            clock.training += time.perf_counter() - t_train
+            self.total_updates += 1
+            if self.total_updates % self.update_model_interval == 0:
+                self._broadcast(interface)
+            t_wait = time.perf_counter()
+            if not self.check_ratio(interface):
+                return True
+            t_prev = time.perf_counter()
+            clock.idle += t_prev - t_wait
+        return False
+
+    def _round_metrics(
+        self,
+        interface: Any,
+        rnd: int,
+        t0: float,
+        updates_before: int,
+        rows: list[dict[str, Any]],
+        clock: _RoundClock,
+        stopped: bool,
+    ) -> RoundMetrics:
+        round_time = time.perf_counter() - t0
+        counters = getattr(interface, "counters", None)
+        return RoundMetrics(
+            epoch=self.epoch,
+            round=rnd,
+            rounds=self.rounds,
+            total_updates=self.total_updates,
+            total_samples=self.total_samples,
+            memory_len=len(self.memory),
+            return_train=self.memory.stat_train_return,
+            return_test=self.memory.stat_test_return,
+            episode_length_train=self.memory.stat_train_steps,
+            episode_length_test=self.memory.stat_test_steps,
+            round_time=round_time,
+            idle_time=clock.idle,
+            sampling_time=clock.sampling,
+            training_time=clock.training,
+            updates=self.total_updates - updates_before,
+            samples=self._round_samples,
+            agent=_mean_rows(rows),
+            skipped_updates=int(getattr(self.agent, "skipped_updates", 0)),
+            restored_states=self.restored_states,
+            memory_errors=self.memory_errors,
+            counters=dict(counters()) if callable(counters) else {},  # rejected_batches... (networking)
+            stopped=stopped,
+        )
 
 
 @dataclass(eq=False)
