@@ -1662,7 +1662,7 @@ class RolloutWorker:
         show_progress_on_console()
         cfg = _settings(settings)
         self.obs_preprocessor = obs_preprocessor
-        self.get_local_buffer_sample = sample_compressor
+        self.sample_compressor = sample_compressor
         self.env = env_cls()
         obs_space = self.env.observation_space
         act_space = self.env.action_space
@@ -1739,6 +1739,15 @@ class RolloutWorker:
 
     # --- stepping --------------------------------------------------------------------------------
 
+    @property
+    def get_local_buffer_sample(self) -> Callable[..., tuple] | None:
+        """tmrl 0.7's name of :attr:`sample_compressor` (reads and writes it)."""
+        return self.sample_compressor
+
+    @get_local_buffer_sample.setter
+    def get_local_buffer_sample(self, fn: Callable[..., tuple] | None) -> None:
+        self.sample_compressor = fn
+
     def act(self, obs: Any, test: bool = False) -> Any:
         """The actor's action for ``obs`` (``test=True``: deterministic)."""
         return self.actor.act_(obs, test=test)
@@ -1746,8 +1755,8 @@ class RolloutWorker:
     def _record(
         self, act: Any, new_obs: Any, rew: float, terminated: bool, truncated: bool, info: dict
     ) -> None:
-        if self.get_local_buffer_sample is not None:
-            sample = self.get_local_buffer_sample(act, new_obs, rew, terminated, truncated, info)
+        if self.sample_compressor is not None:
+            sample = self.sample_compressor(act, new_obs, rew, terminated, truncated, info)
         else:
             sample = (act, new_obs, rew, terminated, truncated, info)
         self.buffer.append_sample(sample)
@@ -1932,36 +1941,8 @@ class RolloutWorker:
             verbose: log at INFO level.
         """
         log = logger.info if verbose else logger.debug
-        max_len = self.max_samples_per_episode
-
-        def one_step(obs: Any, steps: int) -> tuple:
-            return self.step(obs, test=False, collect_samples=True, last_step=steps == max_len - 1)
-
-        # initial samples, whole episodes unless end_episodes is False
-        iteration, done = 0, False
-        obs: Any = None
-        while iteration < initial_steps:
-            obs, _ = self.reset(collect_samples=True)
-            done, steps, ret = False, 0, 0.0
-            iteration += 1
-            while not done and (end_episodes or iteration < initial_steps):
-                obs, rew, terminated, truncated, _ = one_step(obs, steps)
-                iteration += 1
-                steps += 1
-                ret += rew
-                done = terminated or truncated
-            self.buffer.stat_train_return = ret
-            self.buffer.stat_train_steps = steps
-            log("sending %d initial samples", len(self.buffer))
-            self.send_and_clear_buffer()
-
-        models = 1
-        ratio = (iteration + 1) / models
-        while ratio > max_steps_per_update:
-            self.send_and_clear_buffer()
-            models += self.update_actor_weights(verbose=verbose, blocking=True)
-            ratio = (iteration + 1) / models
-
+        iteration, obs, done = self._collect_initial_samples(initial_steps, end_episodes, log)
+        models = self._keep_pace(iteration, 1, max_steps_per_update, send=True, verbose=verbose)
         iteration, episode, steps, ret = 0, 0, 0, 0.0
         while iteration < nb_steps:
             if done:
@@ -1972,30 +1953,54 @@ class RolloutWorker:
                 done, steps, ret = False, 0, 0.0
                 iteration += 1
                 episode += 1
-            while not done and (end_episodes or ratio <= max_steps_per_update):
-                obs, rew, terminated, truncated, _ = one_step(obs, steps)
+            while not done:  # _keep_pace holds the ratio: an episode always runs to its end
+                obs, rew, terminated, truncated, _ = self._training_step(obs, steps)
                 iteration += 1
                 steps += 1
                 ret += rew
                 done = terminated or truncated
                 if not end_episodes:
-                    ratio = (iteration + 1) / models
-                    while ratio > max_steps_per_update:
-                        if not done:
-                            self.send_and_clear_buffer()
-                        models += self.update_actor_weights(verbose=verbose, blocking=True)
-                        ratio = (iteration + 1) / models
+                    models = self._keep_pace(iteration, models, max_steps_per_update, send=not done, verbose=verbose)
             if end_episodes:
-                ratio = (iteration + 1) / models
-                while ratio > max_steps_per_update:
-                    if not done:
-                        self.send_and_clear_buffer()
-                    models += self.update_actor_weights(verbose=verbose, blocking=True)
-                    ratio = (iteration + 1) / models
+                models = self._keep_pace(iteration, models, max_steps_per_update, send=not done, verbose=verbose)
             if done:
                 self.buffer.stat_train_return = ret
                 self.buffer.stat_train_steps = steps
             self.send_and_clear_buffer()
+
+    def _training_step(self, obs: Any, steps: int) -> tuple:
+        """One collecting step of a training episode that has run ``steps`` steps so far."""
+        return self.step(obs, test=False, collect_samples=True, last_step=steps == self.max_samples_per_episode - 1)
+
+    def _collect_initial_samples(self, initial_steps: int, end_episodes: bool, log: Callable[..., None]) -> tuple:
+        """:meth:`run_synchronous`'s first ``initial_steps`` steps (whole episodes unless
+        ``end_episodes`` is False), sent as they end. Returns ``(steps, obs, done)``."""
+        iteration, done = 0, False
+        obs: Any = None
+        while iteration < initial_steps:
+            obs, _ = self.reset(collect_samples=True)
+            done, steps, ret = False, 0, 0.0
+            iteration += 1
+            while not done and (end_episodes or iteration < initial_steps):
+                obs, rew, terminated, truncated, _ = self._training_step(obs, steps)
+                iteration += 1
+                steps += 1
+                ret += rew
+                done = terminated or truncated
+            self.buffer.stat_train_return = ret
+            self.buffer.stat_train_steps = steps
+            log("sending %d initial samples", len(self.buffer))
+            self.send_and_clear_buffer()
+        return iteration, obs, done
+
+    def _keep_pace(self, steps_done: int, models: int, limit: float, send: bool, verbose: bool) -> int:
+        """While more than ``limit`` environment steps were taken per model received, send the
+        buffer (when ``send``) and wait for the next model. Returns the models received so far."""
+        while (steps_done + 1) / models > limit:
+            if send:
+                self.send_and_clear_buffer()
+            models += self.update_actor_weights(verbose=verbose, blocking=True)
+        return models
 
     def run_env_benchmark(self, nb_steps: int, test: bool = False, verbose: bool = True) -> Any:
         """Step the environment ``nb_steps`` times (one episode at most) and return its

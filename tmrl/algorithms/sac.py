@@ -315,29 +315,8 @@ class SACAgent(TrainingAgent):
         self.critics = CriticSet(self.model)
         self.critics_target = CriticSet(self.model_target)
 
-        self.pi_optimizer = make_optimizer(
-            optimizer_actor, self.actor.parameters(), lr_actor, betas_actor, l2_actor, "optimizer_actor"
-        )
-        self.q_optimizer = make_optimizer(
-            optimizer_critic,
-            self.critics.parameters(),
-            lr_critic,
-            betas_critic,
-            l2_critic,
-            "optimizer_critic",
-        )
-
-        if target_entropy is None:
-            self.target_entropy = -float(np.prod(action_space.shape))
-        else:
-            self.target_entropy = float(target_entropy)
-        self.log_alpha: torch.Tensor | None = None
-        self.alpha_optimizer: torch.optim.Optimizer | None = None
-        if self.learn_entropy_coef:
-            # Optimise log(alpha) rather than alpha (softlearning issue 37): it stays positive.
-            self.log_alpha = torch.tensor(math.log(self.alpha), device=device, requires_grad=True)
-            self.alpha_optimizer = make_optimizer("adam", [self.log_alpha], lr_entropy, what="lr_entropy")
-        self.alpha_t = torch.tensor(self.alpha, device=device)
+        self._make_optimizers()
+        self._make_entropy_coef(target_entropy, lr_entropy)
 
         # Same order in both lists: Polyak averaging pairs them up.
         self._params: list[torch.Tensor] = list(self.model.parameters())
@@ -349,6 +328,31 @@ class SACAgent(TrainingAgent):
         self.loss_pi = torch.zeros((), device=device)
         self.loss_alpha = torch.zeros((), device=device)
         self.fused_update: FusedSACUpdate | None = FusedSACUpdate.for_agent(self) if fused else None
+
+    def _make_optimizers(self) -> None:
+        self.pi_optimizer = make_optimizer(
+            self.optimizer_actor, self.actor.parameters(), self.lr_actor, self.betas_actor, self.l2_actor,
+            "optimizer_actor",
+        )
+        self.q_optimizer = make_optimizer(
+            self.optimizer_critic, self.critics.parameters(), self.lr_critic, self.betas_critic, self.l2_critic,
+            "optimizer_critic",
+        )
+
+    def _make_entropy_coef(self, target_entropy: float | None, lr_entropy: float) -> None:
+        """``alpha_t`` (fixed, SAC v1) or ``log_alpha`` and its Adam optimizer (learned, SAC v2)."""
+        device = self.device
+        if target_entropy is None:
+            self.target_entropy = -float(np.prod(self.action_space.shape))
+        else:
+            self.target_entropy = float(target_entropy)
+        self.log_alpha: torch.Tensor | None = None
+        self.alpha_optimizer: torch.optim.Optimizer | None = None
+        if self.learn_entropy_coef:
+            # Optimise log(alpha) rather than alpha (softlearning issue 37): it stays positive.
+            self.log_alpha = torch.tensor(math.log(self.alpha), device=device, requires_grad=True)
+            self.alpha_optimizer = make_optimizer("adam", [self.log_alpha], lr_entropy, what="lr_entropy")
+        self.alpha_t = torch.tensor(self.alpha, device=device)
 
     @property
     def skipped_updates(self) -> int:
