@@ -80,6 +80,22 @@ def ours_side(python: str | None = None) -> Side:
     return Side("ours", python or sys.executable, env, str(REPO))
 
 
+def before_side(checkout: str) -> Side:
+    """An earlier commit of this repository, checked out at ``checkout`` (``git worktree add
+    /tmp/tmrl-before COMMIT``), measured by this checkout's benchmark code: the "before" of a
+    before/after comparison of a change.
+
+    Raises:
+        SystemExit: ``checkout`` holds no tmrl package.
+    """
+    root = Path(checkout).resolve()
+    if not (root / "tmrl" / "__init__.py").is_file():
+        raise SystemExit(f"no tmrl package in {root}: pass a checkout of this repository (git worktree add)")
+    env = _other_env()
+    env["PYTHONPATH"] = str(root)
+    return Side("before", sys.executable, env, str(root))
+
+
 def _other_env(**extra: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "TMRL_DATA", "TMRL_CONFIG_OVERRIDE")}
     env.update(extra)
@@ -141,6 +157,9 @@ def add_side_arguments(parser: argparse.ArgumentParser, tmrl: bool = True, sb3: 
         parser.add_argument("--sb3-dir", default=DEFAULT_SB3_DIR,
                             help="where bench/anchors/install_sb3.sh installed Stable-Baselines3")
         parser.add_argument("--no-sb3", action="store_true", help="leave Stable-Baselines3 out")
+    parser.add_argument("--before", metavar="CHECKOUT", default=None,
+                        help="also an earlier commit of this repository checked out there (git worktree add), "
+                             "labelled before, measured by this checkout's benchmark code")
 
 
 def sides_from_args(args: argparse.Namespace) -> list[Side]:
@@ -150,6 +169,8 @@ def sides_from_args(args: argparse.Namespace) -> list[Side]:
         sides.append(tmrl_side(args.anchor_dir))
     if hasattr(args, "no_sb3") and not args.no_sb3:
         sides.append(sb3_side(args.sb3_dir))
+    if getattr(args, "before", None):
+        sides.append(before_side(args.before))
     return sides
 
 

@@ -482,7 +482,8 @@ def _workers(args: argparse.Namespace) -> dict[str, harness.ChildWorker]:
     common = ["--threads", str(args.threads)] if args.threads else []
     workers = {}
     for side in harness.sides_from_args(args):
-        workers[side.name] = harness.ChildWorker(side, "trainer_speed", "--side", side.name, *common)
+        code = "ours" if side.name == "before" else side.name  # an earlier commit of ours runs our code path
+        workers[side.name] = harness.ChildWorker(side, "trainer_speed", "--side", code, *common)
         if side.name == "tmrl" and args.glibc_defaults_for_tmrl:
             label = "tmrl (glibc defaults)"
             workers[label] = harness.ChildWorker(side, "trainer_speed", "--side", "tmrl", "--glibc-defaults", *common)
@@ -526,7 +527,7 @@ def main(argv: list[str] | None = None) -> None:
         for w in workers.values():
             w.close()
     rows = rec.print_table(ratios=[("ours", "tmrl"), ("ours", "sb3"), ("ours", "tmrl (glibc defaults)"),
-                                   ("ours bf16", "tmrl")])
+                                   ("ours bf16", "tmrl"), ("ours", "before")])
     _print_floor_fractions(rows)
     rec.close()
 
