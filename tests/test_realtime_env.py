@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import subprocess
 import sys
@@ -16,6 +17,17 @@ from gymnasium import spaces
 import tmrl.realtime as rt
 from tmrl.errors import UserError
 from tmrl.realtime import DEFAULT_CONFIG_DICT, FakeClock, RealTimeGymInterface, TimeStepTimeoutWarning
+from tmrl.realtime.benchmark import BenchmarkObserver, NullObserver, StepObserver
+from tmrl.realtime.env import (
+    CallInterface,
+    ChainTimeStep,
+    Observed,
+    Raised,
+    Returned,
+    StartTimeStep,
+    StopThread,
+    TimeStepRunner,
+)
 
 IDS = ["real-time-gym-v1", "real-time-gym-ts-v1"]
 T = 0.05  # time step
@@ -547,3 +559,211 @@ def test_import_registers_ids_and_touches_nothing(tmp_path):
     )
     assert out.stdout.strip() == "[]"
     assert not (tmp_path / "TmrlData").exists()
+
+
+# the step observer ------------------------------------------------------------------------------
+EVENTS = (
+    "on_reset_start",
+    "on_reset_joined",
+    "on_reset_end",
+    "on_step_start",
+    "on_step_joined",
+    "on_step_end",
+    "on_send_control_start",
+    "on_send_control_end",
+    "on_obs_capture_start",
+    "on_obs_captured",
+)
+
+
+def _recording(name):
+    def hook(self, t):
+        self.calls.append((name, threading.current_thread().name, round(t, 9)))
+        getattr(BenchmarkObserver, name)(self, t)
+
+    return hook
+
+
+class RecordingObserver(BenchmarkObserver):
+    """A BenchmarkObserver that also records (event, thread, time) for every call."""
+
+    def __init__(self, benchmark):
+        super().__init__(benchmark)
+        self.calls = []
+
+
+for _name in EVENTS:
+    setattr(RecordingObserver, _name, _recording(_name))
+
+
+class ObservedEnv(rt.RealTimeEnv):
+    def _make_observer(self):
+        return RecordingObserver(self.bench)
+
+
+class ObservedEnvTS(rt.RealTimeEnvTS):
+    def _make_observer(self):
+        return RecordingObserver(self.bench)
+
+
+def scripted_config(clock, log, **overrides):
+    cfg = dict(
+        DEFAULT_CONFIG_DICT,
+        interface=Scripted,
+        interface_kwargs={"clock": clock, "log": log},
+        time_step_duration=T,
+        start_obs_capture=C,
+    )
+    cfg.update(overrides)
+    return cfg
+
+
+@pytest.mark.parametrize("env_cls", [ObservedEnv, ObservedEnvTS])
+def test_benchmark_observer_gets_its_calls_in_order(env_cls):
+    clock = FakeClock()
+    env = env_cls(scripted_config(clock, [], benchmark=True), clock=clock)
+    try:
+        env.reset()
+        for _ in range(2):
+            clock.sleep(0.01)
+            env.step(a(0.0))
+        env.stop()
+        calls = env.observer.calls
+    finally:
+        env.close()
+    main = threading.current_thread().name
+    caller = [(name, t) for name, thread, t in calls if thread == main]
+    worker = [(name, t) for name, thread, t in calls if thread != main]
+    assert caller == [
+        ("on_reset_start", 0.0),
+        ("on_reset_joined", 0.0),
+        ("on_reset_end", 0.0),
+        ("on_step_start", 0.01),
+        ("on_step_joined", pytest.approx(C)),  # the observation is in; step() then waits for 0.05
+        ("on_step_end", pytest.approx(0.05)),
+        ("on_step_start", pytest.approx(0.06)),
+        ("on_step_joined", pytest.approx(T + C)),
+        ("on_step_end", pytest.approx(0.10)),
+    ]
+    expected_worker = []
+    for start in (0.0, 0.05, 0.10):
+        expected_worker += [
+            ("on_send_control_start", pytest.approx(start)),
+            ("on_send_control_end", pytest.approx(start)),
+            ("on_obs_capture_start", pytest.approx(start + C)),
+            ("on_obs_captured", pytest.approx(start + C)),
+        ]
+    assert worker == expected_worker
+    # the observer feeds the benchmark that benchmarks() reads
+    assert env.observer.benchmark is env.bench
+    assert env.benchmarks()["time_step_duration"] == pytest.approx((T, 0.0))
+    assert env.benchmarks()["inference_duration"] == pytest.approx((0.01, 0.0))
+
+
+def test_without_benchmark_the_env_calls_a_no_op_observer(monkeypatch):
+    counts = {name: 0 for name in EVENTS}
+
+    def counting(name):
+        def hook(self, t):
+            counts[name] += 1
+
+        return hook
+
+    for name in EVENTS:
+        monkeypatch.setattr(NullObserver, name, counting(name))
+    clock = FakeClock()
+    env = rt.RealTimeEnv(scripted_config(clock, []), clock=clock)
+    try:
+        assert type(env.observer) is NullObserver
+        env.reset()
+        for _ in range(3):
+            env.step(a(0.0))
+        env.stop()
+        with pytest.raises(rt.BenchmarkDisabledError):
+            env.benchmarks()
+    finally:
+        env.close()
+    assert counts == {
+        **{name: 1 for name in EVENTS if name.startswith("on_reset")},
+        **{name: 3 for name in EVENTS if name.startswith("on_step")},
+        **{name: 4 for name in EVENTS[6:]},
+    }
+    clock = FakeClock()
+    bench_env = rt.RealTimeEnv(scripted_config(clock, [], benchmark=True), clock=clock)
+    try:
+        assert (
+            type(bench_env.observer) is BenchmarkObserver and bench_env.observer.benchmark is bench_env.bench
+        )
+    finally:
+        bench_env.close()
+
+
+def test_null_observer_fits_the_protocol():
+    for name in EVENTS:
+        assert callable(getattr(StepObserver, name))
+        assert getattr(NullObserver(), name)(1.0) is None
+
+
+# messages of the time-step thread ----------------------------------------------------------------
+def test_time_step_thread_speaks_typed_messages():
+    clock, log = FakeClock(), []
+    runner = TimeStepRunner(clock, NullObserver(), None, None)
+    runner.interface = Scripted(clock, log)
+    thread = threading.Thread(target=runner.loop, args=(0.0,), daemon=True)
+    thread.start()
+    try:
+        runner.jobs.put(StartTimeStep(a(0.5), 0.0, C, T))
+        first = runner.results.get(timeout=30)
+        assert isinstance(first, Observed)
+        assert first.obs[0][0] == 1 and first.rew == 1.0 and first.terminated is False
+        assert first.info == {"k": 1} and first.capture_end == pytest.approx(C)
+        # chained: starts at the end of the previous time step although step() came earlier
+        runner.jobs.put(ChainTimeStep(a(0.2), 0.01, False, T, C, T))
+        second = runner.results.get(timeout=30)
+        assert isinstance(second, Observed) and second.capture_end == pytest.approx(T + C)
+        runner.jobs.put(ChainTimeStep(a(0.3), 0.1, True, T, C, T))  # truncating: nothing starts
+        runner.jobs.put(CallInterface(lambda itf: itf.k))
+        assert runner.results.get(timeout=30) == Returned(2)
+        runner.jobs.put(CallInterface(lambda itf: itf.get_obs_rew_terminated_info()["nope"]))
+        failed = runner.results.get(timeout=30)
+        assert isinstance(failed, Raised) and isinstance(failed.error, TypeError)
+        runner.jobs.put(("call", lambda itf: itf.k))  # an untyped message is refused, not run
+        refused = runner.results.get(timeout=30)
+        assert isinstance(refused, Raised) and "unknown job" in str(refused.error)
+        runner.jobs.put(StopThread())
+        assert runner.results.get(timeout=30) == Returned(None)
+        thread.join(timeout=30)
+        assert not thread.is_alive()
+    finally:
+        runner.jobs.put(StopThread())
+    assert sent(log) == pytest.approx([0.5, 0.2])
+    assert times(log, "send") == pytest.approx([0.0, T])
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        first.rew = 2.0  # type: ignore[misc]
+
+
+def test_env_sends_typed_jobs(monkeypatch):
+    seen = []
+    original = TimeStepRunner.run
+
+    def spy(self, job, last):
+        seen.append(type(job).__name__)
+        return original(self, job, last)
+
+    monkeypatch.setattr(TimeStepRunner, "run", spy)
+    clock = FakeClock()
+    env = rt.RealTimeEnvTS(scripted_config(clock, [], ep_max_length=2), clock=clock)
+    try:
+        env.reset()
+        env.step(a(0.0))
+        env.step(a(0.0))  # truncates
+    finally:
+        env.close()
+    assert seen == [
+        "CallInterface",  # build the interface
+        "CallInterface",  # reset
+        "StartTimeStep",
+        "ChainTimeStep",
+        "ChainTimeStep",  # the truncating step: nothing starts
+        "CallInterface",  # close
+    ]

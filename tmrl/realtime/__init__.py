@@ -13,12 +13,19 @@ Importing this package registers four Gymnasium ids (and does nothing else):
   package, when it was imported first: then those ids give rtgym's environments);
 * ``tmrl/real-time-gym-v1`` and ``tmrl/real-time-gym-ts-v1``, always tmrl's.
 
-See docs/realtime.md.
+The checks of :func:`check_realtime_interface` can also be called one by one from
+:mod:`tmrl.realtime.check`. See docs/realtime.md.
 """
 
 from __future__ import annotations
 
-from tmrl.realtime.benchmark import PolyakBenchmark, TraceBenchmark
+from tmrl.realtime.benchmark import (
+    BenchmarkObserver,
+    NullObserver,
+    PolyakBenchmark,
+    StepObserver,
+    TraceBenchmark,
+)
 from tmrl.realtime.check import check_realtime_interface
 from tmrl.realtime.clock import Clock, FakeClock, PerfCounterClock
 from tmrl.realtime.drone import DroneInterface, DummyRCDrone, drone_config
@@ -36,16 +43,19 @@ __all__ = [
     "DEFAULT_CONFIG_DICT",
     "ENV_IDS",
     "BenchmarkDisabledError",
+    "BenchmarkObserver",
     "Clock",
     "DroneInterface",
     "DummyRCDrone",
     "FakeClock",
+    "NullObserver",
     "PerfCounterClock",
     "PolyakBenchmark",
     "RealTimeEnv",
     "RealTimeEnvTS",
     "RealTimeGymInterface",
     "StepAfterDoneError",
+    "StepObserver",
     "TimeStepTimeoutWarning",
     "TraceBenchmark",
     "check_realtime_interface",

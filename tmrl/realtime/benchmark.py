@@ -12,16 +12,28 @@ The durations: ``time_step_duration`` (between two consecutive ``send_control`` 
 ``step_duration`` (inside ``step()``), ``join_duration`` (the part of ``step()`` spent waiting for
 the running time step to end), ``inference_duration`` (between a ``step()`` return and the next
 call), ``send_control_duration`` and ``get_obs_duration`` (the interface's methods).
+
+The environment does not call a benchmark directly: it tells a :class:`StepObserver` what happens
+at named points of ``reset()``, ``step()`` and the time-step thread. :class:`NullObserver` (no
+``benchmark`` in the config) ignores everything; :class:`BenchmarkObserver` feeds a benchmark.
 """
 
 from __future__ import annotations
 
 import threading
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-__all__ = ["DURATION_KEYS", "PolyakBenchmark", "TraceBenchmark", "make_benchmark"]
+__all__ = [
+    "DURATION_KEYS",
+    "BenchmarkObserver",
+    "NullObserver",
+    "PolyakBenchmark",
+    "StepObserver",
+    "TraceBenchmark",
+    "make_benchmark",
+]
 
 DURATION_KEYS = (
     "time_step_duration",
@@ -171,3 +183,121 @@ def make_benchmark(kind: str, polyak: float) -> PolyakBenchmark:
     if kind == "trace":
         return TraceBenchmark(polyak)
     raise UserError(f'benchmark_type is {kind!r}: set it to "polyak" or "trace" in the real-time config')
+
+
+class StepObserver(Protocol):
+    """What the environment tells at named points of a time step, with its clock's time ``t``.
+
+    ``on_reset_*`` and ``on_step_*`` are called on the caller's thread; ``on_send_control_*`` and
+    ``on_obs_*`` on the time-step thread, possibly at the same time.
+    """
+
+    def on_reset_start(self, t: float) -> None:
+        """``reset()`` was called."""
+
+    def on_reset_joined(self, t: float) -> None:
+        """``reset()`` finished waiting for the running time step."""
+
+    def on_reset_end(self, t: float) -> None:
+        """``reset()`` is about to return."""
+
+    def on_step_start(self, t: float) -> None:
+        """``step()`` was called."""
+
+    def on_step_joined(self, t: float) -> None:
+        """``step()`` received the observation of the time step that ended."""
+
+    def on_step_end(self, t: float) -> None:
+        """``step()`` is about to return."""
+
+    def on_send_control_start(self, t: float) -> None:
+        """A time step starts: ``send_control`` is about to be called."""
+
+    def on_send_control_end(self, t: float) -> None:
+        """``send_control`` returned."""
+
+    def on_obs_capture_start(self, t: float) -> None:
+        """``get_obs_rew_terminated_info`` is about to be called."""
+
+    def on_obs_captured(self, t: float) -> None:
+        """The observation is captured (and preprocessed)."""
+
+
+class NullObserver:
+    """The observer of an environment without ``benchmark``: ignores everything."""
+
+    def on_reset_start(self, t: float) -> None:
+        pass
+
+    def on_reset_joined(self, t: float) -> None:
+        pass
+
+    def on_reset_end(self, t: float) -> None:
+        pass
+
+    def on_step_start(self, t: float) -> None:
+        pass
+
+    def on_step_joined(self, t: float) -> None:
+        pass
+
+    def on_step_end(self, t: float) -> None:
+        pass
+
+    def on_send_control_start(self, t: float) -> None:
+        pass
+
+    def on_send_control_end(self, t: float) -> None:
+        pass
+
+    def on_obs_capture_start(self, t: float) -> None:
+        pass
+
+    def on_obs_captured(self, t: float) -> None:
+        pass
+
+
+class BenchmarkObserver:
+    """Feeds every event to a benchmark (``"benchmark": True`` in the config).
+
+    Args:
+        benchmark: a :class:`PolyakBenchmark` or :class:`TraceBenchmark` (see
+            :func:`make_benchmark`).
+    """
+
+    def __init__(self, benchmark: PolyakBenchmark) -> None:
+        self.benchmark = benchmark
+
+    def on_reset_start(self, t: float) -> None:
+        self.benchmark.start_reset(t)
+
+    def on_reset_joined(self, t: float) -> None:
+        self.benchmark.end_reset_join(t)
+
+    def on_reset_end(self, t: float) -> None:
+        self.benchmark.end_reset(t)
+
+    def on_step_start(self, t: float) -> None:
+        self.benchmark.start_step(t)
+
+    def on_step_joined(self, t: float) -> None:
+        self.benchmark.end_step_join(t)
+
+    def on_step_end(self, t: float) -> None:
+        self.benchmark.end_step(t)
+
+    def on_send_control_start(self, t: float) -> None:
+        self.benchmark.start_send_control(t)
+
+    def on_send_control_end(self, t: float) -> None:
+        self.benchmark.end_send_control(t)
+
+    def on_obs_capture_start(self, t: float) -> None:
+        self.benchmark.start_get_obs(t)
+
+    def on_obs_captured(self, t: float) -> None:
+        self.benchmark.end_get_obs(t)
+
+    def result(self) -> dict[str, Any]:
+        """The benchmark's :meth:`~PolyakBenchmark.result`."""
+        return self.benchmark.result()

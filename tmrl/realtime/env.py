@@ -23,6 +23,11 @@ Two variants with the semantics of rtgym 0.16:
   capture run on one persistent time-step thread.
 * :class:`RealTimeEnvTS` (``real-time-gym-ts-v1``): one persistent thread builds the interface and
   makes every call to it except ``render`` (for interfaces with thread affinity).
+
+The environment sends its time-step thread (a :class:`TimeStepRunner`) typed jobs
+(:class:`StartTimeStep`, :class:`ChainTimeStep`, :class:`CallInterface`, :class:`StopThread`) and
+gets typed results back (:class:`Observed`, :class:`Returned`, :class:`Raised`). Both threads tell
+the environment's :class:`~tmrl.realtime.benchmark.StepObserver` what happens, for the benchmarks.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ import threading
 import warnings
 from collections import deque
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium
@@ -41,16 +47,33 @@ import numpy as np
 from gymnasium import spaces
 
 from tmrl.errors import UserError
-from tmrl.realtime.benchmark import PolyakBenchmark, make_benchmark
+from tmrl.realtime.benchmark import (
+    BenchmarkObserver,
+    NullObserver,
+    PolyakBenchmark,
+    StepObserver,
+    make_benchmark,
+)
 from tmrl.realtime.clock import Clock, PerfCounterClock
 from tmrl.realtime.interface import CONFIG_KEYS, DEFAULT_CONFIG_DICT, RealTimeGymInterface
 
 __all__ = [
     "BenchmarkDisabledError",
+    "CallInterface",
+    "ChainTimeStep",
+    "Job",
+    "Observed",
+    "Raised",
     "RealTimeEnv",
     "RealTimeEnvTS",
+    "Result",
+    "Returned",
+    "StartTimeStep",
     "StepAfterDoneError",
+    "StopThread",
+    "TimeStepRunner",
     "TimeStepTimeoutWarning",
+    "read_config",
 ]
 
 logger = logging.getLogger(__name__)
@@ -84,11 +107,35 @@ def _next_start(decision_time: float, t_end: float, timeout: float) -> tuple[flo
     return decision_time, True
 
 
-def _read_config(config: Mapping[str, Any]) -> dict[str, Any]:
-    """Complete ``config`` with the defaults and check the values a user can get wrong.
+def _number(cfg: Mapping[str, Any], key: str, low: float, allow_low: bool = True) -> float:
+    """``cfg[key]`` as a float ``>= low`` (``> low`` unless ``allow_low``).
 
     Raises:
-        UserError: a missing interface or an out-of-range value.
+        UserError: not a number, NaN or out of range.
+    """
+    try:
+        value = float(cfg[key])
+    except (TypeError, ValueError):
+        raise UserError(f"real-time config: {key} is {cfg[key]!r}; set it to a number") from None
+    if math.isnan(value) or value < low or (value == low and not allow_low):
+        bound = f">= {low}" if allow_low else f"> {low}"
+        raise UserError(f"real-time config: {key} is {cfg[key]!r}; set it to a number {bound}")
+    return value
+
+
+def read_config(config: Mapping[str, Any]) -> dict[str, Any]:
+    """Complete ``config`` with the defaults and check the values a user can get wrong.
+
+    Unknown keys are logged and kept. The same rules as :class:`RealTimeEnv` (which calls this).
+
+    Args:
+        config: a real-time config (see :data:`~tmrl.realtime.DEFAULT_CONFIG_DICT`); not mutated.
+
+    Returns:
+        A new dict with every key of :data:`~tmrl.realtime.DEFAULT_CONFIG_DICT`.
+
+    Raises:
+        UserError: a missing interface or an out-of-range value (one line).
     """
     if not isinstance(config, Mapping):
         raise UserError(
@@ -104,22 +151,11 @@ def _read_config(config: Mapping[str, Any]) -> dict[str, Any]:
             'the real-time config has no interface: set config["interface"] to your interface class '
             "(e.g. dict(tmrl.realtime.DEFAULT_CONFIG_DICT, interface=MyInterface))"
         )
-
-    def number(key: str, low: float, allow_low: bool = True) -> float:
-        try:
-            value = float(cfg[key])
-        except (TypeError, ValueError):
-            raise UserError(f"real-time config: {key} is {cfg[key]!r}; set it to a number") from None
-        if math.isnan(value) or value < low or (value == low and not allow_low):
-            bound = f">= {low}" if allow_low else f"> {low}"
-            raise UserError(f"real-time config: {key} is {cfg[key]!r}; set it to a number {bound}")
-        return value
-
-    number("time_step_duration", 0.0)
-    number("start_obs_capture", 0.0)
-    number("time_step_timeout_factor", 0.0)
-    number("ep_max_length", 0.0, allow_low=False)
-    number("benchmark_polyak", 0.0, allow_low=False)
+    _number(cfg, "time_step_duration", 0.0)
+    _number(cfg, "start_obs_capture", 0.0)
+    _number(cfg, "time_step_timeout_factor", 0.0)
+    _number(cfg, "ep_max_length", 0.0, allow_low=False)
+    _number(cfg, "benchmark_polyak", 0.0, allow_low=False)
     if (
         not isinstance(cfg["act_buf_len"], numbers.Integral)
         or isinstance(cfg["act_buf_len"], bool)
@@ -134,25 +170,131 @@ def _read_config(config: Mapping[str, Any]) -> dict[str, Any]:
     return cfg
 
 
-class _TimeStepRunner:
-    """What the time-step thread runs: jobs from the caller, results back, in order.
+# Messages between the environment and its time-step thread -----------------------------------
+# Jobs go from the environment to the thread, results come back, both in order (one result per
+# job, except ChainTimeStep, which sends none when no time step starts).
+
+
+@dataclass(frozen=True, eq=False)
+class StartTimeStep:
+    """Job: run a time step with timestamps decided by the caller.
+
+    Attributes:
+        action: the action to send (before ``act_prepro_func``).
+        t_start: when to call ``send_control``.
+        t_co: when to capture the observation.
+        t_end: the nominal end of the time step.
+    """
+
+    action: Any
+    t_start: float
+    t_co: float
+    t_end: float
+
+
+@dataclass(frozen=True, eq=False)
+class ChainTimeStep:
+    """Job: start the next time step right after the one just captured, deciding its start with
+    the same rule as the caller (:func:`_next_start`), so the control goes out at the end of the
+    previous time step without waiting for the caller's thread to wake up. Nothing starts (and no
+    result comes back) when the episode ended or the previous time step failed or terminated.
+
+    Attributes:
+        action: the action to send.
+        t_call: when ``step()`` was called.
+        truncating: this step truncates the episode (no time step starts).
+        duration: ``time_step_duration``.
+        capture: ``start_obs_capture``.
+        timeout: how late the time step may start before the clock restarts (seconds).
+    """
+
+    action: Any
+    t_call: float
+    truncating: bool
+    duration: float
+    capture: float
+    timeout: float
+
+
+@dataclass(frozen=True)
+class CallInterface:
+    """Job: run ``fn(interface)`` on the time-step thread; the result is :class:`Returned` or
+    :class:`Raised`."""
+
+    fn: Callable[[Any], Any]
+
+
+@dataclass(frozen=True)
+class StopThread:
+    """Job: end the time-step thread (after answering :class:`Returned` ``(None)``)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Observed:
+    """Result: what a time step captured.
+
+    Attributes:
+        obs: the interface's observation (after ``obs_prepro_func``), as a tuple.
+        rew: the reward.
+        terminated: whether the episode ended.
+        info: the interface's info dict.
+        capture_end: when the capture returned (clock time).
+    """
+
+    obs: tuple[Any, ...]
+    rew: Any
+    terminated: Any
+    info: Any
+    capture_end: float
+
+
+@dataclass(frozen=True)
+class Returned:
+    """Result: what a :class:`CallInterface` returned (None for :class:`StopThread`)."""
+
+    value: Any = None
+
+
+@dataclass(frozen=True)
+class Raised:
+    """Result: the exception a job raised, for the caller to re-raise."""
+
+    error: BaseException
+
+
+#: What the environment sends to its time-step thread.
+Job = StartTimeStep | ChainTimeStep | CallInterface | StopThread
+#: What the time-step thread sends back.
+Result = Observed | Returned | Raised
+
+
+class TimeStepRunner:
+    """What the time-step thread runs: :data:`Job` messages from the environment, :data:`Result`
+    messages back, in order. Holds no reference to the environment, so that an environment
+    dropped without ``close()`` is collected (and its ``__del__`` stops the thread).
 
     Args:
         clock: the environment's clock.
-        bench: the benchmark to feed, or None.
+        observer: told of ``send_control`` and of the capture (see
+            :class:`~tmrl.realtime.benchmark.StepObserver`).
         act_prepro_func: applied to an action before ``send_control`` (rtgym's hook), or None.
         obs_prepro_func: applied to a captured observation (rtgym's hook), or None.
+
+    Attributes:
+        interface: the interface the jobs act on (set by the environment once built).
+        jobs: the channel of :data:`Job` messages.
+        results: the channel of :data:`Result` messages.
     """
 
     def __init__(
         self,
         clock: Clock,
-        bench: PolyakBenchmark | None,
+        observer: StepObserver,
         act_prepro_func: Callable[[Any], Any] | None,
         obs_prepro_func: Callable[[Any], Any] | None,
     ) -> None:
         self.clock = clock
-        self.bench = bench
+        self.observer = observer
         self.act_prepro_func = act_prepro_func
         self.obs_prepro_func = obs_prepro_func
         self.interface: Any = None
@@ -160,69 +302,76 @@ class _TimeStepRunner:
         self.results = clock.channel()
 
     def loop(self, t0: float) -> None:
-        """The time-step thread: runs jobs in order until told to stop.
-
-        Jobs: ``("start", (action, t_start, t_co, t_end))`` runs a time step with timestamps
-        decided by the caller; ``("next", (action, t_call, truncating, T, c, timeout))`` chains a
-        time step to the one just captured, deciding its start with the same rule as the caller
-        (:func:`_next_start`), so the control goes out right at the end of the previous time step
-        without waiting for the caller to wake up; ``("call", fn)`` runs ``fn(interface)``.
-        """
-        clock, jobs, results = self.clock, self.jobs, self.results
-        clock.sleep_until(t0)
+        """The time-step thread: runs jobs in order from ``t0`` on until :class:`StopThread`."""
+        self.clock.sleep_until(t0)
         # (t_end, capture_end) of the last time step when it may be chained, else None
         last: tuple[float, float] | None = None
         while True:
-            kind, payload = jobs.get()
-            if kind == "stop":
-                results.put(("ok", None))
+            job = self.jobs.get()
+            if isinstance(job, StopThread):
+                self.results.put(Returned(None))
                 return
-            if kind == "next":
-                action, t_call, truncating, duration, capture, timeout = payload
-                if last is None or truncating:
-                    continue  # the episode ended: no time step starts
-                t_end, capture_end = last
-                t_start, _ = _next_start(max(t_call, capture_end, t_end), t_end, timeout)
-                last = self.time_step(action, t_start, t_start + capture, t_start + duration)
-            elif kind == "start":
-                last = self.time_step(*payload)
-            else:
-                last = None
-                try:
-                    value = payload(self.interface)
-                except BaseException as err:  # noqa: BLE001  (handed to the caller, who re-raises it)
-                    results.put(("error", err))
-                else:
-                    results.put(("ok", value))
-                value = None
-            payload = None  # a finished job may hold the environment (a bound method): let it go
+            last = self.run(job, last)
+            job = None  # a finished job may hold the environment (a bound method): let it go
 
-    def time_step(self, action: Any, t_start: float, t_co: float, t_end: float) -> tuple[float, float] | None:
-        """Send the control at ``t_start``, capture the observation at ``t_co`` and post it
-        (time-step thread). Returns ``(t_end, capture_end)`` when a next time step may follow."""
-        clock, bench = self.clock, self.bench
+    def run(self, job: Job, last: tuple[float, float] | None) -> tuple[float, float] | None:
+        """Run one job other than :class:`StopThread`.
+
+        Args:
+            job: the job.
+            last: ``(t_end, capture_end)`` of the last time step when it may be chained, else None.
+
+        Returns:
+            The new ``last``.
+        """
+        if isinstance(job, ChainTimeStep):
+            if last is None or job.truncating:
+                return last  # the episode ended: no time step starts
+            t_end, capture_end = last
+            t_start, _ = _next_start(max(job.t_call, capture_end, t_end), t_end, job.timeout)
+            return self.time_step(
+                StartTimeStep(job.action, t_start, t_start + job.capture, t_start + job.duration)
+            )
+        if isinstance(job, StartTimeStep):
+            return self.time_step(job)
+        if isinstance(job, CallInterface):
+            try:
+                value = job.fn(self.interface)
+            except BaseException as err:  # noqa: BLE001  (handed to the caller, who re-raises it)
+                self.results.put(Raised(err))
+            else:
+                self.results.put(Returned(value))
+        else:
+            self.results.put(Raised(TypeError(f"the time-step thread got an unknown job: {job!r}")))
+        return None
+
+    def time_step(self, step: StartTimeStep) -> tuple[float, float] | None:
+        """Send the control at ``step.t_start``, capture the observation at ``step.t_co`` and post
+        it as :class:`Observed` (or :class:`Raised`).
+
+        Returns:
+            ``(t_end, capture_end)`` when a next time step may follow, else None.
+        """
+        clock, observer = self.clock, self.observer
         try:
-            clock.sleep_until(t_start)
-            if bench is not None:
-                bench.start_send_control(clock.now())
+            clock.sleep_until(step.t_start)
+            observer.on_send_control_start(clock.now())
+            action = step.action
             self.interface.send_control(self.act_prepro_func(action) if self.act_prepro_func else action)
-            if bench is not None:
-                bench.end_send_control(clock.now())
-            clock.sleep_until(t_co)
-            if bench is not None:
-                bench.start_get_obs(clock.now())
+            observer.on_send_control_end(clock.now())
+            clock.sleep_until(step.t_co)
+            observer.on_obs_capture_start(clock.now())
             obs, rew, terminated, info = self.interface.get_obs_rew_terminated_info()
             if self.obs_prepro_func:
                 obs = self.obs_prepro_func(obs)
             obs = tuple(obs)
             capture_end = clock.now()
-            if bench is not None:
-                bench.end_get_obs(capture_end)
+            observer.on_obs_captured(capture_end)
         except BaseException as err:  # noqa: BLE001  (handed to the caller, who re-raises it)
-            self.results.put(("error", err))
+            self.results.put(Raised(err))
             return None
-        self.results.put(("ok", (obs, rew, terminated, info, capture_end)))
-        return None if terminated else (t_end, capture_end)
+        self.results.put(Observed(obs, rew, terminated, info, capture_end))
+        return None if terminated else (step.t_end, capture_end)
 
 
 class RealTimeEnv(gymnasium.Env):
@@ -241,6 +390,10 @@ class RealTimeEnv(gymnasium.Env):
         default_action: the action applied at reset and used to fill the action buffer.
         act_buf: the last ``act_buf_len`` actions, oldest first.
         current_step: steps since the last reset.
+        observer: told of every time step's events (a
+            :class:`~tmrl.realtime.benchmark.BenchmarkObserver` with ``"benchmark": True``, else a
+            :class:`~tmrl.realtime.benchmark.NullObserver`); subclasses may override
+            ``_make_observer()``.
 
     Raises:
         UserError: the config is invalid.
@@ -252,8 +405,31 @@ class RealTimeEnv(gymnasium.Env):
     _INTERFACE_ON_WORKER = False
 
     def __init__(self, config: Mapping[str, Any] | None = None, clock: Clock | None = None) -> None:
-        cfg = _read_config(DEFAULT_CONFIG_DICT if config is None else config)
+        cfg = read_config(DEFAULT_CONFIG_DICT if config is None else config)
         self._clock: Clock = PerfCounterClock() if clock is None else clock
+        self._apply_config(cfg)
+        self.is_waiting = False
+        self.current_step = 0
+        self.time_initialized = False
+        self.running = False
+        self.seed: int | None = None
+        self.options: dict[str, Any] | None = None
+        self.render_mode = "human"
+        # Timestamps of the current time step (owned by the caller's thread).
+        self._t_start = 0.0
+        self._t_co = 0.0
+        self._t_end = 0.0
+        # A time step is running on the worker and its result has not been collected.
+        self._in_flight = False
+        self._result: Result | None = None
+        self._closed = False
+        self._interface: Any = None
+        self.observer: StepObserver = self._make_observer()
+        self._start_worker()
+        self.init_action_buffer()
+
+    def _apply_config(self, cfg: dict[str, Any]) -> None:
+        """Set the attributes that a config (completed by :func:`read_config`) decides."""
         self.config = cfg
         self.interface_cls = cfg["interface"]
         self.interface_args = tuple(cfg["interface_args"])
@@ -273,30 +449,17 @@ class RealTimeEnv(gymnasium.Env):
         self.act_buf: deque[Any] = deque(maxlen=self.act_buf_len)
         self.benchmark = bool(cfg["benchmark"])
         self.benchmark_polyak = float(cfg["benchmark_polyak"])
+        # built even when benchmarks are off, so that a wrong benchmark_type is reported at once
         self.bench: PolyakBenchmark = make_benchmark(cfg["benchmark_type"], self.benchmark_polyak)
 
-        self.is_waiting = False
-        self.current_step = 0
-        self.time_initialized = False
-        self.running = False
-        self.seed: int | None = None
-        self.options: dict[str, Any] | None = None
-        self.render_mode = "human"
-        # Timestamps of the current time step (owned by the caller's thread).
-        self._t_start = 0.0
-        self._t_co = 0.0
-        self._t_end = 0.0
-        # A time step is running on the worker and its result has not been collected.
-        self._in_flight = False
-        self._result: tuple[str, Any] | None = None
-        self._closed = False
-        self._interface: Any = None
+    def _make_observer(self) -> StepObserver:
+        """The observer of time steps: a :class:`~tmrl.realtime.benchmark.BenchmarkObserver`
+        feeding ``self.bench`` when the config sets ``benchmark``, else a no-op."""
+        return BenchmarkObserver(self.bench) if self.benchmark else NullObserver()
 
-        # The time-step thread runs a _TimeStepRunner, which holds no reference to the
-        # environment: an environment dropped without close() is collected, and __del__ stops it.
-        self._runner = _TimeStepRunner(
-            self._clock, self.bench if self.benchmark else None, self.act_prepro_func, self.obs_prepro_func
-        )
+    def _start_worker(self) -> None:
+        """Start the time-step thread and build the interface (on that thread for the TS variant)."""
+        self._runner = TimeStepRunner(self._clock, self.observer, self.act_prepro_func, self.obs_prepro_func)
         self._jobs = self._runner.jobs
         self._results = self._runner.results
         self._thread = threading.Thread(
@@ -315,7 +478,6 @@ class RealTimeEnv(gymnasium.Env):
         else:
             self._build_interface(None)
             self._thread.start()
-        self.init_action_buffer()
 
     # interface and worker thread ---------------------------------------------------------------
     def _build_interface(self, _: Any) -> None:
@@ -349,15 +511,15 @@ class RealTimeEnv(gymnasium.Env):
         """Run ``fn(interface)`` on the thread that owns the interface; no time step may be running."""
         if not self._INTERFACE_ON_WORKER:
             return fn(self._interface)
-        self._jobs.put(("call", fn))
-        status, value = self._results.get()
-        if status == "error":
-            raise value
-        return value
+        self._jobs.put(CallInterface(fn))
+        result = self._results.get()
+        if isinstance(result, Raised):
+            raise result.error
+        return result.value
 
     def _stop_worker(self) -> None:
         if self._thread.is_alive():
-            self._jobs.put(("stop", None))
+            self._jobs.put(StopThread())
             self._thread.join(_CLOSE_JOIN_TIMEOUT)
             if self._thread.is_alive():
                 logger.warning("the real-time thread did not stop within %.0f s", _CLOSE_JOIN_TIMEOUT)
@@ -389,11 +551,15 @@ class RealTimeEnv(gymnasium.Env):
         self._t_co = self._t_start + self.start_obs_capture
         self._t_end = self._t_start + self.time_step_duration
 
-    def _start_time_step(self, action: Any) -> None:
-        """Start a time step from the caller's thread (reset, or a step after a join)."""
-        self._set_timestamps(self._clock.now())
+    def _start_time_step(self, action: Any, decision_time: float, chained: bool = False) -> None:
+        """Place the next time step (see :meth:`_set_timestamps`) and mark it running; unless
+        ``chained`` (the time-step thread was already handed a :class:`ChainTimeStep` and decides
+        the same start), hand it a :class:`StartTimeStep`. Called by ``reset()`` and ``step()``
+        only (the timeout warning points at their caller)."""
+        self._set_timestamps(decision_time)
         self._in_flight = True
-        self._jobs.put(("start", (action, self._t_start, self._t_co, self._t_end)))
+        if not chained:
+            self._jobs.put(StartTimeStep(action, self._t_start, self._t_co, self._t_end))
 
     def _join_thread(self) -> None:
         """Wait until the running time step (if any) has captured its observation and ended."""
@@ -423,15 +589,13 @@ class RealTimeEnv(gymnasium.Env):
         Returns:
             ``(obs, info)``: the interface's observation followed by the action buffer.
         """
-        clock, bench = self._clock, self.benchmark
+        clock, observer = self._clock, self.observer
         if self._closed:
             raise UserError("this real-time environment is closed: make a new one")
-        if bench:
-            self.bench.start_reset(clock.now())
+        observer.on_reset_start(clock.now())
         self._join_thread()
         self._result = None
-        if bench:
-            self.bench.end_reset_join(clock.now())
+        observer.on_reset_joined(clock.now())
         super().reset(seed=seed)
         self.running = True
         self.seed = seed
@@ -451,9 +615,8 @@ class RealTimeEnv(gymnasium.Env):
         obs = tuple(obs)
         if not self.time_initialized:
             self._initialize_time()
-        self._start_time_step(self.act_buf[-1])
-        if bench:
-            self.bench.end_reset(clock.now())
+        self._start_time_step(self.act_buf[-1], clock.now())
+        observer.on_reset_end(clock.now())
         return obs, info
 
     def step(self, action: Any) -> tuple[tuple[Any, ...], Any, Any, bool, dict[str, Any]]:
@@ -471,64 +634,70 @@ class RealTimeEnv(gymnasium.Env):
             StepAfterDoneError: the episode has ended (a ``RuntimeError``); call ``reset()``.
             Exception: whatever the interface raised during the time step.
         """
-        clock, bench = self._clock, self.benchmark
+        clock, observer = self._clock, self.observer
         t_call = clock.now()
-        if bench:
-            self.bench.start_step(t_call)
+        observer.on_step_start(t_call)
         self.current_step += 1
         self.act_buf.append(action)  # as in rtgym, even when the episode has ended
         truncating = bool(self.current_step >= self.ep_max_length)
         chained = self._in_flight and self.running
+        observed = self._collect_time_step(action, t_call, truncating, chained)
+        truncated = truncating if not observed.terminated else False
+        if not (observed.terminated or truncated):
+            # when chained, the same decision as the time-step thread's (same inputs, same rule)
+            decision_time = max(t_call, observed.capture_end, self._t_end) if chained else clock.now()
+            self._start_time_step(action, decision_time, chained=chained)
+            clock.sleep_until(self._t_start)
+        else:
+            self._end_episode()
+        obs = observed.obs
+        if self.act_in_obs:
+            obs = (*obs, *self._buffer_copy())
+        observer.on_step_end(clock.now())
+        return obs, observed.rew, observed.terminated, truncated, observed.info
+
+    def _collect_time_step(self, action: Any, t_call: float, truncating: bool, chained: bool) -> Observed:
+        """``step()``'s wait for the running time step: when ``chained``, hand ``action`` over
+        first (the time-step thread sends it as soon as the running time step ends, whatever the
+        delay of this thread's wake-up); tell the observer once the result is in.
+
+        Raises:
+            StepAfterDoneError: no time step was running (the episode has ended).
+            Exception: whatever the interface raised during the time step.
+        """
         if chained:
-            # Hand the action over before waiting: the time-step thread sends it as soon as the
-            # running time step ends, whatever the delay of this thread's wake-up.
             self._jobs.put(
-                (
-                    "next",
-                    (
-                        action,
-                        t_call,
-                        truncating,
-                        self.time_step_duration,
-                        self.start_obs_capture,
-                        self.time_step_timeout,
-                    ),
+                ChainTimeStep(
+                    action,
+                    t_call,
+                    truncating,
+                    self.time_step_duration,
+                    self.start_obs_capture,
+                    self.time_step_timeout,
                 )
             )
             self._result = self._results.get()
             self._in_flight = False
         else:
             self._join_thread()
-        if bench:
-            self.bench.end_step_join(clock.now())
+        self.observer.on_step_joined(self._clock.now())
         result, self._result = self._result, None
         if not self.running or result is None:
             self.running = False
             raise StepAfterDoneError("the episode is terminated or truncated: call reset() before step()")
-        status, value = result
-        if status == "error":
+        if isinstance(result, Raised):
             self.running = False  # the episode cannot go on; reset() starts a new one
-            raise value
-        obs, rew, terminated, info, capture_end = value
-        truncated = truncating if not terminated else False
-        if not (terminated or truncated):
-            if chained:
-                # the same decision as the time-step thread's (same inputs, same rule)
-                self._set_timestamps(max(t_call, capture_end, self._t_end))
-                self._in_flight = True
-            else:
-                self._start_time_step(action)
-            clock.sleep_until(self._t_start)
-        else:
-            clock.sleep_until(self._t_end)
-            self.running = False
-            if self.wait_on_done:
-                self.wait()
-        if self.act_in_obs:
-            obs = (*obs, *self._buffer_copy())
-        if bench:
-            self.bench.end_step(clock.now())
-        return obs, rew, terminated, truncated, info
+            raise result.error
+        if not isinstance(result, Observed):
+            raise TypeError(f"the time-step thread answered a time step with {result!r}")
+        return result
+
+    def _end_episode(self) -> None:
+        """After the last step of an episode: let the time step end, then pause if ``wait_on_done``."""
+        self._clock.sleep_until(self._t_end)
+        self.running = False
+        if self.wait_on_done:
+            self.wait()
 
     def wait(self) -> None:
         """Pause: wait for the running time step to end, then call the interface's ``wait()``.
@@ -594,7 +763,7 @@ class RealTimeEnv(gymnasium.Env):
         # in the garbage collector). The interface is not closed: call close() for that.
         if not getattr(self, "_closed", True) and getattr(self, "_thread", None) is not None:
             self._closed = True
-            self._jobs.put(("stop", None))
+            self._jobs.put(StopThread())
 
     def close(self) -> None:
         """Wait for the running time step, close the interface (when it has ``close()``) and stop
