@@ -82,3 +82,27 @@ def test_config_constants_creates_nothing_either(tmp_path):
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == str(data)
     assert not data.exists() and list(home.iterdir()) == []
+
+
+def test_no_class_defines_a_method_twice():
+    """A second ``def`` of the same name in a class body silently replaces the first (a worker's
+    pacing method was once shadowed that way): none in the package."""
+    import ast
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(importlib.util.find_spec("tmrl").origin).parent
+    doubles = []
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ClassDef):
+                seen: set[str] = set()
+                for item in node.body:
+                    if isinstance(item, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                        decorated = any(
+                            isinstance(d, ast.Attribute) and d.attr in ("setter", "deleter") for d in item.decorator_list
+                        )
+                        if item.name in seen and not decorated:
+                            doubles.append(f"{path.relative_to(root)}: {node.name}.{item.name}")
+                        seen.add(item.name)
+    assert doubles == []

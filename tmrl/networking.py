@@ -1942,7 +1942,7 @@ class RolloutWorker:
         """
         log = logger.info if verbose else logger.debug
         iteration, obs, done = self._collect_initial_samples(initial_steps, end_episodes, log)
-        models = self._keep_pace(iteration, 1, max_steps_per_update, send=True, verbose=verbose)
+        models = self._wait_for_models(iteration, 1, max_steps_per_update, send=True, verbose=verbose)
         iteration, episode, steps, ret = 0, 0, 0, 0.0
         while iteration < nb_steps:
             if done:
@@ -1953,16 +1953,16 @@ class RolloutWorker:
                 done, steps, ret = False, 0, 0.0
                 iteration += 1
                 episode += 1
-            while not done:  # _keep_pace holds the ratio: an episode always runs to its end
+            while not done:  # _wait_for_models holds the ratio: an episode always runs to its end
                 obs, rew, terminated, truncated, _ = self._training_step(obs, steps)
                 iteration += 1
                 steps += 1
                 ret += rew
                 done = terminated or truncated
                 if not end_episodes:
-                    models = self._keep_pace(iteration, models, max_steps_per_update, send=not done, verbose=verbose)
+                    models = self._wait_for_models(iteration, models, max_steps_per_update, send=not done, verbose=verbose)
             if end_episodes:
-                models = self._keep_pace(iteration, models, max_steps_per_update, send=not done, verbose=verbose)
+                models = self._wait_for_models(iteration, models, max_steps_per_update, send=not done, verbose=verbose)
             if done:
                 self.buffer.stat_train_return = ret
                 self.buffer.stat_train_steps = steps
@@ -1993,7 +1993,7 @@ class RolloutWorker:
             self.send_and_clear_buffer()
         return iteration, obs, done
 
-    def _keep_pace(self, steps_done: int, models: int, limit: float, send: bool, verbose: bool) -> int:
+    def _wait_for_models(self, steps_done: int, models: int, limit: float, send: bool, verbose: bool) -> int:
         """While more than ``limit`` environment steps were taken per model received, send the
         buffer (when ``send``) and wait for the next model. Returns the models received so far."""
         while (steps_done + 1) / models > limit:
