@@ -456,8 +456,11 @@ def test_real_sac_stack_trains_broadcasts_safetensors_and_resumes_from_checkpoin
         model_path=str(tmp_path / "trainer.tmod"),
         checkpoint_path=str(ckpt),
     )
+    rounds: list[tuple[int, int]] = []
+    trainer.add_callback(lambda m: rounds.append((m.epoch, m.total_updates)))  # a library script's hook
     trainer.run()
     assert trainer.run_instance.epoch == 1 and trainer.checkpoint_exists()
+    assert rounds and rounds[-1] == (0, trainer.run_instance.total_updates)
     assert w.update_actor_weights(verbose=False, blocking=True) == 1
     trained = trainer.run_instance.agent.get_actor().state_dict()
     for name, value in w.actor.state_dict().items():  # the worker now acts with the trained weights
@@ -471,8 +474,10 @@ def test_real_sac_stack_trains_broadcasts_safetensors_and_resumes_from_checkpoin
         model_path=str(tmp_path / "trainer.tmod"),
         checkpoint_path=str(ckpt),
     )
+    resumed.add_callback(lambda m: rounds.append((m.epoch, m.total_updates)))
     resumed.run()
     assert resumed.run_instance.epoch == 2
+    assert rounds[-1] == (1, 20)  # the callback reached the training loop resumed from the checkpoint
     assert resumed.run_instance.total_samples == 61  # the memory came back with the checkpoint
     assert resumed.run_instance.total_updates == 20
 

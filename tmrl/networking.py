@@ -1329,6 +1329,7 @@ class Trainer:
         self.sample_compressor = sample_compressor
         self.run_instance: Any = None
         self.run_id: str | None = None
+        self.callbacks: list[Any] = []
         self.interface = TrainerInterface(
             server_ip=server_ip,
             server_port=server_port,
@@ -1383,8 +1384,19 @@ class Trainer:
                 pass
             if path is not None:
                 self.dump_run_instance_fn(run_instance, path)
+        add = getattr(run_instance, "add_callback", None)
+        for callback in self.callbacks:
+            if add is None:
+                raise UserError(f"{type(run_instance).__name__} takes no callbacks: build it from tmrl.training_offline")
+            add(callback)
         self._announce(run_instance)
         return run_instance
+
+    def add_callback(self, callback: Any) -> None:
+        """Observe training: ``callback`` goes to the training loop when :meth:`run` builds or
+        resumes it (:meth:`tmrl.training_offline.TrainingOffline.add_callback`: a
+        ``TrainingCallback``, or a function called with each round's ``RoundMetrics``)."""
+        self.callbacks.append(callback)
 
     def _announce(self, run_instance: Any) -> None:
         """Give the interface the run's schema and identity, and broadcast the actor at once:
