@@ -3,6 +3,8 @@ of a big memory (first save, incremental save, load).
 
     python -m bench memory_speed                       # 1M samples, 3 rounds
     python -m bench memory_speed --size 200000 --act-buf-len 0   # GenericTorchMemory
+    git show HEAD:tmrl/memory.py > /tmp/memory_before.py
+    python -m bench memory_speed --reference /tmp/memory_before.py  # before/after a change
 
 Observations look like the lidar driving environment: speed (1,), lidar history (4, 19) float32,
 then an action buffer rebuilt by RealTimeTorchMemory. Needs about 1 GB of RAM and of disk per
@@ -12,11 +14,13 @@ million samples. Each round builds a fresh memory; the table gives medians over 
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.util
 import shutil
 import tempfile
 import time
 from pathlib import Path
-from types import SimpleNamespace
+from types import ModuleType, SimpleNamespace
 from typing import Any
 
 from bench import harness
@@ -72,17 +76,33 @@ def _timed(fn: Any, repeat: int = 1) -> float:
     return (time.perf_counter() - t0) / repeat
 
 
-def one_round(args: argparse.Namespace, rnd: int, rec: harness.Recorder) -> None:
+def memory_module(path: str | None) -> ModuleType:
+    """``tmrl.memory``, or the memory module in the file ``path`` (a copy of an earlier
+    ``tmrl/memory.py``, loaded under another name so that both can be timed in one process)."""
+    if not path:
+        return importlib.import_module("tmrl.memory")
+    spec = importlib.util.spec_from_file_location("bench_reference_memory", path)
+    if spec is None or spec.loader is None:
+        raise SystemExit(f"--reference {path}: not a Python file")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def one_round(args: argparse.Namespace, rnd: int, rec: harness.Recorder, side: str = "ours",
+              module: ModuleType | None = None) -> None:
     import numpy as np
     import torch
 
     from tmrl.checkpoint import load_checkpoint, save_checkpoint
-    from tmrl.memory import GenericTorchMemory, RealTimeTorchMemory
+
+    mod = module or memory_module(None)
 
     def make_memory() -> Any:
         if args.act_buf_len > 0:
-            return RealTimeTorchMemory(act_buf_len=args.act_buf_len, memory_size=args.size, batch_size=args.batch_size)
-        return GenericTorchMemory(memory_size=args.size, batch_size=args.batch_size)
+            return mod.RealTimeTorchMemory(act_buf_len=args.act_buf_len, memory_size=args.size,
+                                           batch_size=args.batch_size)
+        return mod.GenericTorchMemory(memory_size=args.size, batch_size=args.batch_size)
 
     torch.set_num_threads(1)
     rng = np.random.default_rng(rnd)
@@ -92,24 +112,24 @@ def one_round(args: argparse.Namespace, rnd: int, rec: harness.Recorder) -> None
     for start in range(0, args.size, 50_000):
         buf = _Buf(_samples(min(50_000, args.size - start), start, rng))
         append += _timed(lambda b=buf: memory.append(b))
-    rec.add(case, "append_samples_per_s", "ours", args.size / append, round=rnd, unit="1/s")
+    rec.add(case, "append_samples_per_s", side, args.size / append, round=rnd, unit="1/s")
     memory.sample()  # warm-up (valid-index cache)
-    rec.add(case, f"sample_ms_batch_{args.batch_size}", "ours", 1000 * _timed(memory.sample, 200), round=rnd,
+    rec.add(case, f"sample_ms_batch_{args.batch_size}", side, 1000 * _timed(memory.sample, 200), round=rnd,
             higher_is_better=False, unit="ms")
     folder = Path(tempfile.mkdtemp(prefix="tmrl-bench-"))
     training = SimpleNamespace(agent=_TinyAgent(), memory=memory, epoch=1, total_updates=0, total_samples=args.size)
     try:
         target = folder / "ckpt"
-        rec.add(case, "checkpoint_first_save_s", "ours", _timed(lambda: save_checkpoint(training, target)),
+        rec.add(case, "checkpoint_first_save_s", side, _timed(lambda: save_checkpoint(training, target)),
                 round=rnd, higher_is_better=False, unit="s",
                 bytes_on_disk=sum(p.stat().st_size for p in target.iterdir()))
         memory.append(_Buf(_samples(10_000, args.size, rng)))
         training.epoch = 2
-        rec.add(case, "checkpoint_save_after_10k_new_s", "ours", _timed(lambda: save_checkpoint(training, target)),
+        rec.add(case, "checkpoint_save_after_10k_new_s", side, _timed(lambda: save_checkpoint(training, target)),
                 round=rnd, higher_is_better=False, unit="s")
         restored = SimpleNamespace(agent=_TinyAgent(), memory=make_memory(), epoch=0, total_updates=0,
                                    total_samples=0, run_epoch=None)
-        rec.add(case, "checkpoint_load_s", "ours", _timed(lambda: load_checkpoint(target, restored)), round=rnd,
+        rec.add(case, "checkpoint_load_s", side, _timed(lambda: load_checkpoint(target, restored)), round=rnd,
                 higher_is_better=False, unit="s")
         assert restored.memory.total == memory.total
     finally:
@@ -122,9 +142,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--batch-size", type=int, default=256)
     ap.add_argument("--act-buf-len", type=int, default=2, help="0: GenericTorchMemory")
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--reference", metavar="FILE", default=None,
+                    help="a memory module file (e.g. git show HEAD:tmrl/memory.py > FILE) timed as side 'before', "
+                         "alternating with this checkout's in every round")
     args = ap.parse_args(argv)
     rec = harness.Recorder("memory_speed", vars(args))
-    for rnd in range(args.rounds):
-        one_round(args, rnd, rec)
-    rec.print_table(ratios=())
+    sides = [("ours", memory_module(None))]
+    if args.reference:
+        sides.append(("before", memory_module(args.reference)))
+    for rnd, (side, module) in harness.alternate(sides, args.rounds):
+        one_round(args, rnd, rec, side, module)
+    rec.print_table(ratios=(("ours", "before"),) if args.reference else ())
     rec.close()

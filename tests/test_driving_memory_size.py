@@ -69,12 +69,19 @@ def _samples(n: int, parts: dict[str, Any], seed: int = 0) -> list:
 
 
 def _arrays_held(obj: Any) -> list[np.ndarray]:
-    """NumPy arrays among the memory's attributes (directly or in lists, tuples and dicts)."""
+    """NumPy arrays among the memory's attributes (directly, in lists, tuples and dicts, or in the
+    memory's parts: the objects of tmrl.memory it is composed of), each counted once."""
     found: list[np.ndarray] = []
+    seen: set[int] = set()
 
     def walk(x: Any) -> None:
+        if id(x) in seen:
+            return
+        seen.add(id(x))
         if isinstance(x, np.ndarray):
             found.append(x)
+        elif type(x).__module__ == "tmrl.memory":
+            walk(vars(x))
         elif isinstance(x, (list, tuple)):
             for y in x:
                 walk(y)

@@ -11,11 +11,17 @@ import numpy as np
 import pytest
 import torch
 
+import tmrl.memory
+from tmrl.batch import Batch
 from tmrl.errors import UserError
 from tmrl.memory import (
+    ColumnBuffer,
     CRCMismatchError,
+    EpisodeLinks,
     GenericTorchMemory,
     RealTimeTorchMemory,
+    RingStorage,
+    SlotSampler,
     TorchMemory,
     check_transition,
     collate_torch,
@@ -302,6 +308,210 @@ def test_history_slots_clamp_at_episode_start():
     mem.append(Buf(episode(0, 0, 3) + episode(0, 1, 4)))
     hist = mem.history_slots(np.array([0, 2, 4, 6]), 4)
     assert hist.tolist() == [[0, 0, 0, 0], [0, 0, 1, 2], [3, 3, 3, 4], [3, 4, 5, 6]]
+
+
+# ---- the parts of the array-shaped memories -------------------------------------------------------
+
+
+def vec_obs(counters) -> list:
+    """One observation per counter: a dict of a float vector naming it."""
+    return [{"v": np.array([c, -c], np.float32)} for c in counters]
+
+
+def test_storage_ring_wraps_around_on_its_own():
+    store = RingStorage(capacity=4)
+    assert store.size == 0 and store.oldest == 0 and store.act is None
+    first = list(range(3))
+    store.write(0, store.obs_rows(vec_obs(first)), store.act_rows([None, np.ones(1), np.ones(1)]),
+                np.arange(3, dtype=np.float32), np.zeros(3, bool), np.zeros(3, bool))
+    store.total = 3
+    # counters 3..6 wrap: slots 3, 0, 1, 2
+    more = list(range(3, 7))
+    store.write(3, store.obs_rows(vec_obs(more)), None, np.arange(3, 7, dtype=np.float32),
+                np.array([False, False, False, True]), np.zeros(4, bool))
+    store.total = 7
+    assert store.size == 4 and store.oldest == 3
+    assert store.count.tolist() == [4, 5, 6, 3]
+    assert store.rew.tolist() == [4.0, 5.0, 6.0, 3.0]
+    assert store.terminated.tolist() == [False, False, True, False]
+    assert store.observations(np.array([3, 0]))["v"].tolist() == [[3, -3], [4, -4]]
+    assert store.act.shape == (4, 1) and store.act[0].tolist() == [0.0]  # None: zeros, here overwritten
+    assert set(store.arrays()) == {"rew", "terminated", "truncated", "count", "act", "obs.0"}
+    with pytest.raises(UserError, match="shape"):
+        store.obs_rows([{"v": np.zeros(3, np.float32)}])
+
+
+def linked(capacity: int = 16) -> tuple[RingStorage, EpisodeLinks]:
+    store = RingStorage(capacity)
+    return store, EpisodeLinks(store)
+
+
+def append_links(store: RingStorage, links: EpisodeLinks, done: list[bool], sources) -> np.ndarray:
+    """Link and store len(done) samples (the storage's rows are left empty: links only)."""
+    start = store.total
+    prev = links.chain(start, np.array(done), sources)
+    links.write(start, prev)
+    store.total += len(done)
+    return prev
+
+
+def test_links_follow_two_interleaved_workers():
+    store, links = linked()
+    # worker 1: counters 0, 3, 4 (4 ends its episode); worker 2: counters 1, 2
+    prev = append_links(store, links, [False, False, False, False, True], [1, 2, 2, 1, 1])
+    assert prev.tolist() == [-1, -1, 1, 0, 3]
+    assert links.streams == {1: (4, True), 2: (2, False)}
+    # both streams continue in the next buffer: worker 2 from counter 2, worker 1 starts anew
+    prev = append_links(store, links, [False, False, False], [2, 1, 2])
+    assert prev.tolist() == [2, -1, 5]
+    assert links.valid_slots().tolist() == [2, 3, 4, 5, 7]
+    assert links.history_slots(np.array([7, 4]), 4).tolist() == [[1, 2, 5, 7], [0, 0, 3, 4]]
+    with pytest.raises(UserError, match="sources"):
+        links.chain(store.total, np.zeros(2, bool), [1])
+
+
+def test_links_drop_transitions_whose_previous_sample_was_overwritten():
+    store, links = linked(capacity=4)
+    append_links(store, links, [False] * 6, None)  # counters 2..5 held, in slots 2, 3, 0, 1
+    assert sorted(links.valid_slots().tolist()) == [0, 1, 3]  # counter 2's prev (1) is gone
+    with pytest.raises(IndexError, match="holds no transition"):
+        links.check_slots([2])
+    assert links.chain_ok(np.array([0, 1, 3]), 2).tolist() == [True, True, False]
+
+
+def test_sampler_draws_only_valid_slots():
+    store, links = linked(capacity=64)
+    sampler = SlotSampler(links)
+    rng = np.random.default_rng(0)
+    with pytest.raises(ValueError, match="no transition"):
+        sampler.draw(rng, 8)
+    done = [t % 5 == 4 for t in range(40)]  # episodes of 5: every fifth slot starts one
+    append_links(store, links, done, None)
+    valid = set(links.valid_slots().tolist())
+    assert valid == {k for k in range(40) if k % 5}
+    drawn = np.concatenate([sampler.draw(rng, 32) for _ in range(50)])
+    assert set(drawn.tolist()) == valid  # every valid slot, and nothing else
+    # with histories: slots whose 3 links reach an overwritten sample are never drawn
+    store2, links2 = linked(capacity=8)
+    append_links(store2, links2, [False] * 12, None)  # counters 4..11 held
+    ok = {c % 8 for c in range(7, 12)}
+    assert set(np.concatenate([SlotSampler(links2).draw(rng, 16, depth=3) for _ in range(20)]).tolist()) == ok
+
+
+def test_sample_returns_a_batch_with_named_fields():
+    assert tmrl.memory.Batch is Batch and "Batch" in tmrl.memory.__all__
+    mem = GenericTorchMemory(memory_size=100, batch_size=4)
+    mem.append(Buf(episode(0, 0, 6)))
+    for batch in (mem.sample(), mem.sample(indices=[1, 2]), mem.gather(np.array([3]))):
+        assert isinstance(batch, Batch)
+        assert (batch.obs, batch.act, batch.rew, batch.next_obs, batch.terminated, batch.truncated) == tuple(batch)
+    batch = mem.sample(indices=[2, 5])
+    assert_tree_equal(batch.next_obs, mem.sample(indices=[2, 5])[3])
+    assert batch.terminated.tolist() == [0.0, 1.0]
+    mem.sample_preprocessor = lambda *tr: tr  # the per-item slow path of Memory.sample
+    slow = mem.sample(indices=[2, 5])
+    assert isinstance(slow, Batch)
+    assert_tree_equal(tuple(slow), tuple(batch))
+    user = TutorialMemory()
+    user.append(Buf(episode(0, 0, 4)))
+    assert isinstance(user.sample(indices=[0, 1]), Batch)
+
+
+class ColumnsOnly:
+    """A buffer whose samples can only be read as columns (reading memory fails the test)."""
+
+    def __init__(self, columns, sources=None):
+        self.columns = columns
+        self.sources = sources
+
+    @property
+    def memory(self):
+        raise AssertionError("the memory read buffer.memory although the columns were offered")
+
+    def as_columns(self):
+        return self.columns
+
+    def __len__(self):
+        return len(self.columns[2])
+
+
+def test_column_protocol_accepts_the_network_buffer_and_routes_the_paths():
+    from tmrl.networking import Buffer
+
+    assert isinstance(Buffer(maxlen=10), ColumnBuffer)
+    assert not isinstance(Buf(), ColumnBuffer)
+    assert isinstance(ColumnsOnly(None), ColumnBuffer)  # the check itself never reads memory
+    samples = episode(0, 0, 5)
+    obs = (np.stack([s[1][0] for s in samples]), {"img": np.stack([s[1][1]["img"] for s in samples])})
+    acts = np.stack([np.zeros(2, np.float32)] + [s[0] for s in samples[1:]])
+    columns = (acts, obs, np.array([s[2] for s in samples]), np.array([s[3] for s in samples]),
+               np.array([s[4] for s in samples]))
+    by_columns = GenericTorchMemory(memory_size=10)
+    by_columns.append_buffer(ColumnsOnly(columns))
+    by_samples = GenericTorchMemory(memory_size=10)
+    by_samples.append_buffer(Buf(samples))  # no as_columns: the per-sample path
+    for name, ring in by_samples.ring_arrays().items():
+        assert np.array_equal(by_columns.ring_arrays()[name], ring), name
+    # a network Buffer whose samples are plain tuples offers no columns: its memory is read
+    local = Buffer(maxlen=10)
+    local.memory = list(samples)
+    by_buffer = GenericTorchMemory(memory_size=10)
+    by_buffer.append_buffer(local)
+    assert np.array_equal(by_buffer.ring_arrays()["obs.0"], by_samples.ring_arrays()["obs.0"])
+    # infos are only in the samples: a memory that keeps them never takes the columns
+    with pytest.raises(AssertionError, match="buffer.memory"):
+        GenericTorchMemory(memory_size=10, store_info=True).append_buffer(ColumnsOnly(columns))
+
+
+def ring_rows(mem: GenericTorchMemory):
+    """What tmrl.checkpoint hands to restore_ring: each array's rows in counter order, oldest first."""
+    meta = mem.ring_meta()
+    order = np.arange(meta["oldest"], meta["total"]) % mem.capacity
+    arrays = {name: arr[order] for name, arr in mem.ring_arrays().items()}
+    return meta, lambda name: (meta["oldest"], arrays[name])
+
+
+def test_checkpoint_round_trip_of_the_composed_memory():
+    np.random.seed(0)
+    src = RealTimeTorchMemory(act_buf_len=2, memory_size=12, batch_size=6)
+    a, b = episode(1, 0, 9), episode(2, 0, 9)
+    src.append(Buf([x for pair in zip(a[:6], b[:6]) for x in pair], sources=[1, 2] * 6, ret=3.0))
+    meta, rows = ring_rows(src)
+    assert set(meta) == {"class", "capacity", "total", "uid", "obs_spec", "leaves", "act", "streams", "oldest",
+                         "rng", "stats"}
+    assert set(src.ring_arrays()) == {"rew", "terminated", "truncated", "prev", "count", "act", "obs.0", "obs.1"}
+    dst = RealTimeTorchMemory(act_buf_len=2, memory_size=12, batch_size=6)
+    dst.restore_ring(meta, rows)
+    assert dst.total == src.total and dst.uid == src.uid and dst.stat_train_return == 3.0
+    assert np.array_equal(dst.valid_slots(), src.valid_slots())
+    assert np.array_equal(dst.sample_indices(), src.sample_indices())  # the generator's state came along
+    # the workers' streams came along too: their episodes continue in both memories alike
+    more = Buf([a[6], b[6], a[7]], sources=[1, 2, 1])
+    src.append(more)
+    dst.append(more)
+    for name, ring in src.ring_arrays().items():
+        assert np.array_equal(dst.ring_arrays()[name], ring), name
+    assert_tree_equal(tuple(dst.sample(indices=src.valid_slots())), tuple(src.sample(indices=src.valid_slots())))
+
+
+def test_restore_reads_a_checkpoint_meta_written_before_the_memory_was_split():
+    """The keys and layout that tmrl wrote before the memory had parts: counters 0..5 of one
+    episode, 2..5 still held, in a memory of 4."""
+    meta = {"class": "GenericTorchMemory", "capacity": 4, "total": 6, "uid": "0123abcd", "obs_spec": ["leaf", 0],
+            "leaves": [["float32", [2]]], "act": ["float32", [1]], "streams": [[0, 5, False]], "oldest": 2,
+            "rng": None, "stats": [1.5, 2.5, 3, 4]}
+    held = np.arange(2, 6)
+    saved = {"obs.0": np.stack([held, -held], 1).astype(np.float32), "act": held[:, None].astype(np.float32),
+             "rew": held.astype(np.float32), "terminated": np.zeros(4, bool), "truncated": np.zeros(4, bool),
+             "prev": held - 1, "count": held}
+    mem = GenericTorchMemory(memory_size=4, batch_size=2)
+    mem.restore_ring(meta, lambda name: (2, saved[name]))
+    assert mem.total == 6 and mem.uid == "0123abcd" and mem.stat_test_steps == 4
+    assert sorted(mem.counters[mem.valid_slots()].tolist()) == [3, 4, 5]
+    prev_obs, act, rew, new_obs, *_ = mem.get_transition(4 % 4)
+    assert prev_obs.tolist() == [3, -3] and new_obs.tolist() == [4, -4] and act.tolist() == [4] and rew == 4
+    mem.append(Buf([(np.array([6], np.float32), np.array([6, -6], np.float32), 6.0, False, False, {})]))
+    assert mem.get_transition(6 % 4)[0].tolist() == [5, -5]  # the saved stream goes on
 
 
 # ---- CRC debugging ------------------------------------------------------------------------------

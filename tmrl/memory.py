@@ -9,10 +9,17 @@ Two ways to use this module:
 * Use :class:`GenericTorchMemory` (any observation structure) or :class:`RealTimeTorchMemory`
   (rebuilds the action buffer of real-time environments). They store samples in preallocated
   NumPy ring buffers and build a whole batch with a few vectorised gathers (the *fast path*).
+  They are composed of three parts, each with its share of the checkpoint state:
+  :class:`RingStorage` (the ring arrays and the write counter), :class:`EpisodeLinks` (which
+  slot precedes which, per worker and episode) and :class:`SlotSampler` (draws valid slots).
+
+What a memory reads from the buffers it is given is typed by :class:`SampleBuffer` and, for
+buffers received from the network that hand over stacked arrays, :class:`ColumnBuffer`.
 
 Vocabulary (see docs/internals.md): a *sample* is ``(act, new_obs, rew, terminated, truncated,
 info)`` as recorded by a worker; a *transition* is ``(prev_obs, act, rew, new_obs, terminated,
-truncated, info)``; a *batch* is a collated list of transitions without ``info``.
+truncated, info)``; a *batch* is a collated list of transitions without ``info``, handed over as a
+:class:`tmrl.batch.Batch` (a NamedTuple, so positional unpacking works).
 """
 
 from __future__ import annotations
@@ -21,19 +28,29 @@ import logging
 import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 
+from tmrl.batch import Batch
 from tmrl.errors import UserError
 
 __all__ = [
+    "Batch",
     "CRCMismatchError",
+    "ColumnBuffer",
+    "EpisodeLinks",
     "GenericTorchMemory",
     "Memory",
     "RealTimeTorchMemory",
+    "RestoreWindow",
+    "RingStorage",
+    "SampleBuffer",
+    "SampleColumns",
+    "SlotSampler",
     "TorchMemory",
     "check_transition",
     "collate_torch",
@@ -353,7 +370,7 @@ class Memory(ABC):
         self.stat_test_steps = buffer.stat_test_steps
         self.append_buffer(buffer)
 
-    def __iter__(self) -> Iterator[tuple]:
+    def __iter__(self) -> Iterator[Batch]:
         """Yield ``nb_steps`` batches."""
         for _ in range(int(self.nb_steps)):
             yield self.sample()
@@ -386,7 +403,7 @@ class Memory(ABC):
             raise ValueError("cannot sample from a memory that holds no transition yet")
         return self.rng.integers(0, length, size=self.batch_size)
 
-    def sample(self, indices: Sequence[int] | np.ndarray | None = None) -> tuple:
+    def sample(self, indices: Sequence[int] | np.ndarray | None = None) -> Batch:
         """Build one batch.
 
         Args:
@@ -394,12 +411,16 @@ class Memory(ABC):
                 :meth:`sample_indices`.
 
         Returns:
-            ``(prev_obs, act, rew, new_obs, terminated, truncated)`` collated by :meth:`collate`.
+            ``Batch(obs, act, rew, next_obs, terminated, truncated)`` collated by
+            :meth:`collate` (a ``collate`` that returns something other than six values has
+            its result returned as it is).
         """
         if indices is None:
             indices = self.sample_indices()
-        batch = [self[int(i)] for i in indices]
-        return self.collate(batch, self.device)
+        collated = self.collate([self[int(i)] for i in indices], self.device)
+        if isinstance(collated, (tuple, list)) and len(collated) == len(Batch._fields):
+            return Batch(*collated)
+        return collated
 
 
 class TorchMemory(Memory, ABC):
@@ -537,20 +558,525 @@ def _stack(column: list[Any], what: str) -> np.ndarray:
     return arr
 
 
+# ==== the network buffer contract =================================================================
+
+#: What :meth:`ColumnBuffer.as_columns` returns: ``(act, obs, rew, terminated, truncated)``.
+#: ``act`` is an array of shape ``(n, *action_shape)`` (zeros where a sample's action was
+#: ``None``) or ``None`` when every action was ``None``; ``obs`` has the structure of one
+#: observation with an array of shape ``(n, *leaf_shape)`` at each leaf; the others are 1-D.
+SampleColumns = tuple[Any, Any, np.ndarray, np.ndarray, np.ndarray]
+
+
+class SampleBuffer(Protocol):
+    """What every buffer handed to :meth:`Memory.append_buffer` offers (``tmrl.networking.Buffer``
+    and the plain objects of tests and benchmarks).
+
+    Attributes:
+        memory: the samples ``(act, new_obs, rew, terminated, truncated, info)``, oldest first.
+        sources: ``None``, or the integer source id of the worker that produced each sample
+            (optional: a buffer without the attribute counts as one source).
+    """
+
+    memory: Sequence[Any]
+    sources: Sequence[int] | None
+
+
+@runtime_checkable
+class ColumnBuffer(Protocol):
+    """A buffer that can also hand its samples over as stacked columns, without one tuple per
+    sample (``tmrl.networking.Buffer`` received from the network).
+
+    ``isinstance(buffer, ColumnBuffer)`` checks only ``as_columns``: on Python 3.11 a runtime
+    check reads every member, and reading ``memory`` on a received buffer builds the tuples that
+    the columns exist to avoid.
+    """
+
+    def as_columns(self) -> SampleColumns | None:
+        """The samples as :data:`SampleColumns`, or ``None`` when they are not all in that form
+        (then read ``memory``)."""
+        ...
+
+
+# ==== the parts of the array-shaped memories ======================================================
+
+
+def _ring_write(buf: Any, counter: int, rows: Any) -> None:
+    """Write ``rows`` into the ring ``buf`` (array or list of ``capacity`` slots) from the slot of
+    absolute counter ``counter`` on, wrapping around at the end."""
+    cap = len(buf)
+    m = len(rows)
+    pos = counter % cap
+    first = min(m, cap - pos)
+    buf[pos : pos + first] = rows[:first]
+    if first < m:
+        buf[: m - first] = rows[first:]
+
+
+@dataclass(frozen=True)
+class RestoreWindow:
+    """The absolute counters ``[floor, total)`` that a restore fills from a checkpoint's rows.
+
+    Attributes:
+        total: the saved write counter.
+        saved_oldest: the oldest counter the checkpoint holds.
+        floor: the oldest counter restored: ``saved_oldest``, or later when this memory is smaller
+            than the saved one.
+    """
+
+    total: int
+    saved_oldest: int
+    floor: int
+
+    @classmethod
+    def of(cls, meta: Mapping[str, Any], capacity: int) -> RestoreWindow:
+        """The window of a saved ``ring_meta`` restored into ``capacity`` slots."""
+        total = int(meta["total"])
+        saved_oldest = int(meta.get("oldest", total - min(total, int(meta["capacity"]))))
+        return cls(total, saved_oldest, max(saved_oldest, total - min(total, capacity)))
+
+    def fill(self, name: str, buf: np.ndarray, rows: Callable[[str], tuple[int, np.ndarray]]) -> None:
+        """Write the saved rows of array ``name`` for counters ``[floor, total)`` into ``buf``.
+
+        Args:
+            name: the array's key in ``ring_arrays``.
+            buf: the ring array to fill.
+            rows: ``rows(name)`` returns ``(first_counter, array)`` ending at ``total``.
+
+        Raises:
+            ValueError: the saved rows do not cover the window or have another row shape.
+        """
+        first, arr = rows(name)
+        if first + len(arr) != self.total:
+            raise ValueError(f"memory array {name} ends at sample {first + len(arr)}, expected {self.total}")
+        if first > self.saved_oldest:
+            raise ValueError(f"memory array {name} starts at sample {first}, expected {self.saved_oldest} or earlier")
+        if arr.shape[1:] != buf.shape[1:]:
+            raise ValueError(f"memory array {name} has rows of shape {arr.shape[1:]}, expected {buf.shape[1:]}")
+        _ring_write(buf, self.floor, arr[self.floor - first :])
+
+
+class RingStorage:
+    """The preallocated ring arrays of a replay memory and its write counter.
+
+    The sample with absolute counter ``c`` lives in slot ``c % capacity``. Observation leaves
+    (nested tuples, lists and dicts flattened depth-first) and actions are allocated from the first
+    sample that has them; float64 is stored as float32.
+
+    Args:
+        capacity: number of slots.
+        store_info: also keep each sample's ``info`` (Python objects, not checkpointed).
+
+    Attributes:
+        capacity: number of slots.
+        total: absolute counter of the next sample.
+        floor: counters below it were never stored here (a restore into a bigger memory).
+        obs_spec: JSON-able description of the observation structure (``None`` when empty).
+        obs: one ring array per observation leaf, shape ``(capacity, *leaf_shape)``.
+        act: the actions, ``(capacity, *action_shape)``; ``None`` before the first action.
+        rew, terminated, truncated: per-slot float32 rewards and bool flags.
+        count: the absolute counter each slot was written with (-1: never written).
+        infos: per-slot infos when ``store_info``, else ``None``.
+    """
+
+    def __init__(self, capacity: int, store_info: bool = False) -> None:
+        self.capacity = int(capacity)
+        self.total = 0
+        self.floor = 0
+        self.obs_spec: list | None = None
+        self.obs: list[np.ndarray] = []
+        self.act: np.ndarray | None = None
+        self.rew = np.zeros(self.capacity, dtype=np.float32)
+        self.terminated = np.zeros(self.capacity, dtype=bool)
+        self.truncated = np.zeros(self.capacity, dtype=bool)
+        self.count = np.full(self.capacity, -1, dtype=np.int64)
+        self.infos: list[Any] | None = [None] * self.capacity if store_info else None
+
+    @property
+    def size(self) -> int:
+        """Number of filled slots."""
+        return min(self.total, self.capacity)
+
+    @property
+    def oldest(self) -> int:
+        """Absolute counter of the oldest sample held."""
+        return max(self.total - self.size, self.floor)
+
+    # --- rows to write -------------------------------------------------------------------------
+
+    def obs_rows(self, obs: list[Any]) -> list[np.ndarray]:
+        """One array per leaf from a list of observations (the first one fixes the structure).
+
+        Raises:
+            UserError: the structure or a leaf's shape differs from the stored ones, or a leaf is
+                not numeric.
+        """
+        spec = _make_spec(obs[0], [0]) if self.obs_spec is None else self.obs_spec
+        columns: list[list[Any]] = []
+        _columns(spec, obs, columns, "obs")
+        paths = _leaf_paths(spec)
+        return self._checked_leaves([_stack(col, path) for col, path in zip(columns, paths)], spec, paths)
+
+    def obs_column_rows(self, tree: Any, keep: slice) -> list[np.ndarray]:
+        """:meth:`obs_rows` for observations already stacked leaf by leaf (``tree`` has the
+        structure of one observation, an array of all samples at each leaf), rows ``keep``."""
+        spec = _make_spec(tree, [0]) if self.obs_spec is None else self.obs_spec
+        leaves: list[Any] = []
+        _tree_leaves(spec, tree, leaves, "obs")
+        return self._checked_leaves([leaf[keep] for leaf in leaves], spec, _leaf_paths(spec))
+
+    def _checked_leaves(self, arrays: list[np.ndarray], spec: list, paths: list[str]) -> list[np.ndarray]:
+        if self.obs_spec is None:
+            # Lazy allocation: shapes and dtypes come from the first sample.
+            self.obs = [np.zeros((self.capacity, *a.shape[1:]), dtype=_storage_dtype(a)) for a in arrays]
+            self.obs_spec = spec
+        for arr, buf, path in zip(arrays, self.obs, paths):
+            if arr.shape[1:] != buf.shape[1:]:
+                raise UserError(
+                    f"{path} has shape {arr.shape[1:]} but earlier samples had {buf.shape[1:]}: "
+                    "observations must keep one shape"
+                )
+            if arr.dtype == object:
+                _storage_dtype(arr)
+        return arrays
+
+    def act_rows(self, acts: list[Any]) -> np.ndarray | None:
+        """The actions of a list of samples as one array (zeros for ``None``), or ``None`` when
+        every action is ``None`` (the zeros already in the ring stand for them).
+
+        Raises:
+            UserError: actions change shape or are not numeric.
+        """
+        first = next((a for a in acts if a is not None), None)
+        if first is None:
+            return None
+        if any(a is None for a in acts):
+            ref = np.asarray(first) if self.act is None else self.act[0]
+            zeros = np.zeros(ref.shape, dtype=_storage_dtype(ref))
+            acts = [zeros if a is None else a for a in acts]
+        arr = _stack(acts, "the action")
+        _storage_dtype(arr)  # refuses non-numeric actions with the one-line error
+        return self.act_column_rows(arr, slice(None))
+
+    def act_column_rows(self, act: np.ndarray | None, keep: slice) -> np.ndarray | None:
+        """Rows ``keep`` of actions already stacked (zeros where they were ``None``); allocates
+        the action ring from the first ones.
+
+        Raises:
+            UserError: the action shape differs from the stored one.
+        """
+        if act is None:
+            return None
+        act = act[keep]
+        if self.act is None:
+            self.act = np.zeros((self.capacity, *act.shape[1:]), dtype=_storage_dtype(act))
+        if act.shape[1:] != self.act.shape[1:]:
+            raise UserError(
+                f"an action has shape {act.shape[1:]} but earlier actions had {self.act.shape[1:]}: "
+                "actions must keep one shape"
+            )
+        return act
+
+    # --- writing and reading -------------------------------------------------------------------
+
+    def write(self, start: int, obs: list[np.ndarray], act: np.ndarray | None, rew: np.ndarray,
+              terminated: np.ndarray, truncated: np.ndarray, infos: list[Any] | None = None) -> None:
+        """Write rows for the consecutive counters from ``start`` on (``total`` is not moved).
+
+        Args:
+            start: absolute counter of the first row.
+            obs: rows of each leaf, from :meth:`obs_rows` or :meth:`obs_column_rows`.
+            act: action rows, or ``None`` to leave the zeros of ``None`` actions.
+            rew, terminated, truncated: 1-D rows.
+            infos: the samples' infos (stored only when infos are kept).
+        """
+        for buf, rows in zip(self.obs, obs):
+            _ring_write(buf, start, rows)
+        if act is not None:
+            _ring_write(self.act, start, act)
+        _ring_write(self.rew, start, rew)
+        _ring_write(self.terminated, start, terminated)
+        _ring_write(self.truncated, start, truncated)
+        _ring_write(self.count, start, start + np.arange(len(rew), dtype=np.int64))
+        if self.infos is not None and infos is not None:
+            _ring_write(self.infos, start, infos)
+
+    def observations(self, slots: np.ndarray) -> Any:
+        """The observations at ``slots``: the stored structure with batched leaves."""
+        assert self.obs_spec is not None
+        return _unflatten(self.obs_spec, [leaf[slots] for leaf in self.obs])
+
+    # --- checkpoint part -----------------------------------------------------------------------
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The per-slot arrays of this part, by checkpoint name (only those allocated)."""
+        arrays = {"rew": self.rew, "terminated": self.terminated, "truncated": self.truncated, "count": self.count}
+        if self.act is not None:
+            arrays["act"] = self.act
+        for i, leaf in enumerate(self.obs):
+            arrays[f"obs.{i}"] = leaf
+        return arrays
+
+    def meta(self) -> dict[str, Any]:
+        """This part's JSON-able checkpoint keys."""
+        return {
+            "capacity": self.capacity,
+            "total": self.total,
+            "obs_spec": self.obs_spec,
+            "leaves": [[str(a.dtype), list(a.shape[1:])] for a in self.obs],
+            "act": None if self.act is None else [str(self.act.dtype), list(self.act.shape[1:])],
+            "oldest": self.oldest,
+        }
+
+    def restore(self, meta: Mapping[str, Any], window: RestoreWindow,
+                rows: Callable[[str], tuple[int, np.ndarray]]) -> None:
+        """Reallocate from a saved :meth:`meta` and fill the window's rows.
+
+        Raises:
+            ValueError: the saved rows do not fit (see :meth:`RestoreWindow.fill`).
+        """
+        cap = self.capacity
+        self.obs_spec = meta["obs_spec"]
+        self.obs = [np.zeros((cap, *shape), dtype=np.dtype(dt)) for dt, shape in meta["leaves"]]
+        act = meta["act"]
+        self.act = None if act is None else np.zeros((cap, *act[1]), dtype=np.dtype(act[0]))
+        self.rew[:] = 0
+        self.terminated[:] = False
+        self.truncated[:] = False
+        self.count[:] = -1
+        if self.infos is not None:
+            self.infos = [None] * cap
+        for name, buf in self.arrays().items():
+            window.fill(name, buf, rows)
+        self.total = window.total
+        self.floor = window.floor
+
+
+class EpisodeLinks:
+    """Which slot precedes which: the per-worker episode chains over a :class:`RingStorage`.
+
+    ``prev[j]`` is the absolute counter of the previous sample of the same worker and episode as
+    slot ``j`` (-1 at an episode's first sample). The transition at slot ``j`` is valid when
+    ``prev[j]`` is still held, so no transition spans a reset, two workers or an overwritten
+    sample. Histories follow the links by index arithmetic, a batch at a time.
+
+    Args:
+        storage: the storage whose slots are linked (its ``capacity``, ``size``, ``oldest``).
+
+    Attributes:
+        storage: that storage.
+        prev: the ring of links, int64.
+        streams: per source id, ``(counter of its last sample, whether it ended an episode)``.
+    """
+
+    def __init__(self, storage: RingStorage) -> None:
+        self.storage = storage
+        self.prev = np.full(storage.capacity, -1, dtype=np.int64)
+        self.streams: dict[int, tuple[int, bool]] = {}
+        self._valid: np.ndarray | None = None
+
+    def chain(self, start: int, done: np.ndarray, sources: Sequence[int] | None) -> np.ndarray:
+        """Link new samples to their workers' streams and record where each stream now ends.
+
+        Args:
+            start: absolute counter of the first new sample (the others follow).
+            done: whether each new sample ends its episode.
+            sources: the source id of each new sample, or ``None`` (one source).
+
+        Returns:
+            The ``prev`` counter of each new sample (-1 at an episode's first sample).
+
+        Raises:
+            UserError: ``sources`` does not give one id per sample.
+        """
+        n = len(done)
+        counters = start + np.arange(n, dtype=np.int64)
+        src = np.zeros(n, dtype=np.int64) if sources is None else np.asarray(sources, dtype=np.int64)
+        if src.shape != (n,):
+            raise UserError(
+                f"buffer.sources has {src.size} entries for {n} samples: it must be None or one "
+                "source id per sample"
+            )
+        prev = np.empty(n, dtype=np.int64)
+        for s in np.unique(src):  # one pass per worker, vectorised over its samples
+            idx = np.flatnonzero(src == s)
+            last, last_done = self.streams.get(int(s), (-1, True))
+            p = np.empty(len(idx), dtype=np.int64)
+            p[0] = last
+            p[1:] = counters[idx[:-1]]
+            pdone = np.empty(len(idx), dtype=bool)
+            pdone[0] = last_done
+            pdone[1:] = done[idx[:-1]]
+            p[pdone] = -1
+            prev[idx] = p
+            self.streams[int(s)] = (int(counters[idx[-1]]), bool(done[idx[-1]]))
+        return prev
+
+    def write(self, start: int, prev: np.ndarray) -> None:
+        """Store the links of the samples from counter ``start`` on (after the storage wrote
+        their rows)."""
+        _ring_write(self.prev, start, prev)
+        self._valid = None
+
+    def prev_slots(self, slots: np.ndarray) -> np.ndarray:
+        """The slots of the previous samples of ``slots`` (meaningful for valid slots only)."""
+        return self.prev[slots] % self.storage.capacity
+
+    def valid_slots(self) -> np.ndarray:
+        """Slots ``j`` whose ``prev[j]`` is set and still held, in increasing slot order. Cached
+        until the next :meth:`write` or :meth:`restore`."""
+        if self._valid is None:
+            # prev >= oldest also excludes prev == -1 (oldest >= 0).
+            self._valid = np.flatnonzero(self.prev[: self.storage.size] >= self.storage.oldest)
+        return self._valid
+
+    def check_slots(self, indices: Any) -> np.ndarray:
+        """``indices`` as an int64 array of slots of valid transitions.
+
+        Raises:
+            IndexError: a slot is out of range or holds no transition.
+        """
+        slots = np.asarray(indices, dtype=np.int64).reshape(-1)
+        size = self.storage.size
+        if slots.size and (slots.min() < 0 or slots.max() >= size):
+            raise IndexError(f"slot out of range: the memory holds {size} samples")
+        bad = self.prev[slots] < self.storage.oldest
+        if bad.any():
+            raise IndexError(
+                f"slot {int(slots[bad][0])} holds no transition (first sample of an episode, or its "
+                "previous sample was overwritten): use valid_slots()"
+            )
+        return slots
+
+    def chain_ok(self, slots: np.ndarray, depth: int) -> np.ndarray:
+        """For slots of valid transitions: whether following ``depth`` links stays inside the
+        memory (or stops at an episode's first sample)."""
+        cap, oldest = self.storage.capacity, self.storage.oldest
+        ok = np.ones(len(slots), dtype=bool)
+        ptr = self.prev[slots]
+        for _ in range(depth - 1):
+            live = ptr >= 0
+            nxt = np.where(live, self.prev[ptr % cap], -1)
+            ok &= ~(live & (nxt >= 0) & (nxt < oldest))
+            ptr = np.where(live & (nxt >= oldest), nxt, -1)
+        return ok
+
+    def history_slots(self, slots: np.ndarray | Sequence[int], length: int) -> np.ndarray:
+        """The slots of the ``length`` samples of the same episode ending at each of ``slots``,
+        oldest first, the episode's first sample repeated before it starts (see
+        :meth:`GenericTorchMemory.history_slots`)."""
+        cap, oldest = self.storage.capacity, self.storage.oldest
+        cur = np.asarray(slots, dtype=np.int64)
+        out = np.empty((len(cur), length), dtype=np.int64)
+        out[:, -1] = cur
+        for k in range(2, length + 1):
+            ptr = self.prev[cur]
+            # Stop at the episode's start (ptr == -1) and, defensively, at overwritten samples
+            # (the sampler never draws transitions whose needed history was overwritten).
+            cur = np.where(ptr >= oldest, ptr % cap, cur)
+            out[:, -k] = cur
+        return out
+
+    # --- checkpoint part -----------------------------------------------------------------------
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """This part's per-slot array (``prev``)."""
+        return {"prev": self.prev}
+
+    def meta(self) -> dict[str, Any]:
+        """This part's JSON-able checkpoint keys (``streams``)."""
+        return {"streams": [[k, v[0], v[1]] for k, v in self.streams.items()]}
+
+    def restore(self, meta: Mapping[str, Any], window: RestoreWindow,
+                rows: Callable[[str], tuple[int, np.ndarray]]) -> None:
+        """Restore the links and streams from a saved :meth:`meta` and rows.
+
+        Raises:
+            ValueError: the saved rows do not fit (see :meth:`RestoreWindow.fill`).
+        """
+        self.prev[:] = -1
+        window.fill("prev", self.prev, rows)
+        self.streams = {int(k): (int(last), bool(done)) for k, last, done in meta["streams"]}
+        self._valid = None
+
+
+class SlotSampler:
+    """Draws batches of slots of valid transitions, uniformly and with replacement, with the
+    memory's generator.
+
+    Args:
+        links: the links that say which slots are valid.
+
+    Attributes:
+        links: those links.
+        max_redraws: rounds of redrawing the slots whose history was overwritten before the
+            memory is declared too small.
+    """
+
+    max_redraws = 64
+
+    def __init__(self, links: EpisodeLinks) -> None:
+        self.links = links
+
+    def draw(self, rng: np.random.Generator, batch_size: int, depth: int = 1) -> np.ndarray:
+        """Draw ``batch_size`` valid slots whose ``depth`` links are all still held.
+
+        Args:
+            rng: the generator to draw with (the memory's ``rng``).
+            batch_size: how many slots.
+            depth: how many links each transition's observations reach back.
+
+        Returns:
+            int64 array of slots.
+
+        Raises:
+            ValueError: no valid transition yet.
+            UserError: the memory is too small to hold the history its transitions need.
+        """
+        valid = self.links.valid_slots()
+        if len(valid) == 0:
+            raise ValueError("cannot sample from a memory that holds no transition yet")
+        slots = valid[rng.integers(0, len(valid), size=batch_size)]
+        if depth <= 1:
+            return slots
+        for _ in range(self.max_redraws):
+            bad = ~self.links.chain_ok(slots, depth)
+            if not bad.any():
+                return slots
+            slots[bad] = valid[rng.integers(0, len(valid), size=int(bad.sum()))]
+        raise UserError(
+            f"memory_size={self.links.storage.capacity} is too small for histories of {depth} samples: "
+            "increase memory_size"
+        )
+
+    # --- checkpoint part -----------------------------------------------------------------------
+
+    @staticmethod
+    def meta(rng: np.random.Generator) -> dict[str, Any]:
+        """This part's JSON-able checkpoint keys (the state of ``rng``)."""
+        return {"rng": rng.bit_generator.state}
+
+    @staticmethod
+    def restore(meta: Mapping[str, Any], rng: np.random.Generator) -> None:
+        """Put ``rng`` back in its saved state (older checkpoints may lack it)."""
+        if meta.get("rng") is not None:
+            rng.bit_generator.state = meta["rng"]
+
+
 # ==== built-in array-shaped memories ==============================================================
 
 
 class GenericTorchMemory(TorchMemory):
     """Array-shaped replay memory for any observation structure.
 
-    Every sample gets a slot in preallocated ring buffers: one NumPy array per observation leaf
-    (nested tuples, lists and dicts are flattened; arrays are allocated from the first sample),
-    plus actions, rewards, flags, a ``prev`` pointer (absolute counter of the previous sample of
-    the same worker and episode, -1 at an episode's first sample) and the absolute counter each
-    slot was written with. The transition at slot ``j`` is ``(obs[prev[j]], act[j], rew[j],
-    obs[j], terminated[j], truncated[j])``; it is valid when ``prev[j]`` is still in the memory, so
-    no transition spans a reset or an overwritten sample. Buffers whose ``sources`` are set are
-    split into one stream per worker, so interleaved workers never mix.
+    Three parts do the work: a :class:`RingStorage` gives every sample a slot in preallocated ring
+    buffers (one NumPy array per observation leaf, plus actions, rewards and flags); the
+    :class:`EpisodeLinks` hold the ``prev`` pointer of each slot (absolute counter of the previous
+    sample of the same worker and episode, -1 at an episode's first sample); a
+    :class:`SlotSampler` draws batches of valid slots. The transition at slot ``j`` is
+    ``(obs[prev[j]], act[j], rew[j], obs[j], terminated[j], truncated[j])``; it is valid when
+    ``prev[j]`` is still in the memory, so no transition spans a reset or an overwritten sample.
+    Buffers whose ``sources`` are set are split into one stream per worker, so interleaved workers
+    never mix.
 
     Items (``get_transition(item)``, ``sample(indices)``) are slot numbers of valid transitions;
     ``len(memory)`` is the number of valid transitions.
@@ -567,6 +1093,9 @@ class GenericTorchMemory(TorchMemory):
             as in :class:`Memory`.
         store_info: keep each sample's ``info`` dict (Python objects, not checkpointed) so that
             ``get_transition`` returns it; implied by ``crc_debug``. Otherwise ``info`` is ``{}``.
+
+    Attributes:
+        uid: identity of this memory's history (a checkpoint appends to its own segments only).
 
     Subclassing (history-based memories): override :meth:`build_obs` and set
     :attr:`history_depth`; use :meth:`history_slots`, :meth:`obs_leaf` and :attr:`actions`.
@@ -596,23 +1125,10 @@ class GenericTorchMemory(TorchMemory):
             dataset_path=dataset_path,
             crc_debug=crc_debug,
         )
-        cap = self.memory_size
         self.uid = uuid.uuid4().hex
-        self.total = 0  # absolute counter of the next sample
-        self._obs_spec: list | None = None
-        self._obs: list[np.ndarray] = []
-        self._act: np.ndarray | None = None
-        self._rew = np.zeros(cap, dtype=np.float32)
-        self._terminated = np.zeros(cap, dtype=bool)
-        self._truncated = np.zeros(cap, dtype=bool)
-        self._prev = np.full(cap, -1, dtype=np.int64)
-        self._count = np.full(cap, -1, dtype=np.int64)
-        self._infos: list[Any] | None = [None] * cap if (store_info or crc_debug) else None
-        # per source id: (absolute counter of its last sample, whether that sample ended an episode)
-        self._streams: dict[int, tuple[int, bool]] = {}
-        self._valid: np.ndarray | None = None
-        # Counters below this were never stored here (a restore into a bigger memory).
-        self._floor = 0
+        self._storage = RingStorage(self.memory_size, store_info=store_info or crc_debug)
+        self._links = EpisodeLinks(self._storage)
+        self._sampler = SlotSampler(self._links)
         if dataset_path:
             if Path(dataset_path).exists():
                 from tmrl.checkpoint import load_memory
@@ -631,209 +1147,121 @@ class GenericTorchMemory(TorchMemory):
     @property
     def size(self) -> int:
         """Number of filled slots (samples held, valid or not)."""
-        return min(self.total, self.memory_size)
+        return self._storage.size
+
+    @property
+    def total(self) -> int:
+        """Absolute counter of the next sample (samples ever stored)."""
+        return self._storage.total
 
     @property
     def actions(self) -> np.ndarray | None:
         """The ring array of actions, shape ``(capacity, *action_shape)`` (``None`` before the
         first non-``None`` action)."""
-        return self._act
+        return self._storage.act
+
+    @property
+    def counters(self) -> np.ndarray:
+        """The absolute counter each slot was written with, shape ``(capacity,)`` (-1: empty)."""
+        return self._storage.count
+
+    _count = counters  # the name tests/test_checkpoint.py reads
 
     def obs_leaf(self, index: int) -> np.ndarray:
         """The ring array of the ``index``-th observation leaf (depth-first order), shape
         ``(capacity, *leaf_shape)``."""
-        return self._obs[index]
+        return self._storage.obs[index]
 
     @property
     def obs_spec(self) -> list | None:
         """The JSON-able description of the stored observation structure (``None`` when empty)."""
-        return self._obs_spec
+        return self._storage.obs_spec
 
-    def _ring_write(self, buf: Any, counter: int, rows: Any) -> None:
-        cap = self.memory_size
-        m = len(rows)
-        pos = counter % cap
-        first = min(m, cap - pos)
-        buf[pos : pos + first] = rows[:first]
-        if first < m:
-            buf[: m - first] = rows[first:]
-
-    def append_buffer(self, buffer: Any) -> None:
+    def append_buffer(self, buffer: SampleBuffer) -> None:
         """Store the samples of ``buffer`` (see the class docstring for the layout).
 
+        A :class:`ColumnBuffer` hands its columns over as arrays (no tuple per sample), unless
+        infos are kept, which only the samples carry; otherwise ``buffer.memory`` is read.
+
         Raises:
-            UserError: a sample is not a 6-tuple, or observations/actions change structure, shape
-                or become non-numeric.
+            UserError: a sample is not a 6-tuple, ``buffer.sources`` does not give one id per
+                sample, or observations/actions change structure, shape or become non-numeric.
         """
-        # A buffer received from the network can hand its columns over as arrays (no tuple per
-        # sample); infos are kept only in CRC debug mode, which therefore reads the samples.
-        as_columns = getattr(buffer, "as_columns", None)
-        columns = as_columns() if self._infos is None and callable(as_columns) else None
-        if columns is not None:
-            acts, obs, rew, terminated, truncated = columns
-            n = len(rew)
-            rew = np.asarray(rew, dtype=np.float32)
-            terminated = np.asarray(terminated, dtype=bool)
-            truncated = np.asarray(truncated, dtype=bool)
-            samples = None
-        else:
-            samples = buffer.memory
-            n = len(samples)
-            if n == 0:
-                return
-            if not isinstance(samples[0], (tuple, list)) or len(samples[0]) != 6:
-                raise UserError(
-                    "a sample must be (act, new_obs, rew, terminated, truncated, info): check that the "
-                    "sample_compressor returns these six values"
-                )
-            acts = [s[0] for s in samples]
-            obs = [s[1] for s in samples]
-            rew = np.asarray([s[2] for s in samples], dtype=np.float32)
-            terminated = np.asarray([bool(s[3]) for s in samples], dtype=bool)
-            truncated = np.asarray([bool(s[4]) for s in samples], dtype=bool)
         sources = getattr(buffer, "sources", None)
-
-        # Stream bookkeeping: the prev pointer of each sample, per worker.
-        counters = self.total + np.arange(n, dtype=np.int64)
-        done = terminated | truncated
-        prev = np.empty(n, dtype=np.int64)
-        if sources is None:
-            src = np.zeros(n, dtype=np.int64)
+        columns = None
+        if self._storage.infos is None and isinstance(buffer, ColumnBuffer):
+            columns = buffer.as_columns()
+        if columns is not None:
+            self._append_columns(columns, sources)
         else:
-            src = np.asarray(sources, dtype=np.int64)
-            if src.shape != (n,):
-                raise UserError(
-                    f"buffer.sources has {src.size} entries for {n} samples: it must be None or one "
-                    "source id per sample"
-                )
-        for s in np.unique(src):
-            idx = np.flatnonzero(src == s)
-            last, last_done = self._streams.get(int(s), (-1, True))
-            p = np.empty(len(idx), dtype=np.int64)
-            p[0] = last
-            p[1:] = counters[idx[:-1]]
-            pdone = np.empty(len(idx), dtype=bool)
-            pdone[0] = last_done
-            pdone[1:] = done[idx[:-1]]
-            p[pdone] = -1
-            prev[idx] = p
-            self._streams[int(s)] = (int(counters[idx[-1]]), bool(done[idx[-1]]))
+            self._append_samples(buffer.memory, sources)
 
-        # Only the newest `capacity` samples of an oversized buffer can be kept.
-        keep = slice(max(0, n - self.memory_size), n)
-        start = self.total + keep.start
-        if samples is None:
-            obs_leaves = self._obs_arrays(obs, keep)
-            act_rows = self._action_array(acts, keep)
-        else:
-            obs_leaves = self._prepare_obs(obs[keep])
-            act_rows = self._prepare_actions(acts[keep])
-        for buf, rows in zip(self._obs, obs_leaves):
-            self._ring_write(buf, start, rows)
-        if act_rows is not None:
-            self._ring_write(self._act, start, act_rows)
-        self._ring_write(self._rew, start, rew[keep])
-        self._ring_write(self._terminated, start, terminated[keep])
-        self._ring_write(self._truncated, start, truncated[keep])
-        self._ring_write(self._prev, start, prev[keep])
-        self._ring_write(self._count, start, counters[keep])
-        if self._infos is not None:
-            self._ring_write(self._infos, start, [s[5] for s in samples[keep]])
-        self.total += n
-        self._valid = None
+    def _append_columns(self, columns: SampleColumns, sources: Sequence[int] | None) -> None:
+        """Store samples given as :data:`SampleColumns`."""
+        acts, obs, rew, terminated, truncated = columns
+        keep = self._kept(len(rew))
+        self._store(
+            obs=self._storage.obs_column_rows(obs, keep),
+            act=self._storage.act_column_rows(acts, keep),
+            rew=np.asarray(rew, dtype=np.float32),
+            terminated=np.asarray(terminated, dtype=bool),
+            truncated=np.asarray(truncated, dtype=bool),
+            sources=sources,
+        )
 
-    def _prepare_obs(self, obs: list[Any]) -> list[np.ndarray]:
-        if self._obs_spec is None:
-            spec = _make_spec(obs[0], [0])
-        else:
-            spec = self._obs_spec
-        columns: list[list[Any]] = []
-        _columns(spec, obs, columns, "obs")
-        paths = _leaf_paths(spec)
-        return self._check_obs([_stack(col, path) for col, path in zip(columns, paths)], spec, paths)
-
-    def _check_obs(self, arrays: list[np.ndarray], spec: list, paths: list[str]) -> list[np.ndarray]:
-        if self._obs_spec is None:
-            # Lazy allocation: shapes and dtypes come from the first sample.
-            self._obs = [
-                np.zeros((self.memory_size, *a.shape[1:]), dtype=_storage_dtype(a)) for a in arrays
-            ]
-            self._obs_spec = spec
-        for arr, buf, path in zip(arrays, self._obs, paths):
-            if arr.shape[1:] != buf.shape[1:]:
-                raise UserError(
-                    f"{path} has shape {arr.shape[1:]} but earlier samples had {buf.shape[1:]}: "
-                    "observations must keep one shape"
-                )
-            if arr.dtype == object:
-                _storage_dtype(arr)
-        return arrays
-
-    def _obs_arrays(self, tree: Any, keep: slice) -> list[np.ndarray]:
-        """:meth:`_prepare_obs` for observations already stacked leaf by leaf (``tree`` has the
-        structure of one observation, an array of all samples at each leaf)."""
-        spec = _make_spec(tree, [0]) if self._obs_spec is None else self._obs_spec
-        leaves: list[Any] = []
-        _tree_leaves(spec, tree, leaves, "obs")
-        return self._check_obs([leaf[keep] for leaf in leaves], spec, _leaf_paths(spec))
-
-    def _action_array(self, act: np.ndarray | None, keep: slice) -> np.ndarray | None:
-        """:meth:`_prepare_actions` for actions already stacked (zeros where they were ``None``)."""
-        if act is None:
-            return None
-        act = act[keep]
-        if self._act is None:
-            self._act = np.zeros((self.memory_size, *act.shape[1:]), dtype=_storage_dtype(act))
-        if act.shape[1:] != self._act.shape[1:]:
+    def _append_samples(self, samples: Sequence[Any], sources: Sequence[int] | None) -> None:
+        """Store samples given as ``(act, new_obs, rew, terminated, truncated, info)`` tuples."""
+        if len(samples) == 0:
+            return
+        if not isinstance(samples[0], (tuple, list)) or len(samples[0]) != 6:
             raise UserError(
-                f"an action has shape {act.shape[1:]} but earlier actions had {self._act.shape[1:]}: "
-                "actions must keep one shape"
+                "a sample must be (act, new_obs, rew, terminated, truncated, info): check that the "
+                "sample_compressor returns these six values"
             )
-        return act
+        keep = self._kept(len(samples))
+        infos = [s[5] for s in samples][keep] if self._storage.infos is not None else None
+        self._store(
+            obs=self._storage.obs_rows([s[1] for s in samples][keep]),
+            act=self._storage.act_rows([s[0] for s in samples][keep]),
+            rew=np.asarray([s[2] for s in samples], dtype=np.float32),
+            terminated=np.asarray([bool(s[3]) for s in samples], dtype=bool),
+            truncated=np.asarray([bool(s[4]) for s in samples], dtype=bool),
+            sources=sources,
+            infos=infos,
+        )
 
-    def _prepare_actions(self, acts: list[Any]) -> np.ndarray | None:
-        first = next((a for a in acts if a is not None), None)
-        if first is None:
-            return None  # only None actions: the zeros already in the ring stand for them
-        if any(a is None for a in acts):
-            ref = np.asarray(first) if self._act is None else self._act[0]
-            zeros = np.zeros(ref.shape, dtype=_storage_dtype(ref))
-            acts = [zeros if a is None else a for a in acts]
-        arr = _stack(acts, "the action")
-        _storage_dtype(arr)  # refuses non-numeric actions with the one-line error
-        return self._action_array(arr, slice(None))
+    def _kept(self, n: int) -> slice:
+        """The rows of ``n`` new samples that fit: only the newest ``capacity`` can be kept."""
+        return slice(max(0, n - self.memory_size), n)
+
+    def _store(self, obs: list[np.ndarray], act: np.ndarray | None, rew: np.ndarray, terminated: np.ndarray,
+               truncated: np.ndarray, sources: Sequence[int] | None, infos: list[Any] | None = None) -> None:
+        """Link ``len(rew)`` new samples, write the kept rows and move the write counter.
+
+        Args:
+            obs, act, infos: rows of the kept samples only (see :meth:`_kept`).
+            rew, terminated, truncated: all new samples (the links need every episode end).
+            sources: the buffer's ``sources``.
+        """
+        n = len(rew)
+        start = self._storage.total
+        prev = self._links.chain(start, terminated | truncated, sources)
+        keep = self._kept(n)
+        first = start + keep.start
+        self._storage.write(first, obs, act, rew[keep], terminated[keep], truncated[keep], infos)
+        self._links.write(first, prev[keep])
+        self._storage.total += n
 
     # --- validity and histories ----------------------------------------------------------------
-
-    def _oldest(self) -> int:
-        """Absolute counter of the oldest sample held."""
-        return max(self.total - self.size, self._floor)
 
     def valid_slots(self) -> np.ndarray:
         """Slots ``j`` whose transition is valid (``prev[j]`` is set and still in the memory), in
         increasing slot order. Cached until the next append."""
-        if self._valid is None:
-            size = self.size
-            # prev >= oldest also excludes prev == -1 (oldest >= 0).
-            self._valid = np.flatnonzero(self._prev[:size] >= self._oldest())
-        return self._valid
+        return self._links.valid_slots()
 
     def __len__(self) -> int:
         """Number of valid transitions."""
-        return len(self.valid_slots())
-
-    def _chain_ok(self, slots: np.ndarray, depth: int) -> np.ndarray:
-        """For slots whose ``prev`` is valid: whether following ``depth`` links stays inside the
-        memory (or stops at an episode's first sample)."""
-        cap, oldest = self.memory_size, self._oldest()
-        ok = np.ones(len(slots), dtype=bool)
-        ptr = self._prev[slots]
-        for _ in range(depth - 1):
-            live = ptr >= 0
-            nxt = np.where(live, self._prev[ptr % cap], -1)
-            ok &= ~(live & (nxt >= 0) & (nxt < oldest))
-            ptr = np.where(live & (nxt >= oldest), nxt, -1)
-        return ok
+        return len(self._links.valid_slots())
 
     def history_slots(self, slots: np.ndarray | Sequence[int], length: int) -> np.ndarray:
         """The slots of the ``length`` samples of the same episode ending at each of ``slots``,
@@ -847,93 +1275,58 @@ class GenericTorchMemory(TorchMemory):
         Returns:
             int64 array of shape ``(len(slots), length)``.
         """
-        cap, oldest = self.memory_size, self._oldest()
-        cur = np.asarray(slots, dtype=np.int64)
-        out = np.empty((len(cur), length), dtype=np.int64)
-        out[:, -1] = cur
-        for k in range(2, length + 1):
-            ptr = self._prev[cur]
-            # Stop at the episode's start (ptr == -1) and, defensively, at overwritten samples
-            # (the sampler never draws transitions whose needed history was overwritten).
-            cur = np.where(ptr >= oldest, ptr % cap, cur)
-            out[:, -k] = cur
-        return out
+        return self._links.history_slots(slots, length)
 
     def build_obs(self, slots: np.ndarray) -> Any:
         """The observations stored at ``slots``, batched: the stored structure with each leaf of
         shape ``(len(slots), *leaf_shape)``. Subclasses override this to add histories."""
-        assert self._obs_spec is not None
-        return _unflatten(self._obs_spec, [leaf[slots] for leaf in self._obs])
+        return self._storage.observations(slots)
 
     # --- sampling ------------------------------------------------------------------------------
 
     def sample_indices(self) -> np.ndarray:
-        """Draw ``batch_size`` valid slots uniformly (with replacement).
+        """Draw ``batch_size`` valid slots uniformly (with replacement) with :attr:`rng`, among
+        those whose :attr:`history_depth` links are all still held.
 
         Raises:
             ValueError: no valid transition yet.
             UserError: the memory is too small to hold the history its transitions need.
         """
-        valid = self.valid_slots()
-        if len(valid) == 0:
-            raise ValueError("cannot sample from a memory that holds no transition yet")
-        slots = valid[self.rng.integers(0, len(valid), size=self.batch_size)]
-        if self.history_depth > 1:
-            for _ in range(64):
-                bad = ~self._chain_ok(slots, self.history_depth)
-                if not bad.any():
-                    break
-                slots[bad] = valid[self.rng.integers(0, len(valid), size=int(bad.sum()))]
-            else:
-                raise UserError(
-                    f"memory_size={self.memory_size} is too small for histories of "
-                    f"{self.history_depth} samples: increase memory_size"
-                )
-        return slots
+        return self._sampler.draw(self.rng, self.batch_size, self.history_depth)
 
-    def _check_slots(self, indices: Any) -> np.ndarray:
-        slots = np.asarray(indices, dtype=np.int64).reshape(-1)
-        size = self.size
-        if slots.size and (slots.min() < 0 or slots.max() >= size):
-            raise IndexError(f"slot out of range: the memory holds {size} samples")
-        bad = self._prev[slots] < self._oldest()
-        if bad.any():
-            raise IndexError(
-                f"slot {int(slots[bad][0])} holds no transition (first sample of an episode, or its "
-                "previous sample was overwritten): use valid_slots()"
-            )
-        return slots
-
-    def gather(self, slots: np.ndarray) -> tuple:
+    def gather(self, slots: np.ndarray) -> Batch:
         """Rebuild the transitions at ``slots`` as batched NumPy arrays.
 
         Returns:
-            ``(prev_obs, act, rew, new_obs, terminated, truncated)``; observation leaves and
+            ``Batch(obs, act, rew, next_obs, terminated, truncated)``; observation leaves and
             ``act`` have a leading batch dimension, ``rew`` is float32, the flags are bool.
+
+        Raises:
+            UserError: every stored action is ``None``.
         """
-        if self._act is None:
+        act = self._storage.act
+        if act is None:
             raise UserError("the memory holds no action yet: every stored action is None")
         n = len(slots)
-        prev_slots = self._prev[slots] % self.memory_size
         # One gather for both observations halves the per-leaf overhead; the halves are views.
-        both = self.build_obs(np.concatenate([prev_slots, slots]))
-        return (
+        both = self.build_obs(np.concatenate([self._links.prev_slots(slots), slots]))
+        return Batch(
             _tree_map(lambda a: a[:n], both),
-            self._act[slots],
-            self._rew[slots],
+            act[slots],
+            self._storage.rew[slots],
             _tree_map(lambda a: a[n:], both),
-            self._terminated[slots],
-            self._truncated[slots],
+            self._storage.terminated[slots],
+            self._storage.truncated[slots],
         )
 
-    def sample(self, indices: Sequence[int] | np.ndarray | None = None) -> tuple:
+    def sample(self, indices: Sequence[int] | np.ndarray | None = None) -> Batch:
         """Build one batch of tensors on the memory's device.
 
         Args:
             indices: slots of valid transitions; ``None`` draws ``batch_size`` of them.
 
         Returns:
-            ``(prev_obs, act, rew, new_obs, terminated, truncated)``: observations keep their
+            ``Batch(obs, act, rew, next_obs, terminated, truncated)``: observations keep their
             structure with batched tensor leaves, ``act`` has shape ``(B, *action_shape)``,
             ``rew``/``terminated``/``truncated`` are float32 of shape ``(B,)``.
 
@@ -942,10 +1335,10 @@ class GenericTorchMemory(TorchMemory):
         """
         if self.sample_preprocessor is not None or self.crc_debug:
             return super().sample(indices)
-        slots = self.sample_indices() if indices is None else self._check_slots(indices)
+        slots = self.sample_indices() if indices is None else self._links.check_slots(indices)
         prev_obs, act, rew, new_obs, terminated, truncated = self.gather(slots)
         dev = self.device
-        return (
+        return Batch(
             to_torch(prev_obs, dev),
             to_torch(act, dev),
             to_torch(rew, dev),
@@ -964,10 +1357,11 @@ class GenericTorchMemory(TorchMemory):
         Raises:
             IndexError: ``item`` is not the slot of a valid transition.
         """
-        slots = self._check_slots([item])
+        slots = self._links.check_slots([item])
         prev_obs, act, rew, new_obs, terminated, truncated = self.gather(slots)
         first = lambda a: a[0]
-        info = self._infos[int(slots[0])] if self._infos is not None else {}
+        infos = self._storage.infos
+        info = infos[int(slots[0])] if infos is not None else None
         return (
             _tree_map(first, prev_obs),
             act[0],
@@ -982,32 +1376,16 @@ class GenericTorchMemory(TorchMemory):
 
     def ring_arrays(self) -> dict[str, np.ndarray]:
         """Every per-slot array, by name, full capacity (only those allocated)."""
-        arrays: dict[str, np.ndarray] = {
-            "rew": self._rew,
-            "terminated": self._terminated,
-            "truncated": self._truncated,
-            "prev": self._prev,
-            "count": self._count,
-        }
-        if self._act is not None:
-            arrays["act"] = self._act
-        for i, leaf in enumerate(self._obs):
-            arrays[f"obs.{i}"] = leaf
-        return arrays
+        return {**self._storage.arrays(), **self._links.arrays()}
 
     def ring_meta(self) -> dict[str, Any]:
         """JSON-able description of everything that is not per-slot rows."""
         return {
             "class": type(self).__qualname__,
-            "capacity": self.memory_size,
-            "total": self.total,
             "uid": self.uid,
-            "obs_spec": self._obs_spec,
-            "leaves": [[str(a.dtype), list(a.shape[1:])] for a in self._obs],
-            "act": None if self._act is None else [str(self._act.dtype), list(self._act.shape[1:])],
-            "streams": [[k, v[0], v[1]] for k, v in self._streams.items()],
-            "oldest": self._oldest(),
-            "rng": self.rng.bit_generator.state,
+            **self._storage.meta(),
+            **self._links.meta(),
+            **self._sampler.meta(self.rng),
             "stats": [float(self.stat_train_return), float(self.stat_test_return),
                       int(self.stat_train_steps), int(self.stat_test_steps)],
         }
@@ -1024,39 +1402,13 @@ class GenericTorchMemory(TorchMemory):
         Raises:
             ValueError: the saved data does not fit this memory (message says why).
         """
-        self._obs_spec = meta["obs_spec"]
-        self._obs = [np.zeros((self.memory_size, *shape), dtype=np.dtype(dt)) for dt, shape in meta["leaves"]]
-        act = meta["act"]
-        self._act = None if act is None else np.zeros((self.memory_size, *act[1]), dtype=np.dtype(act[0]))
-        self._rew[:] = 0
-        self._terminated[:] = False
-        self._truncated[:] = False
-        self._prev[:] = -1
-        self._count[:] = -1
-        if self._infos is not None:
-            self._infos = [None] * self.memory_size
-        total = int(meta["total"])
-        saved_oldest = int(meta.get("oldest", total - min(total, int(meta["capacity"]))))
-        floor = max(saved_oldest, total - min(total, self.memory_size))
-        for name, buf in self.ring_arrays().items():
-            first, arr = rows(name)
-            if first + len(arr) != total:
-                raise ValueError(f"memory array {name} ends at sample {first + len(arr)}, expected {total}")
-            if first > saved_oldest:
-                raise ValueError(f"memory array {name} starts at sample {first}, expected {saved_oldest} or earlier")
-            if arr.shape[1:] != buf.shape[1:]:
-                raise ValueError(f"memory array {name} has rows of shape {arr.shape[1:]}, expected {buf.shape[1:]}")
-            skip = floor - first
-            self._ring_write(buf, floor, arr[skip:])
-        self.total = total
-        self._floor = floor
+        window = RestoreWindow.of(meta, self.memory_size)
+        self._storage.restore(meta, window, rows)
+        self._links.restore(meta, window, rows)
         self.uid = meta["uid"]
-        self._streams = {int(k): (int(last), bool(done)) for k, last, done in meta["streams"]}
-        if meta.get("rng") is not None:
-            self.rng.bit_generator.state = meta["rng"]
+        self._sampler.restore(meta, self.rng)
         if meta.get("stats") is not None:
             (self.stat_train_return, self.stat_test_return, self.stat_train_steps, self.stat_test_steps) = meta["stats"]
-        self._valid = None
 
 
 class RealTimeTorchMemory(GenericTorchMemory):
@@ -1108,7 +1460,7 @@ class RealTimeTorchMemory(GenericTorchMemory):
     def build_obs(self, slots: np.ndarray) -> tuple:
         """Stored observation elements followed by the rebuilt action buffer."""
         base = super().build_obs(slots)
-        assert self._act is not None
-        acts = self._act[self.history_slots(slots, self.act_buf_len)]  # (B, L, *act_shape)
+        assert self.actions is not None
+        acts = self.actions[self.history_slots(slots, self.act_buf_len)]  # (B, L, *act_shape)
         elements = tuple(base) if isinstance(base, (tuple, list)) else (base,)
         return elements + tuple(acts[:, i] for i in range(self.act_buf_len))
