@@ -1330,6 +1330,10 @@ class Trainer:
         self.run_instance: Any = None
         self.run_id: str | None = None
         self.callbacks: list[Any] = []
+        #: where the training loop reports each round (a :class:`tmrl.metrics.MetricsLogger`); ``None``:
+        #: the training instance's own (console only unless it was given one). ``python -m tmrl
+        #: --trainer`` sets one that also writes ``<data folder>/logs/<RUN_NAME>/metrics.csv``.
+        self.metrics_logger: Any = None
         self.interface = TrainerInterface(
             server_ip=server_ip,
             server_port=server_port,
@@ -1384,6 +1388,8 @@ class Trainer:
                 pass
             if path is not None:
                 self.dump_run_instance_fn(run_instance, path)
+        if self.metrics_logger is not None and hasattr(run_instance, "metrics_logger"):
+            run_instance.metrics_logger = self.metrics_logger
         add = getattr(run_instance, "add_callback", None)
         for callback in self.callbacks:
             if add is None:

@@ -150,12 +150,21 @@ def trainer_from_config() -> Any:
     )
 
 
+def _metrics_logger(cc: Any) -> Any:
+    """The trainer's metrics: the console line, ``<data folder>/logs/<RUN_NAME>/metrics.csv`` and
+    TensorBoard events beside it when tensorboard is installed."""
+    from tmrl.metrics import MetricsLogger
+
+    return MetricsLogger(run_name=cc.RUN_NAME, folder=cc.TMRL_FOLDER)
+
+
 def run_trainer(cfg: Mapping[str, Any] | None = None, wandb: bool = False) -> int:
     """Run the trainer (with Weights & Biases logging when ``wandb``) until its last epoch or
     Ctrl-C. Returns the exit code."""
     _interrupt_on_sigterm()
     cc = _constants()
     trainer = trainer_from_config()
+    trainer.metrics_logger = _metrics_logger(cc)
     path = trainer.checkpoint_path
     if getattr(cc, "RESET_TRAINING", False) and path is not None and os.path.exists(path):
         _set_aside(path)
