@@ -165,12 +165,27 @@ def _arguments(func) -> list[str]:
             if p.name not in ("self", "cls") and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
 
 
-def _undocumented(qualname: str, func, doc_owner=None) -> list[str]:
-    doc = inspect.getdoc(doc_owner if doc_owner is not None else func) or ""
+def _undocumented(qualname: str, func, context: str = "") -> list[str]:
+    """Problems of ``func``'s docstring: none, or arguments it does not name. ``context`` (the class
+    docstring, for a method) may name arguments shared by all the methods of a class."""
+    doc = inspect.getdoc(func) or ""
     if not doc.strip():
         return [f"{qualname}: no docstring"]
+    doc += "\n" + context
     missing = [a for a in _arguments(func) if not re.search(rf"(?<![\w]){re.escape(a)}(?![\w])", doc)]
     return [f"{qualname}: arguments not described: {', '.join(missing)}"] if missing else []
+
+
+def _protocol_methods(objects) -> dict[str, str]:
+    """Methods documented by the Protocols among ``objects``: a class implementing a Protocol's
+    method is documented by it (as an override is by its base class)."""
+    documented = {}
+    for _, obj in objects:
+        if inspect.isclass(obj) and getattr(obj, "_is_protocol", False):
+            for attr, member in vars(obj).items():
+                if inspect.isfunction(member) and (member.__doc__ or "").strip():
+                    documented[attr] = member.__doc__
+    return documented
 
 
 def docstring_problems(module_name: str) -> list[str]:
@@ -178,15 +193,20 @@ def docstring_problems(module_name: str) -> list[str]:
     problems = []
     if not (module.__doc__ or "").strip():
         problems.append(f"{module_name}: no module docstring")
-    for name, obj in _public_objects(module):
+    objects = list(_public_objects(module))
+    by_protocol = _protocol_methods(objects)
+    for name, obj in objects:
         qual = f"{module_name}.{name}"
         if inspect.isfunction(obj):
             problems += _undocumented(qual, obj)
             continue
         init = obj.__dict__.get("__init__")
         if init is not None and inspect.isfunction(init):
-            # the class docstring or __init__'s describes the constructor's arguments
-            doc = (inspect.getdoc(obj) or "") + "\n" + (init.__doc__ or "")
+            # the class docstring or __init__'s describes the constructor's arguments, or, for a
+            # subclass that says it takes its base's arguments, a base class's docstring
+            doc = "\n".join((inspect.getdoc(c) or "") + "\n" + (c.__dict__.get("__init__").__doc__ or "")
+                            if inspect.isfunction(c.__dict__.get("__init__")) else (inspect.getdoc(c) or "")
+                            for c in obj.__mro__ if c.__module__.startswith("tmrl"))
             if not (inspect.getdoc(obj) or "").strip():
                 problems.append(f"{qual}: no docstring")
             missing = [a for a in _arguments(init) if not re.search(rf"(?<![\w]){re.escape(a)}(?![\w])", doc)]
@@ -197,17 +217,12 @@ def docstring_problems(module_name: str) -> list[str]:
         for attr, member in obj.__dict__.items():
             if attr.startswith("_") or not inspect.isfunction(member):
                 continue
-            base_doc = None
             if not (member.__doc__ or "").strip():
-                # an override documented by the base class it overrides is documented
-                for base in obj.__mro__[1:]:
-                    over = base.__dict__.get(attr)
-                    if over is not None and (getattr(over, "__doc__", None) or "").strip():
-                        base_doc = over
-                        break
-                if base_doc is not None:
+                # an override documented by the base class it overrides, or a Protocol's method, is documented
+                if attr in by_protocol or any((getattr(base.__dict__.get(attr), "__doc__", None) or "").strip()
+                                              for base in obj.__mro__[1:]):
                     continue
-            problems += _undocumented(f"{qual}.{attr}", member)
+            problems += _undocumented(f"{qual}.{attr}", member, inspect.getdoc(obj) or "")
     return problems
 
 

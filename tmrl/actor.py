@@ -65,7 +65,12 @@ class ActorModule(ABC):
         raise NotImplementedError
 
     def act_(self, obs: Any, test: bool = False) -> np.ndarray:
-        """What the worker calls each step; here simply :meth:`act`."""
+        """What the worker calls each step; here simply :meth:`act`.
+
+        Args:
+            obs: one observation, as the environment returns it (after the worker's preprocessor).
+            test: act deterministically (test episodes) instead of sampling.
+        """
         return self.act(obs, test=test)
 
     def save(self, path: str | os.PathLike[str]) -> None:
@@ -81,6 +86,10 @@ class ActorModule(ABC):
 
     def load(self, path: str | os.PathLike[str], device: Any) -> ActorModule:
         """Load weights written by :meth:`save` and return the loaded actor (usually ``self``).
+
+        Args:
+            path: the file written by :meth:`save`.
+            device: where the loaded actor runs (``"cpu"``, ``"cuda"``...).
 
         Raises:
             UserError: this actor does not implement ``load``.
@@ -147,7 +156,12 @@ class TorchActorModule(ActorModule, torch.nn.Module):
         self.device = device
 
     def act_(self, obs: Any, test: bool = False) -> np.ndarray:
-        """Collate one observation on ``self.device`` and run :meth:`act` without gradients."""
+        """Collate one observation on ``self.device`` and run :meth:`act` without gradients.
+
+        Args:
+            obs: one observation (not batched).
+            test: act deterministically instead of sampling.
+        """
         batch = collate_one(obs, self.device)
         with torch.no_grad():
             return self.act(batch, test=test)
@@ -163,6 +177,10 @@ class TorchActorModule(ActorModule, torch.nn.Module):
 
     def load(self, path: str | os.PathLike[str], device: Any) -> TorchActorModule:
         """Load weights written by :meth:`save` into this module, move it to ``device``.
+
+        Args:
+            path: the safetensors file written by :meth:`save`.
+            device: where the module is moved.
 
         Returns:
             ``self``.

@@ -665,13 +665,23 @@ def load_memory(memory: Any, path: str | os.PathLike[str]) -> Any:
 
 
 def dump_run_instance(run_instance: Any, checkpoint_path: str | os.PathLike[str]) -> None:
-    """Default ``dump_run_instance_fn`` of the networking ``Trainer``: :func:`save_checkpoint`."""
+    """Default ``dump_run_instance_fn`` of the networking ``Trainer``: :func:`save_checkpoint`.
+
+    Args:
+        run_instance: the training instance (a :class:`~tmrl.training_offline.TrainingOffline`).
+        checkpoint_path: the checkpoint folder.
+    """
     save_checkpoint(run_instance, checkpoint_path)
 
 
 def load_run_instance(checkpoint_path: str | os.PathLike[str], run_cls: Callable[[], Any]) -> Any:
     """Default ``load_run_instance_fn`` of the networking ``Trainer``: builds ``run_cls()`` and
-    restores the checkpoint into it (:func:`load_checkpoint`)."""
+    restores the checkpoint into it (:func:`load_checkpoint`).
+
+    Args:
+        checkpoint_path: the checkpoint folder.
+        run_cls: builds a fresh training instance to restore into.
+    """
     return load_checkpoint(checkpoint_path, run_cls)
 
 

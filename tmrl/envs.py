@@ -45,7 +45,13 @@ def _map_obs(space: spaces.Space, obs: Any, box_fn: Any) -> Any:
 class AffineObservation(gymnasium.ObservationWrapper):
     """Map every Box part of the observation (nested Tuple/Dict included) to
     ``(obs + shift) * scale`` (tmrl 0.7's ``AffineObservationWrapper``, extended to nested
-    spaces)."""
+    spaces).
+
+    Args:
+        env: the environment to wrap.
+        shift: added to every Box element first.
+        scale: then multiplied.
+    """
 
     def __init__(self, env: gymnasium.Env, shift: float, scale: float) -> None:
         super().__init__(env)
@@ -68,7 +74,12 @@ class AffineObservation(gymnasium.ObservationWrapper):
 
 
 class ScaleObservation(AffineObservation):
-    """Multiply every Box part of the observation (nested Tuple/Dict included) by ``scale``."""
+    """Multiply every Box part of the observation (nested Tuple/Dict included) by ``scale``.
+
+    Args:
+        env: the environment to wrap.
+        scale: the factor.
+    """
 
     def __init__(self, env: gymnasium.Env, scale: float) -> None:
         super().__init__(env, 0.0, scale)
@@ -81,6 +92,9 @@ def to_float32(x: Any) -> Any:
 
     The original tmrl also adds a leading dimension to float64 arrays; this keeps their shape,
     so that they stay inside the converted observation space.
+
+    Args:
+        x: an observation: a leaf or nested tuples, lists and dicts.
     """
     if isinstance(x, np.ndarray):
         return x.astype(np.float32) if x.dtype == np.float64 else x
@@ -94,7 +108,11 @@ def to_float32(x: Any) -> Any:
 
 
 class Float64ToFloat32(gymnasium.ObservationWrapper):
-    """Observations (and the spaces' float Boxes) in float32; see :func:`to_float32`."""
+    """Observations (and the spaces' float Boxes) in float32; see :func:`to_float32`.
+
+    Args:
+        env: the environment to wrap.
+    """
 
     def __init__(self, env: gymnasium.Env) -> None:
         super().__init__(env)

@@ -345,6 +345,9 @@ class Memory(ABC):
     def get_transition(self, item: int) -> tuple:
         """Rebuild one transition.
 
+        Args:
+            item: an index below ``len(self)`` (for the built-in memories: a slot number).
+
         Returns:
             ``(prev_obs, act, rew, new_obs, terminated, truncated, info)``; ``info`` must be the
             sample's info dict when CRC debugging is used.
@@ -354,7 +357,12 @@ class Memory(ABC):
     @abstractmethod
     def collate(self, batch: list[tuple], device: Any) -> tuple:
         """Turn a list of ``(prev_obs, act, rew, new_obs, terminated, truncated)`` into one batch
-        of tensors on ``device``."""
+        of tensors on ``device``.
+
+        Args:
+            batch: the transitions (as :meth:`get_transition` returns them).
+            device: where the tensors go.
+        """
         raise NotImplementedError
 
     # --- provided ------------------------------------------------------------------------------
@@ -430,7 +438,12 @@ class TorchMemory(Memory, ABC):
     """
 
     def collate(self, batch: list[tuple], device: Any) -> tuple:
-        """Collate with :func:`collate_torch`."""
+        """Collate with :func:`collate_torch`.
+
+        Args:
+            batch: the transitions (as :meth:`get_transition` returns them).
+            device: where the tensors go.
+        """
         return collate_torch(batch, device)
 
 
@@ -743,6 +756,9 @@ class RingStorage:
         """The actions of a list of samples as one array (zeros for ``None``), or ``None`` when
         every action is ``None`` (the zeros already in the ring stand for them).
 
+        Args:
+            acts: the samples' actions (``None`` for a sample without one).
+
         Raises:
             UserError: actions change shape or are not numeric.
         """
@@ -786,7 +802,9 @@ class RingStorage:
             start: absolute counter of the first row.
             obs: rows of each leaf, from :meth:`obs_rows` or :meth:`obs_column_rows`.
             act: action rows, or ``None`` to leave the zeros of ``None`` actions.
-            rew, terminated, truncated: 1-D rows.
+            rew: 1-D rows of rewards.
+            terminated: 1-D rows of ``terminated`` flags.
+            truncated: 1-D rows of ``truncated`` flags.
             infos: the samples' infos (stored only when infos are kept).
         """
         for buf, rows in zip(self.obs, obs):
@@ -990,6 +1008,11 @@ class EpisodeLinks:
                 rows: Callable[[str], tuple[int, np.ndarray]]) -> None:
         """Restore the links and streams from a saved :meth:`meta` and rows.
 
+        Args:
+            meta: what :meth:`meta` saved.
+            window: which saved rows land in which slots (:class:`RestoreWindow`).
+            rows: ``rows(name) -> (first counter, array)``: the saved rows of one array.
+
         Raises:
             ValueError: the saved rows do not fit (see :meth:`RestoreWindow.fill`).
         """
@@ -1089,8 +1112,13 @@ class GenericTorchMemory(TorchMemory):
     ``sample_preprocessor`` or ``crc_debug``, it falls back to the per-item slow path.
 
     Args:
-        device, nb_steps, sample_preprocessor, memory_size, batch_size, dataset_path, crc_debug:
-            as in :class:`Memory`.
+        device: as in :class:`Memory`.
+        nb_steps: as in :class:`Memory`.
+        sample_preprocessor: as in :class:`Memory`.
+        memory_size: as in :class:`Memory`.
+        batch_size: as in :class:`Memory`.
+        dataset_path: as in :class:`Memory`.
+        crc_debug: as in :class:`Memory`.
         store_info: keep each sample's ``info`` dict (Python objects, not checkpointed) so that
             ``get_transition`` returns it; implied by ``crc_debug``. Otherwise ``info`` is ``{}``.
 
@@ -1279,7 +1307,11 @@ class GenericTorchMemory(TorchMemory):
 
     def build_obs(self, slots: np.ndarray) -> Any:
         """The observations stored at ``slots``, batched: the stored structure with each leaf of
-        shape ``(len(slots), *leaf_shape)``. Subclasses override this to add histories."""
+        shape ``(len(slots), *leaf_shape)``. Subclasses override this to add histories.
+
+        Args:
+            slots: the slots whose observations to build.
+        """
         return self._storage.observations(slots)
 
     # --- sampling ------------------------------------------------------------------------------
@@ -1425,9 +1457,10 @@ class RealTimeTorchMemory(GenericTorchMemory):
     Rebuilt observations are tuples: the stored elements (a non-sequence observation counts as
     one element), then ``act_buf_len`` action arrays.
 
+    The other arguments are those of :class:`GenericTorchMemory`.
+
     Args:
         act_buf_len: length of the action buffer (rtgym's ``act_buf_len``).
-        other arguments: as in :class:`GenericTorchMemory`.
     """
 
     def __init__(
@@ -1458,7 +1491,11 @@ class RealTimeTorchMemory(GenericTorchMemory):
         )
 
     def build_obs(self, slots: np.ndarray) -> tuple:
-        """Stored observation elements followed by the rebuilt action buffer."""
+        """Stored observation elements followed by the rebuilt action buffer.
+
+        Args:
+            slots: the slots whose observations to build.
+        """
         base = super().build_obs(slots)
         assert self.actions is not None
         acts = self.actions[self.history_slots(slots, self.act_buf_len)]  # (B, L, *act_shape)

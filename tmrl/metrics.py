@@ -64,7 +64,11 @@ def _fmt(value: Any) -> str:
 def format_row(row: Mapping[str, Any]) -> str:
     """The compact console line for one round, e.g.
     ``epoch 2 round 7/50 | loss_actor -3.21 loss_critic 0.123 entropy_coef 0.0412 | return train
-    -140.5 test -130.2 | memory 12000 | 105.3 upd/s 51.2 smp/s``."""
+    -140.5 test -130.2 | memory 12000 | 105.3 upd/s 51.2 smp/s``.
+
+    Args:
+        row: the round's metrics (``RoundMetrics.as_row()``).
+    """
     rounds = row.get("rounds")
     where = f"epoch {row.get('epoch', '-')} round {row.get('round', '-')}"
     if rounds is not None:

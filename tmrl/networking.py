@@ -813,6 +813,8 @@ class Server:
         security: ``"TLS"`` or ``None`` for plain TCP (``SECURITY`` by default).
         keys_dir: folder holding ``key.pem`` and ``certificate.pem`` (``CREDENTIALS_DIRECTORY``).
         max_workers: most workers at once; ``None`` or negative for no limit (``NB_WORKERS``).
+        settings: the :class:`~tmrl.config.settings.NetSettings` the ``None`` arguments are read
+            from (default: derived from ``config.json`` when the server is built).
 
     Raises:
         UserError: the port cannot be bound, TLS credentials are missing, or plain TCP is refused.
@@ -1265,9 +1267,10 @@ class Trainer:
             folder into a fresh ``training_cls()``; see :func:`tmrl.checkpoint.load_checkpoint`).
         updater_fn: ``fn(run_instance, training_cls) -> run_instance`` applied after loading a
             checkpoint, for example to change hyperparameters of a resumed run.
-        obs_preprocessor, sample_compressor: the workers' (``OBS_PREPROCESSOR`` and
-            ``SAMPLE_COMPRESSOR`` of the built-in pipelines; ``None``: the workers use none). With
-            the spaces of the training instance (``run_instance.agent.observation_space`` and
+        obs_preprocessor: the workers' observation preprocessor (``OBS_PREPROCESSOR`` of the
+            built-in pipelines; ``None``: the workers use none).
+        sample_compressor: the workers' sample compressor (``SAMPLE_COMPRESSOR``; ``None``: none).
+            With ``obs_preprocessor`` and the spaces of the training instance (``run_instance.agent.observation_space`` and
             ``action_space``) they give the run's :class:`~tmrl.spaces.SampleSchema`: sample
             batches that do not fit it are dropped before the memory sees them. When neither is
             given (tmrl 0.7's scripts), batches are still checked (numbers, finite values, actions
@@ -1475,8 +1478,9 @@ class Trainer:
         """Like :meth:`run`, logging every epoch's statistics to Weights & Biases.
 
         Args:
-            entity, project, run_id: wandb identifiers (``WANDB_ENTITY``, ``WANDB_PROJECT``,
-                ``WANDB_RUN_ID`` from the config when ``None``).
+            entity: wandb entity, a user or team (``WANDB_ENTITY`` from the config when ``None``).
+            project: wandb project (``WANDB_PROJECT``).
+            run_id: wandb run id, to resume the same wandb run (``WANDB_RUN_ID``).
             key: wandb API key (``WANDB_KEY``); set as ``WANDB_API_KEY`` for this process.
 
         Raises:
@@ -1643,10 +1647,15 @@ class RolloutWorker:
         model_history: save every ``model_history``-th received model (``0`` or negative: never;
             ``MODEL_HISTORY``).
         standalone: do not connect to a server.
-        server_ip, server_port, password: the server (``SERVER_IP_FOR_WORKER``, ``PORT``, ``PASSWORD``).
-        local_port, max_buf_len: accepted for compatibility with tmrl 0.7, unused.
+        server_ip: the server's address (``SERVER_IP_FOR_WORKER``).
+        server_port: the server's port (``PORT``).
+        password: the shared password (``PASSWORD``).
+        local_port: accepted for compatibility with tmrl 0.7, unused.
+        max_buf_len: accepted for compatibility with tmrl 0.7, unused.
         header_size: tlspyo header size (``HEADER_SIZE``).
-        security, keys_dir, hostname: TLS settings (``SECURITY``, ``CREDENTIALS_DIRECTORY``, ``HOSTNAME``).
+        security: ``"TLS"`` or ``None`` for plain TCP (``SECURITY``).
+        keys_dir: folder holding the TLS certificate (``CREDENTIALS_DIRECTORY``).
+        hostname: the name the server's certificate is checked against (``HOSTNAME``).
 
     Raises:
         UserError: bad connection settings (see :mod:`tmrl.transport`).
@@ -1875,7 +1884,12 @@ class RolloutWorker:
 
     def run_episode(self, max_samples: float | None = None, train: bool = False) -> float:
         """Run one episode without recording samples (a test episode unless ``train``); record
-        its return and length as test statistics. Returns the episode's return."""
+        its return and length as test statistics. Returns the episode's return.
+
+        Args:
+            max_samples: most steps of the episode (default: ``max_samples_per_episode``).
+            train: act with the training (stochastic) policy instead of the test one.
+        """
         max_samples = self.max_samples_per_episode if max_samples is None else max_samples
         ret, steps = 0.0, 0
         obs, _ = self.reset(collect_samples=False)
@@ -1892,7 +1906,13 @@ class RolloutWorker:
     def run_episodes(
         self, max_samples_per_episode: float | None = None, nb_episodes: float = math.inf, train: bool = False
     ) -> None:
-        """Run ``nb_episodes`` episodes with :meth:`run_episode` (deployment)."""
+        """Run ``nb_episodes`` episodes with :meth:`run_episode` (deployment).
+
+        Args:
+            max_samples_per_episode: most steps per episode (default: the worker's).
+            nb_episodes: how many episodes (default: until stopped).
+            train: act with the training (stochastic) policy instead of the test one.
+        """
         for _ in self._steps(nb_episodes):
             self.run_episode(max_samples_per_episode, train=train)
 
@@ -2023,6 +2043,11 @@ class RolloutWorker:
     def run_env_benchmark(self, nb_steps: int, test: bool = False, verbose: bool = True) -> Any:
         """Step the environment ``nb_steps`` times (one episode at most) and return its
         ``benchmarks()`` (rtgym-style environments created with ``"benchmark": True``).
+
+        Args:
+            nb_steps: how many steps (a positive integer).
+            test: act with the test (deterministic) policy.
+            verbose: accepted for compatibility with tmrl 0.7 (the caller prints the result).
 
         Raises:
             UserError: ``nb_steps`` is not a positive finite number, or the environment has no

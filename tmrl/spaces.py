@@ -74,7 +74,12 @@ def _describe_space(space: Any) -> Any:
 
 
 def describe_spaces(observation_space: Any, action_space: Any) -> dict[str, Any]:
-    """A small data-only description (types, shapes, dtypes) of an actor's spaces."""
+    """A small data-only description (types, shapes, dtypes) of an actor's spaces.
+
+    Args:
+        observation_space: the actor's observation space (a Gymnasium space).
+        action_space: its action space.
+    """
     return {"observation": _describe_space(observation_space), "action": _describe_space(action_space)}
 
 
@@ -121,7 +126,15 @@ class SampleRejected(ValueError):
 @dataclass(frozen=True)
 class LeafSpec:
     """One array of a sample: its path (``obs[1]``, ``act``), shape per sample, dtype, and the
-    bounds its values must lie in (``None``: finite for floats, the dtype's range for integers)."""
+    bounds its values must lie in (``None``: finite for floats, the dtype's range for integers).
+
+    Args:
+        path: where the array is in a sample (``obs[1]``, ``act``).
+        shape: its shape per sample.
+        dtype: its dtype.
+        low: lower bounds (``None``: finite for floats, the dtype's range for integers).
+        high: upper bounds (likewise).
+    """
 
     path: str
     shape: tuple[int, ...]
@@ -411,7 +424,9 @@ class SampleSchema:
             act: the actions that are not ``None`` stacked (``(k, *shape)``), or ``None``.
             act_none: ``None`` or a bool mask ``(n,)`` of the samples whose action is ``None``.
             obs: the observations as a tree of stacked arrays (the schema's structure).
-            rew, terminated, truncated: arrays (or sequences) of ``n`` values.
+            rew: rewards, an array (or sequence) of ``n`` values.
+            terminated: ``terminated`` flags, ``n`` values.
+            truncated: ``truncated`` flags, ``n`` values.
 
         Returns:
             The checked :class:`SampleColumns` (arrays are cast; unchanged ones are not copied).

@@ -159,11 +159,21 @@ class TrainingCallback:
 
     def on_round_end(self, training: TrainingOffline, metrics: RoundMetrics) -> bool | None:
         """After each round, once its row is logged. Return False to end the epoch now (it is
-        then not counted, as after :meth:`TrainingOffline.stop`)."""
+        then not counted, as after :meth:`TrainingOffline.stop`).
+
+        Args:
+            training: the training loop.
+            metrics: the round's :class:`RoundMetrics`.
+        """
         return None
 
     def on_epoch_end(self, training: TrainingOffline, rows: list[dict[str, Any]]) -> None:
-        """After the last round of an epoch (or the round that stopped it)."""
+        """After the last round of an epoch (or the round that stopped it).
+
+        Args:
+            training: the training loop.
+            rows: the epoch's rows, as logged (``RoundMetrics.as_row()``).
+        """
 
 
 class _RoundFunction(TrainingCallback):
@@ -408,6 +418,9 @@ class TrainingOffline:
         received, a non-empty memory, and no more than ``max_training_steps_per_env_step``
         updates per received sample.
 
+        Args:
+            interface: the trainer's link: ``retrieve_buffer() -> Buffer`` (and ``broadcast_model``).
+
         Returns:
             ``True`` when training may go on, ``False`` when :meth:`stop` was called.
 
@@ -509,6 +522,10 @@ class TrainingOffline:
         samples received are moved into the memory, every ``update_model_interval`` steps the
         actor is broadcast, and after each step the loop waits while training is ahead of the
         samples (:meth:`check_ratio`).
+
+        Args:
+            interface: the trainer's link: ``retrieve_buffer() -> Buffer`` and ``broadcast_model(actor)``.
+            rnd: the round's number within the epoch (for the metrics).
 
         Returns:
             The round's metrics (``stopped`` is set when :meth:`stop` cut it short), or None

@@ -80,6 +80,10 @@ def partial_to_dict(p: functools.partial, version: str = "3") -> dict[str, Any]:
     Parameters left at their default are included; nested callables are described recursively.
     Used to log the full set of hyperparameters of a run (for example to wandb).
 
+    Args:
+        p: a partial (``tmrl.util.partial`` or ``functools.partial``) with keyword arguments only.
+        version: accepted for compatibility with tmrl 0.7, unused.
+
     Raises:
         ValueError: the partial has positional arguments or keywords its callee does not take.
     """
@@ -132,6 +136,9 @@ class cached_property:  # noqa: N801 (named like the builtin decorator it mirror
         model_nograd = cached_property(lambda self: no_grad(copy_shared(self.model)))
 
     Delete the attribute (``del obj.name``) to have it recomputed on next access.
+
+    Args:
+        func: computes the value from the instance (``func(self)``).
     """
 
     def __init__(self, func: Callable[[Any], Any]):
@@ -217,13 +224,25 @@ def _fsync_folder(folder: Path) -> None:
 def atomic_write_text(
     path: str | os.PathLike[str], text: str, encoding: str = "utf-8", mode: int | None = None
 ) -> Path:
-    """Text version of :func:`atomic_write_bytes`."""
+    """Text version of :func:`atomic_write_bytes`.
+
+    Args:
+        path: the file to write (its folder is created when missing).
+        text: the whole content.
+        encoding: how ``text`` is encoded.
+        mode: permission bits of the file (see :func:`atomic_write_bytes`).
+    """
     return atomic_write_bytes(path, text.encode(encoding), mode=mode)
 
 
 def dump(obj: Any, path: str | os.PathLike[str]) -> Path:
     """Save a data-only object (nested containers, NumPy arrays, numbers, strings, bytes, None)
-    to ``path`` atomically, in tmrl's data-only format (no pickle)."""
+    to ``path`` atomically, in tmrl's data-only format (no pickle).
+
+    Args:
+        obj: the object (only data: see :mod:`tmrl.wire`).
+        path: the file to write.
+    """
     from tmrl import wire
 
     return atomic_write_bytes(path, wire.encode(obj))
@@ -232,6 +251,9 @@ def dump(obj: Any, path: str | os.PathLike[str]) -> Path:
 def load(path: str | os.PathLike[str]) -> Any:
     """Read an object written by :func:`dump`. Nothing in the file can execute code; the arrays
     returned are independent, writable copies.
+
+    Args:
+        path: the file written by :func:`dump`.
 
     Raises:
         tmrl.wire.DecodeError: the file is not in tmrl's data-only format or is truncated.

@@ -113,12 +113,21 @@ class REDQSACAgent(SACAgent):
 
     def target_q(self, next_obs: Any, next_act: torch.Tensor) -> torch.Tensor:
         """The minimum over a random subset of ``m`` of the ``n`` target critics (drawn from the
-        global torch generator, so that ``torch.manual_seed`` makes runs reproducible)."""
+        global torch generator, so that ``torch.manual_seed`` makes runs reproducible).
+
+        Args:
+            next_obs: the batch's next observations ``o'``.
+            next_act: actions ``a'`` drawn from the current policy at ``o'``.
+        """
         subset = torch.randperm(self.n)[: self.m]
         return self.critics_target(next_obs, next_act, members=subset).min(0).values
 
     def policy_q(self, q_pi_all: torch.Tensor) -> torch.Tensor:
-        """The mean over all ``n`` critics."""
+        """The mean over all ``n`` critics.
+
+        Args:
+            q_pi_all: ``Q(o, pi)`` of every critic, shape ``(n, B)``.
+        """
         return q_pi_all.mean(0)
 
     # --- checkpointing ------------------------------------------------------------------------

@@ -428,12 +428,21 @@ class SACAgent(TrainingAgent):
 
     def target_q(self, next_obs: Any, next_act: torch.Tensor) -> torch.Tensor:
         """``Q_targ(o', a')``, shape ``(B,)``. SAC: the minimum over the target critics (clipped
-        double Q)."""
+        double Q).
+
+        Args:
+            next_obs: the batch's next observations ``o'``.
+            next_act: actions ``a'`` drawn from the current policy at ``o'``.
+        """
         return self.critics_target(next_obs, next_act).min(0).values
 
     def policy_q(self, q_pi_all: torch.Tensor) -> torch.Tensor:
         """The value the actor maximises, from the critics' ``Q(o, pi)`` ``(k, B)``. SAC: their
-        minimum."""
+        minimum.
+
+        Args:
+            q_pi_all: ``Q(o, pi)`` of every critic, shape ``(k, B)``.
+        """
         return q_pi_all.min(0).values
 
     @torch.no_grad()
@@ -443,17 +452,31 @@ class SACAgent(TrainingAgent):
 
         Bootstraps unless the episode *terminated*: a truncated episode would have gone on, so
         its last transition keeps its future value (the truncated flag is deliberately unused).
+
+        Args:
+            batch: the training batch (:class:`tmrl.batch.Batch`).
+            alpha: the entropy coefficient.
         """
         a2, logp_a2 = self.actor(batch.next_obs)
         r, d = batch.rew.reshape(-1), batch.terminated.reshape(-1)
         return r + self.gamma * (1.0 - d) * (self.target_q(batch.next_obs, a2) - alpha * logp_a2)
 
     def actor_loss(self, alpha: torch.Tensor, logp_pi: torch.Tensor, q_pi_all: torch.Tensor) -> torch.Tensor:
-        """``mean(alpha log pi(a|o) - policy_q(Q(o, a)))``, ``a ~ pi(.|o)``."""
+        """``mean(alpha log pi(a|o) - policy_q(Q(o, a)))``, ``a ~ pi(.|o)``.
+
+        Args:
+            alpha: the entropy coefficient (no gradient).
+            logp_pi: ``log pi(a|o)`` of the sampled actions, shape ``(B,)``.
+            q_pi_all: ``Q(o, a)`` of every critic for those actions, shape ``(k, B)``.
+        """
         return (alpha * logp_pi - self.policy_q(q_pi_all)).mean()
 
     def entropy_loss(self, logp_pi: torch.Tensor) -> torch.Tensor | None:
-        """SAC v2's loss of ``log(alpha)`` toward ``target_entropy`` (None when alpha is fixed)."""
+        """SAC v2's loss of ``log(alpha)`` toward ``target_entropy`` (None when alpha is fixed).
+
+        Args:
+            logp_pi: ``log pi(a|o)`` of the sampled actions (detached in the loss).
+        """
         if self.log_alpha is None:
             return None
         return -(self.log_alpha * (logp_pi.detach() + self.target_entropy)).mean()

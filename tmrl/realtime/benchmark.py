@@ -78,34 +78,44 @@ class PolyakBenchmark:
 
     # caller thread -------------------------------------------------------------------------
     def start_step(self, t: float) -> None:
+        """``step()`` called at time ``t`` (ends the inference duration since the last step)."""
         self._mark("start_step", t, since="end_step", key="inference_duration")
 
     def end_step_join(self, t: float) -> None:
+        """``step()`` finished waiting for the running time step at time ``t``."""
         self._mark("end_step_join", t, since="start_step", key="join_duration")
 
     def end_step(self, t: float) -> None:
+        """``step()`` returns at time ``t`` (ends the step duration)."""
         self._mark("end_step", t, since="start_step", key="step_duration")
 
     def start_reset(self, t: float) -> None:
+        """``reset()`` called at time ``t`` (not timed here)."""
         pass
 
     def end_reset_join(self, t: float) -> None:
+        """``reset()`` finished waiting for the running time step at time ``t`` (not timed here)."""
         pass
 
     def end_reset(self, t: float) -> None:
+        """``reset()`` returns at time ``t`` (not timed here)."""
         pass
 
     # time-step thread ----------------------------------------------------------------------
     def start_send_control(self, t: float) -> None:
+        """The time-step thread starts sending a control at time ``t`` (one time step since the last)."""
         self._mark("start_send_control", t, since="start_send_control", key="time_step_duration")
 
     def end_send_control(self, t: float) -> None:
+        """The control was sent at time ``t``."""
         self._mark("end_send_control", t, since="start_send_control", key="send_control_duration")
 
     def start_get_obs(self, t: float) -> None:
+        """The time-step thread starts capturing an observation at time ``t``."""
         self._mark("start_get_obs", t)
 
     def end_get_obs(self, t: float) -> None:
+        """The observation was captured at time ``t``."""
         self._mark("end_get_obs", t, since="start_get_obs", key="get_obs_duration")
 
     def result(self) -> dict[str, Any]:
@@ -115,7 +125,11 @@ class PolyakBenchmark:
 
 
 class TraceBenchmark(PolyakBenchmark):
-    """Every timestamp; reset() counts as a step, as in rtgym."""
+    """Every timestamp; reset() counts as a step, as in rtgym.
+
+    Args:
+        polyak: weight of a new measurement in the running averages (as :class:`PolyakBenchmark`).
+    """
 
     _NAMES = (
         "start_step",
@@ -136,12 +150,15 @@ class TraceBenchmark(PolyakBenchmark):
             self._trace[name].append(t)
 
     def start_reset(self, t: float) -> None:
+        """``reset()`` called at time ``t``: recorded as a step start, as rtgym does."""
         self.start_step(t)
 
     def end_reset_join(self, t: float) -> None:
+        """``reset()`` finished waiting at time ``t``: recorded as a step's join."""
         self.end_step_join(t)
 
     def end_reset(self, t: float) -> None:
+        """``reset()`` returns at time ``t``: recorded as a step end."""
         self.end_step(t)
 
     def result(self) -> dict[str, Any]:

@@ -89,7 +89,12 @@ class DummyRCDrone:
         self._thread.start()
 
     def send_control(self, vel_x: float, vel_y: float) -> None:
-        """Command a velocity; it reaches the drone after a random delay (never blocks)."""
+        """Command a velocity; it reaches the drone after a random delay (never blocks).
+
+        Args:
+            vel_x: velocity along x, in units per second (the norm is clipped to ``max_vel``).
+            vel_y: velocity along y, in units per second.
+        """
         vel_x, vel_y = float(vel_x), float(vel_y)
         norm = math.hypot(vel_x, vel_y)
         if norm > self.max_vel:

@@ -586,6 +586,11 @@ class RealTimeEnv(gymnasium.Env):
         action (or, with ``reset_act_buf`` False and ``last_act_on_reset`` True, with the last action
         given to ``step()``). Waits for a running time step to end first.
 
+        Args:
+            seed: seeds the environment's random generator (Gymnasium's ``np_random``) and is passed
+                to the interface's ``reset``.
+            options: passed to the interface's ``reset``.
+
         Returns:
             ``(obs, info)``: the interface's observation followed by the action buffer.
         """
@@ -728,7 +733,12 @@ class RealTimeEnv(gymnasium.Env):
 
     def render(self, mode: str = "human", join_thread: bool = False) -> Any:
         """Return the interface's ``render()``, called on the caller's thread (as rtgym does for both
-        variants). ``join_thread=True`` first waits for the running time step to end."""
+        variants).
+
+        Args:
+            mode: accepted for rtgym compatibility and ignored.
+            join_thread: first wait for the running time step to end.
+        """
         if join_thread:
             self._join_thread()
         render = getattr(self._interface, "render", None)
@@ -741,7 +751,12 @@ class RealTimeEnv(gymnasium.Env):
     def set_time_step_duration(
         self, time_step_duration: float, time_step_timeout_factor: float | None = None
     ) -> None:
-        """Change the time-step duration (and optionally the timeout factor) from the next time step on."""
+        """Change the time-step duration (and optionally the timeout factor) from the next time step on.
+
+        Args:
+            time_step_duration: the new nominal duration of a time step, in seconds.
+            time_step_timeout_factor: the new timeout factor (``None``: unchanged).
+        """
         self._join_thread()
         if time_step_timeout_factor is not None:
             self.time_step_timeout_factor = float(time_step_timeout_factor)
@@ -749,12 +764,20 @@ class RealTimeEnv(gymnasium.Env):
         self.time_step_timeout = self.time_step_duration * self.time_step_timeout_factor
 
     def set_start_obs_capture(self, start_obs_capture: float) -> None:
-        """Change when the observation is captured, from the next time step on."""
+        """Change when the observation is captured, from the next time step on.
+
+        Args:
+            start_obs_capture: seconds after a time step's start when the capture starts.
+        """
         self._join_thread()
         self.start_obs_capture = float(start_obs_capture)
 
     def set_ep_max_length(self, ep_max_length: float) -> None:
-        """Change the episode length limit, from the next step on."""
+        """Change the episode length limit, from the next step on.
+
+        Args:
+            ep_max_length: the new maximum number of steps of an episode.
+        """
         self._join_thread()
         self.ep_max_length = ep_max_length
 

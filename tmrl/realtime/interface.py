@@ -36,6 +36,10 @@ class RealTimeGymInterface:
     def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[list[Any], dict]:
         """Start an episode.
 
+        Args:
+            seed: the seed given to ``env.reset`` (``None``: none), for a device that can use one.
+            options: the options given to ``env.reset``.
+
         Returns:
             ``(obs, info)``: ``obs`` a list with one element per space of the observation Tuple
             (without the action buffer), ``info`` a dict.
