@@ -195,7 +195,15 @@ class SquashedGaussianMLPActor(TorchActorModule):
         return action, logp
 
     def act(self, obs: Any, test: bool = False) -> np.ndarray:
-        """Action for a batched observation, as a NumPy array (``(act_dim,)`` for a batch of one)."""
+        """Action for a batched observation, as a NumPy array, without gradients.
+
+        Args:
+            obs: a batched observation (tensors with a leading batch dimension).
+            test: take the Gaussian's mean (deterministic) instead of a sample.
+
+        Returns:
+            ``(B, act_dim)`` actions, or ``(act_dim,)`` for a batch of one.
+        """
         with torch.no_grad():
             a, _ = self.forward(obs, test, False)
         if a.shape[0] == 1:
@@ -337,7 +345,12 @@ class _ScalarOutput(torch.autograd.Function):
 class QMember:
     """One Q function of an ensemble, callable as ``q(obs, act) -> (B,)`` (like the original
     tmrl's separate critics ``q1``, ``q2``, ``qs[i]``). It holds no parameters of its own: train
-    the ensemble's parameters."""
+    the ensemble's parameters.
+
+    Args:
+        ensemble: the :class:`EnsembleQFunction` it is a view of.
+        index: which of the ensemble's ``n`` Q functions, from 0.
+    """
 
     def __init__(self, ensemble: EnsembleQFunction, index: int) -> None:
         self.ensemble = ensemble
@@ -418,7 +431,13 @@ class MLPActorCritic(nn.Module):
         return self.qs[1]
 
     def act(self, obs: Any, test: bool = False) -> np.ndarray:
-        """The actor's action for a batched observation, as a NumPy array."""
+        """The actor's action for a batched observation, as a NumPy array (see
+        :meth:`SquashedGaussianMLPActor.act`).
+
+        Args:
+            obs: a batched observation.
+            test: take the mean action instead of a sample.
+        """
         return self.actor.act(obs, test)
 
 

@@ -56,13 +56,13 @@ __all__ = [
     "num_flat_features",
 ]
 
-#: tmrl 0.7's VanillaCNN sizes.
 DEFAULT_CNN: dict[str, tuple[int, ...]] = {
     "channels": (64, 64, 128, 128),
     "kernels": (8, 4, 4, 4),
     "strides": (2, 2, 2, 2),
     "hidden_sizes": (256, 256),
 }
+"""tmrl 0.7's VanillaCNN sizes."""
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 _LOG_2 = math.log(2.0)
@@ -96,11 +96,17 @@ def _split_obs(obs: Sequence[torch.Tensor], image_index: int) -> tuple[torch.Ten
 
 
 class ImageEncoder(nn.Module):
-    """Convolutions over an image history, flattened.
+    """Convolutions over an image history (the history is the channel dimension), each followed
+    by a ReLU, flattened. No padding: each layer maps a side ``s`` to ``(s - kernel) // stride + 1``.
 
     Args:
-        image_shape: ``(hist, height, width)``.
-        channels, kernels, strides: one entry per convolution layer.
+        image_shape: ``(hist, height, width)`` of the images it reads.
+        channels: output channels of each convolution layer.
+        kernels: square kernel size of each layer (same length as ``channels``).
+        strides: stride of each layer (same length as ``channels``).
+
+    Attributes:
+        out_dim: the number of features per image history (``forward``'s second dimension).
 
     Raises:
         UserError: lists of different lengths, or images too small for the layers.
@@ -128,13 +134,20 @@ class ImageEncoder(nn.Module):
         self.convs = nn.Sequential(*layers)
         self.out_dim = in_ch * h * w
 
-    #: Batches at least this large run channels-last (NHWC): oneDNN's convolutions are then about
-    #: 1.5x faster forward and 1.7x forward plus backward on CPU; below it (a worker's batch of
-    #: one) the default layout is faster. The weights keep the default layout either way.
     CHANNELS_LAST_FROM = 16
+    """Batches at least this large run channels-last (NHWC): oneDNN's convolutions are then about
+    1.5x faster forward and 1.7x forward plus backward on CPU; below it (a worker's batch of
+    one) the default layout is faster. The weights keep the default layout either way."""
 
     def forward(self, imgs: torch.Tensor) -> torch.Tensor:
-        """``(B, hist, h, w)`` float images -> ``(B, out_dim)`` features."""
+        """The features of a batch of image histories.
+
+        Args:
+            imgs: float images of shape ``(B, hist, height, width)``.
+
+        Returns:
+            Features of shape ``(B, out_dim)``.
+        """
         if imgs.shape[0] >= self.CHANNELS_LAST_FROM:
             imgs = imgs.contiguous(memory_format=torch.channels_last)
         # With NHWC strides, flatten copies into the NCHW order of the features.
@@ -147,10 +160,16 @@ class SquashedGaussianCNNActor(TorchActorModule):
     Args:
         observation_space: Tuple space with the image history at ``image_index``.
         action_space: bounded Box.
-        channels, kernels, strides: convolution layers (see :data:`DEFAULT_CNN`).
-        hidden_sizes: MLP after the convolutions.
+        channels: output channels of each convolution layer (see :data:`DEFAULT_CNN`).
+        kernels: kernel size of each convolution layer.
+        strides: stride of each convolution layer.
+        hidden_sizes: widths of the MLP after the convolutions.
         image_index: position of the images in the observation (3 for the full interfaces).
         device: where :meth:`act_` collates observations.
+
+    Raises:
+        UserError: the observation has no image history of shape ``(hist, h, w)`` at
+            ``image_index``, or the images are too small for the layers.
     """
 
     def __init__(self, observation_space: Any, action_space: Any, channels: Sequence[int] = DEFAULT_CNN["channels"],
@@ -172,7 +191,17 @@ class SquashedGaussianCNNActor(TorchActorModule):
         self.register_buffer("act_offset", torch.from_numpy((high + low) / 2.0), persistent=False)
 
     def forward(self, obs: Any, test: bool = False, with_logprob: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """``(action (B, act_dim), logp (B,) or None)``; ``test`` takes the mean action."""
+        """Sample (or, with ``test``, take the mean of) the squashed Gaussian policy.
+
+        Args:
+            obs: a batched observation; ``uint8`` images are scaled by 1/256 here.
+            test: use the Gaussian's mean instead of a sample.
+            with_logprob: also return the log-density of the returned action.
+
+        Returns:
+            ``(action, logp)``: actions ``(B, act_dim)`` within the action space's bounds, and
+            log-densities ``(B,)`` (or None).
+        """
         imgs, scalars = _split_obs(obs, self.image_index)
         h = self.net(torch.cat((self.encoder(imgs), scalars), dim=-1))
         mu = self.mu_layer(h)
@@ -188,7 +217,15 @@ class SquashedGaussianCNNActor(TorchActorModule):
         return torch.tanh(u) * self.act_scale + self.act_offset, logp
 
     def act(self, obs: Any, test: bool = False) -> np.ndarray:
-        """Action for a batched observation as NumPy (``(act_dim,)`` for a batch of one)."""
+        """Action for a batched observation as a NumPy array, without gradients.
+
+        Args:
+            obs: a batched observation.
+            test: take the mean action instead of a sample.
+
+        Returns:
+            ``(B, act_dim)`` actions, or ``(act_dim,)`` for a batch of one.
+        """
         with torch.no_grad():
             a, _ = self.forward(obs, test, False)
         return (a[0] if a.shape[0] == 1 else a).cpu().numpy()
@@ -196,8 +233,17 @@ class SquashedGaussianCNNActor(TorchActorModule):
 
 class CNNQFunction(nn.Module):
     """``Q(obs, act)`` on image-history observations: its own convolutions, then an MLP over the
-    features, the other observation elements and the action. Arguments as for
-    :class:`SquashedGaussianCNNActor`."""
+    features, the other observation elements and the action.
+
+    Args:
+        observation_space: Tuple space with the image history at ``image_index``.
+        action_space: the action space (a Box).
+        channels: output channels of each convolution layer (see :data:`DEFAULT_CNN`).
+        kernels: kernel size of each convolution layer.
+        strides: stride of each convolution layer.
+        hidden_sizes: widths of the MLP's hidden layers (its output is one value).
+        image_index: position of the images in the observation.
+    """
 
     def __init__(self, observation_space: Any, action_space: Any, channels: Sequence[int] = DEFAULT_CNN["channels"],
                  kernels: Sequence[int] = DEFAULT_CNN["kernels"], strides: Sequence[int] = DEFAULT_CNN["strides"],
@@ -210,18 +256,32 @@ class CNNQFunction(nn.Module):
         self.net = mlp([self.encoder.out_dim + others + dim_act, *hidden_sizes, 1], nn.ReLU)
 
     def features(self, obs: Any) -> torch.Tensor:
-        """The convolution features of the images and the other observation elements, ``(B, F)``."""
+        """The convolution features of the images and the other observation elements, ``(B, F)``.
+
+        Args:
+            obs: a batched observation.
+        """
         imgs, scalars = _split_obs(obs, self.image_index)
         return torch.cat((self.encoder(imgs), scalars), dim=-1)
 
     def head(self, features: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         """Q values ``(B,)`` from :meth:`features` and actions (SAC uses the split to read the
-        images once for ``Q(o, a)`` and ``Q(o, pi)``)."""
+        images once for ``Q(o, a)`` and ``Q(o, pi)``).
+
+        Args:
+            features: the output of :meth:`features`, ``(B, F)``.
+            act: actions ``(B, act_dim)``.
+        """
         x = torch.cat((features, act.reshape(act.shape[0], -1).to(torch.float32)), dim=-1)
         return self.net(x).squeeze(-1)
 
     def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
-        """Q values of shape ``(B,)``."""
+        """Q values of shape ``(B,)``.
+
+        Args:
+            obs: a batched observation.
+            act: actions ``(B, act_dim)``.
+        """
         return self.head(self.features(obs), act)
 
 
@@ -230,10 +290,17 @@ class CNNActorCritic(nn.Module):
     ``.q1``, ``.q2``), each with its own convolutions, as in tmrl 0.7.
 
     Args:
-        observation_space, action_space: the (preprocessed) spaces.
-        channels, kernels, strides, hidden_sizes: layer sizes (config ``MODEL`` values).
-        n: number of critics.
+        observation_space: the (preprocessed) observation space, images at ``image_index``.
+        action_space: the action space (a bounded Box).
+        channels: output channels of each convolution layer (see :data:`DEFAULT_CNN`).
+        kernels: kernel size of each convolution layer.
+        strides: stride of each convolution layer.
+        hidden_sizes: widths of the MLP of the actor and of each critic.
+        n: number of critics (2 for SAC).
         image_index: position of the images in the observation.
+
+    Raises:
+        UserError: ``n`` < 1, or an observation space the CNN cannot read.
     """
 
     def __init__(self, observation_space: Any, action_space: Any, channels: Sequence[int] = DEFAULT_CNN["channels"],
@@ -257,19 +324,40 @@ class CNNActorCritic(nn.Module):
         return self.qs[1]  # type: ignore[return-value]
 
     def act(self, obs: Any, test: bool = False) -> np.ndarray:
-        """The actor's action for a batched observation."""
+        """The actor's action for a batched observation, as a NumPy array.
+
+        Args:
+            obs: a batched observation.
+            test: take the mean action instead of a sample.
+        """
         return self.actor.act(obs, test)
 
 
 class REDQCNNActorCritic(CNNActorCritic):
-    """:class:`CNNActorCritic` with 10 critics by default, for REDQ-SAC."""
+    """:class:`CNNActorCritic` with 10 critics by default, for REDQ-SAC.
+
+    Args:
+        observation_space: see :class:`CNNActorCritic`.
+        action_space: see :class:`CNNActorCritic`.
+        n: number of critics.
+        **kwargs: the layer sizes and ``image_index`` of :class:`CNNActorCritic`.
+    """
 
     def __init__(self, observation_space: Any, action_space: Any, n: int = 10, **kwargs: Any) -> None:
         super().__init__(observation_space, action_space, n=n, **kwargs)
 
 
 def conv2d_out_dims(conv_layer: nn.Conv2d, h_in: int, w_in: int) -> tuple[int, int]:
-    """Height and width of ``conv_layer``'s output for an ``h_in`` x ``w_in`` input."""
+    """Height and width of a convolution's output (tmrl 0.7's helper).
+
+    Args:
+        conv_layer: the layer; its padding, dilation, kernel size and stride are read.
+        h_in: input height.
+        w_in: input width.
+
+    Raises:
+        UserError: the layer's padding is a string (``"same"``), not numbers.
+    """
     pad, dil, ker, stride = (tuple(getattr(conv_layer, a)) for a in ("padding", "dilation", "kernel_size", "stride"))
     if not all(isinstance(p, int) for p in pad):
         raise UserError(f"conv2d_out_dims needs numeric padding, got {conv_layer.padding!r}")
@@ -279,7 +367,11 @@ def conv2d_out_dims(conv_layer: nn.Conv2d, h_in: int, w_in: int) -> tuple[int, i
 
 
 def num_flat_features(x: torch.Tensor) -> int:
-    """Values per sample of a batched tensor (the product of all dimensions but the first)."""
+    """Values per sample of a batched tensor (the product of all dimensions but the first).
+
+    Args:
+        x: a tensor whose first dimension is the batch.
+    """
     return int(math.prod(x.shape[1:]))
 
 
@@ -294,7 +386,10 @@ class VanillaCNN(nn.Module):
         image_shape: ``(hist, height, width)`` of the image history.
         act_dim: size of an action.
         act_buf_len: previous actions in the observation.
-        channels, kernels, strides, hidden_sizes: layer sizes (see :data:`DEFAULT_CNN`).
+        channels: output channels of each convolution layer (see :data:`DEFAULT_CNN`).
+        kernels: kernel size of each convolution layer.
+        strides: stride of each convolution layer.
+        hidden_sizes: widths of the MLP's hidden layers.
     """
 
     def __init__(self, q_net: bool, image_shape: tuple[int, int, int] = (4, 64, 64), act_dim: int = 3,
@@ -308,20 +403,32 @@ class VanillaCNN(nn.Module):
         self.mlp = mlp([n_in, *hidden_sizes, *((1,) if self.q_net else ())], nn.ReLU)
 
     def forward(self, x: Sequence[torch.Tensor]) -> torch.Tensor:
-        """``x`` = ``(speed, gear, rpm, images, *actions)``, each batched."""
+        """The critic's values ``(B, 1)`` or the actor trunk's features ``(B, hidden_sizes[-1])``.
+
+        Args:
+            x: ``(speed, gear, rpm, images, *actions)``, each batched (the previous actions, then
+                for a critic the action evaluated).
+        """
         speed, gear, rpm, images, *acts = x
         feats = self.encoder(images.to(torch.float32))
         return self.mlp(torch.cat((speed, gear, rpm, feats, *acts), dim=-1))
 
 
-#: Input scale of speeds (km/h) and lidar distances (pixels) in the lidar models.
 LIDAR_INPUT_SCALE = 0.01
+"""Input scale of speeds (km/h) and lidar distances (pixels) in the lidar models."""
 
 
 def lidar_obs_scales(observation_space: Any) -> tuple[float, ...]:
     """Per-element input scales for lidar observations: speed (the first element) and lidar
     histories (elements whose size is a multiple of 19) by :data:`LIDAR_INPUT_SCALE`, the others
-    (progress, actions) by 1."""
+    (progress, actions) by 1.
+
+    Args:
+        observation_space: the preprocessed lidar observation space (a Tuple, or one space).
+
+    Returns:
+        One scale per element of the observation.
+    """
     elements = list(getattr(observation_space, "spaces", [observation_space]))
     scales = []
     for i, space in enumerate(elements):
@@ -339,7 +446,17 @@ def _scaled(obs: Any, scales: tuple[float, ...]) -> Any:
 
 class LidarActor(SquashedGaussianMLPActor):
     """:class:`tmrl.models.SquashedGaussianMLPActor` whose inputs are scaled by
-    :func:`lidar_obs_scales` (same arguments, plus ``obs_scales`` to override them)."""
+    :func:`lidar_obs_scales`.
+
+    Args:
+        observation_space: the preprocessed lidar observation space.
+        action_space: a bounded Box.
+        hidden_sizes: widths of the hidden layers.
+        activation: activation class.
+        device: where :meth:`act_` collates observations.
+        obs_scales: one input scale per observation element, instead of
+            :func:`lidar_obs_scales`'s.
+    """
 
     def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
                  activation: Callable[[], nn.Module] = nn.ReLU, device: Any = "cpu",
@@ -348,13 +465,29 @@ class LidarActor(SquashedGaussianMLPActor):
         self.obs_scales = tuple(float(s) for s in (obs_scales or lidar_obs_scales(observation_space)))
 
     def forward(self, obs: Any, test: bool = False, with_logprob: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """As the MLP actor's, on scaled inputs."""
+        """As :meth:`tmrl.models.SquashedGaussianMLPActor.forward`, on scaled inputs.
+
+        Args:
+            obs: a batched observation, in the environment's units.
+            test: use the Gaussian's mean instead of a sample.
+            with_logprob: also return the log-density of the action.
+        """
         return super().forward(_scaled(obs, self.obs_scales), test, with_logprob)
 
 
 class LidarQFunctions(EnsembleQFunction):
     """:class:`tmrl.models.EnsembleQFunction` whose observation inputs are scaled by
-    :func:`lidar_obs_scales`."""
+    :func:`lidar_obs_scales`.
+
+    Args:
+        observation_space: the preprocessed lidar observation space.
+        action_space: the action space (a Box).
+        hidden_sizes: widths of the hidden layers.
+        activation: activation class.
+        n: number of Q functions.
+        obs_scales: one input scale per observation element, instead of
+            :func:`lidar_obs_scales`'s.
+    """
 
     def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
                  activation: Callable[[], nn.Module] = nn.ReLU, n: int = 2,
@@ -363,13 +496,31 @@ class LidarQFunctions(EnsembleQFunction):
         self.obs_scales = tuple(float(s) for s in (obs_scales or lidar_obs_scales(observation_space)))
 
     def forward(self, obs: Any, act: torch.Tensor, members: Any = None, detach_params: bool = False) -> torch.Tensor:
-        """As the ensemble's, on scaled observations."""
+        """As :meth:`tmrl.models.EnsembleQFunction.forward`, on scaled observations.
+
+        Args:
+            obs: a batched observation, in the environment's units.
+            act: actions ``(B, act_dim)``.
+            members: indices of the Q functions to evaluate (all when None).
+            detach_params: use the weights as constants (for the actor's loss).
+
+        Returns:
+            Q values of shape ``(k, B)``, ``k`` = number of members evaluated.
+        """
         return super().forward(_scaled(obs, self.obs_scales), act, members=members, detach_params=detach_params)
 
 
 class LidarActorCritic(MLPActorCritic):
     """The lidar actor-critic: :class:`tmrl.models.MLPActorCritic` with scaled inputs
-    (:class:`LidarActor`, :class:`LidarQFunctions`); ``n`` critics (10 for REDQ)."""
+    (:class:`LidarActor`, :class:`LidarQFunctions`).
+
+    Args:
+        observation_space: the preprocessed lidar observation space.
+        action_space: a bounded Box.
+        hidden_sizes: widths of the hidden layers of the actor and of each critic.
+        activation: activation class.
+        n: number of critics (2 for SAC, 10 for REDQ).
+    """
 
     def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
                  activation: Callable[[], nn.Module] = nn.ReLU, n: int = 2) -> None:
@@ -380,5 +531,13 @@ class LidarActorCritic(MLPActorCritic):
 
 def lidar_actor_critic(observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
                        n: int = 2, activation: Callable[[], nn.Module] = nn.ReLU) -> LidarActorCritic:
-    """The lidar models (:class:`LidarActorCritic`) with ``n`` critics (SAC 2, REDQ 10)."""
+    """The lidar models (:class:`LidarActorCritic`), built with keyword arguments.
+
+    Args:
+        observation_space: the preprocessed lidar observation space.
+        action_space: a bounded Box.
+        hidden_sizes: widths of the hidden layers.
+        n: number of critics (2 for SAC, 10 for REDQ).
+        activation: activation class.
+    """
     return LidarActorCritic(observation_space, action_space, hidden_sizes=hidden_sizes, activation=activation, n=n)
