@@ -81,7 +81,11 @@ def data_folder() -> Path:
 
 
 def config_path(folder: str | os.PathLike[str] | None = None) -> Path:
-    """Path of ``config.json`` in ``folder`` (default: :func:`data_folder`). Creates nothing."""
+    """Path of ``config.json`` in a data folder: ``<folder>/config/config.json``. Creates nothing.
+
+    Args:
+        folder: the data folder; None for :func:`data_folder`.
+    """
     root = Path(folder) if folder is not None else data_folder()
     return root / "config" / "config.json"
 
@@ -93,8 +97,14 @@ class DataPaths:
     Attributes:
         root: the data folder.
         config_file: ``config/config.json``.
-        weights, checkpoints, dataset, reward, credentials, logs: the sub-folders (``credentials``
-            is ``TLS_CREDENTIALS_DIRECTORY`` when that key is not empty).
+        weights: ``weights/``, the actor's weights files.
+        checkpoints: ``checkpoints/``, the trainer's checkpoints.
+        dataset: ``dataset/``, for datasets of your own (a memory's ``dataset_path``; tmrl writes
+            nothing there).
+        reward: ``reward/``, the recorded reward trajectory.
+        credentials: ``credentials/``, the TLS key and certificates, or ``TLS_CREDENTIALS_DIRECTORY``
+            when that key is not empty.
+        logs: ``logs/``, one folder of metrics per run.
         model_worker: ``weights/<RUN_NAME>.tmod``, the weights a worker loads.
         model_trainer: ``weights/<RUN_NAME>_t.tmod``, the weights the trainer writes.
         model_history_prefix: ``weights/<RUN_NAME>_``; a worker keeping a model history appends
@@ -119,8 +129,13 @@ class DataPaths:
 
 
 def data_paths(cfg: Mapping[str, Any] | None = None, folder: str | os.PathLike[str] | None = None) -> DataPaths:
-    """The paths of a run, from ``cfg`` (``RUN_NAME`` and ``TLS_CREDENTIALS_DIRECTORY``; the
-    defaults when ``cfg`` is None) under ``folder`` (default :func:`data_folder`). Creates nothing."""
+    """The paths of a run. Creates nothing.
+
+    Args:
+        cfg: a loaded config, of which ``RUN_NAME`` and ``TLS_CREDENTIALS_DIRECTORY`` are read;
+            None for the defaults.
+        folder: the data folder; None for :func:`data_folder`.
+    """
     root = Path(folder) if folder is not None else data_folder()
     run = cfg["RUN_NAME"] if cfg is not None else schema.SCHEMA.fields["RUN_NAME"].default
     cred_dir = (cfg or {}).get("TLS_CREDENTIALS_DIRECTORY", "") or ""
@@ -150,7 +165,11 @@ def default_config() -> dict[str, Any]:
 
 
 def dumps(cfg: Mapping[str, Any]) -> str:
-    """``cfg`` as the indented JSON text used for ``config.json`` (ends with a newline)."""
+    """The indented JSON text written to ``config.json`` (ends with a newline).
+
+    Args:
+        cfg: a config (any JSON-serialisable mapping).
+    """
     return json.dumps(cfg, indent=2) + "\n"
 
 
@@ -183,8 +202,6 @@ def _create_exclusive(path: Path, text: str) -> bool:
             pass
 
 
-#: ``--install --env NAME``: the shipped config file each name selects (``config/`` of the
-#: repository, generated from the schema).
 ENVIRONMENTS: dict[str, str] = {
     "simlidar": "config_simlidar.json",
     "simlidarprogress": "config_simlidarprogress.json",
@@ -194,11 +211,15 @@ ENVIRONMENTS: dict[str, str] = {
     "tm20full": "config.json",
     "tm20lidar": "config_tm20lidar.json",
 }
+"""``--install --env NAME``: the shipped config file each name selects (``config/`` of the
+repository, generated from the schema)."""
 
 
 def shipped_config(env: str) -> dict[str, Any]:
-    """The complete shipped config of an environment name of :data:`ENVIRONMENTS` (placeholder
-    password).
+    """The complete shipped config of an environment (with the placeholder password).
+
+    Args:
+        env: a name of :data:`ENVIRONMENTS` (``"simlidar"``, ``"pendulum"``...), case-insensitive.
 
     Raises:
         ConfigError: an unknown name.
@@ -212,7 +233,11 @@ def shipped_config(env: str) -> dict[str, Any]:
 
 def environment_of(cfg: Mapping[str, Any]) -> str | None:
     """The name in :data:`ENVIRONMENTS` whose shipped config has the same environment as ``cfg``
-    (interface, and the Gymnasium id for ``GYM``), or ``None``."""
+    (same ``ENV.RTGYM_INTERFACE``, and same ``ENV.GYM_ID`` for ``GYM``), or ``None``.
+
+    Args:
+        cfg: a config (only its ``ENV`` section is read).
+    """
     env = cfg.get("ENV", {})
     for name in ENVIRONMENTS:
         shipped = shipped_config(name)["ENV"]
@@ -270,6 +295,13 @@ def switch_environment(env: str, folder: str | os.PathLike[str] | None = None) -
     its value; ``ENV`` and the keys the user never changed take the new shipped values. The
     former file is kept as ``config.previous.json``.
 
+    Args:
+        env: a name of :data:`ENVIRONMENTS`.
+        folder: the data folder; None for :func:`data_folder`. Its ``config.json`` must exist.
+
+    Returns:
+        What was done; nothing is written when the file already has that environment.
+
     Raises:
         ConfigError: an unknown name, or a ``config.json`` that does not validate.
     """
@@ -312,6 +344,11 @@ def install(folder: str | os.PathLike[str] | None = None, env: str | None = None
     ``PASSWORD``. An existing ``config.json`` is never modified here (see
     :func:`switch_environment`).
 
+    Args:
+        folder: the data folder; None for :func:`data_folder`.
+        env: a name of :data:`ENVIRONMENTS` for the config written, None for the default
+            ``config.json`` (TrackMania 2020, full observations).
+
     Raises:
         ConfigError: the folder cannot be created (a file is in the way, no permission), or an
             unknown ``env``.
@@ -347,6 +384,9 @@ def install(folder: str | os.PathLike[str] | None = None, env: str | None = None
 
 def ensure_data_folder(folder: str | os.PathLike[str] | None = None) -> Path:
     """Make sure the data folder and its layout exist (see :func:`install`); returns its path.
+
+    Args:
+        folder: the data folder; None for :func:`data_folder`.
 
     Raises:
         ConfigError: the folder cannot be created.
@@ -388,6 +428,13 @@ def parse_override(text: str, source: str = "--config") -> dict[str, Any]:
     """Parse an override given on the command line: a JSON object, or a Python literal dict
     (``True``, ``None``, single quotes). Never evaluates code.
 
+    Args:
+        text: the override's text, e.g. ``'{"ALG": {"LR_ACTOR": 0.0001}}'``; empty gives ``{}``.
+        source: where the text came from, put in front of error messages.
+
+    Returns:
+        The parsed dict (not yet checked against the schema).
+
     Raises:
         ConfigError: the text is neither, or not a dict.
     """
@@ -426,6 +473,9 @@ def route_rtgym_keys(override: Mapping[str, Any]) -> dict[str, Any]:
     ``{"time_step_duration": 0.1}``); ours takes ``config.json`` keys. Keys that are not
     ``config.json``'s top-level keys but are ``ENV.RTGYM_CONFIG``'s are moved there, so both
     spellings work (``config.json`` keys are upper case, rtgym's lower case: they never clash).
+
+    Args:
+        override: a parsed override (not modified).
     """
     rtgym = schema.SCHEMA.fields["ENV"].fields["RTGYM_CONFIG"]
     moved = {k: v for k, v in override.items() if k not in schema.SCHEMA.fields and k in rtgym.fields}
@@ -450,7 +500,13 @@ def _syntax_reason(err: BaseException) -> str:
 
 def deep_merge(base: Mapping[str, Any], override: Mapping[str, Any], _spec: Any = None) -> dict[str, Any]:
     """A new dict: ``base`` with ``override`` merged in. Nested schema sections merge key by key;
-    free-form objects (``GYM_KWARGS``, ``interface_kwargs``) and other values are replaced."""
+    free-form objects (``GYM_KWARGS``, ``interface_kwargs``) and other values are replaced.
+
+    Args:
+        base: a config (not modified).
+        override: the keys to change, nested like ``base``.
+        _spec: internal, the schema section of ``base`` during the recursion (leave it out).
+    """
     spec = _spec if _spec is not None else schema.SCHEMA
     out = dict(base)
     for key, value in override.items():
@@ -466,6 +522,15 @@ def apply_override(cfg: Mapping[str, Any], override: Mapping[str, Any] | str,
                    source: str = "--config") -> dict[str, Any]:
     """Validate ``override`` (a dict, or text for :func:`parse_override`) key by key against the
     schema, merge it into the complete config ``cfg`` and re-check the multi-key rules.
+
+    Args:
+        cfg: a complete, validated config (not modified).
+        override: the keys to change, as a dict or its text. Lower-case keys of the real-time
+            configuration are accepted at the top level (see :func:`route_rtgym_keys`).
+        source: where the override came from, put in front of error messages.
+
+    Returns:
+        A new complete config.
 
     Raises:
         ConfigError: naming ``source`` and the full key path of the bad entry.
@@ -485,6 +550,10 @@ def set_override_env(override: Mapping[str, Any] | str, source: str = "--config"
     """Validate ``override`` and store it (merged into any override already there) as JSON in
     ``$TMRL_CONFIG_OVERRIDE``, so that :func:`load_config` in this process and in every child
     process applies it. Returns the combined override.
+
+    Args:
+        override: the keys to change, as a dict or its text.
+        source: where the override came from, put in front of error messages.
 
     Raises:
         ConfigError: the override is malformed or names a bad key or value.

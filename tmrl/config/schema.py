@@ -66,7 +66,12 @@ class ConfigError(UserError):
 
 class SchemaViolation(Exception):
     """Raised by :meth:`Spec.check`; the loader turns it into a :class:`ConfigError` by adding the
-    source (file name or ``--config``) in front of the message."""
+    source (file name or ``--config``) in front of the message.
+
+    Args:
+        path: the full key path of the bad value (``"ALG.LR_ACTOR"``; empty for the top level).
+        message: the one-line explanation, starting with the key path.
+    """
 
     def __init__(self, path: str, message: str):
         super().__init__(message)
@@ -146,6 +151,7 @@ class Spec:
         return self.expected + (" or null" if self.nullable else "")
 
     def default_value(self) -> Any:
+        """A deep copy of :attr:`default` (so that a caller may modify it)."""
         return copy.deepcopy(self.default)
 
     def check(self, value: Any, path: str, *, fill: bool = True) -> Any:
@@ -153,7 +159,12 @@ class Spec:
         numbers, canonical spelling for choices, tuples to lists).
 
         Args:
+            value: the value found in the configuration (already parsed from JSON).
+            path: its full key path, used in the error message (``""`` for the top level).
             fill: sections fill missing keys with defaults (False to validate a partial override).
+
+        Returns:
+            The normalised value (``None`` for ``null`` when the key is nullable).
 
         Raises:
             SchemaViolation: naming ``path``, the value and :meth:`describe`.
@@ -166,10 +177,20 @@ class Spec:
         raise NotImplementedError
 
     def fail(self, path: str, value: Any) -> SchemaViolation:
+        """The error for a wrong ``value`` at ``path`` ("<path> must be <expected>, got <value>"),
+        returned for the caller to raise.
+
+        Args:
+            path: the full key path of the value.
+            value: the value found.
+        """
         return SchemaViolation(path, f"{path} must be {self.describe()}, got {show(value)}")
 
 
 class Bool(Spec):
+    """``true`` or ``false`` (a JSON boolean: ``0``, ``1`` and strings are refused). Takes the
+    arguments of :class:`Spec`."""
+
     kind = "bool"
 
     @property
@@ -184,7 +205,16 @@ class Bool(Spec):
 
 class Int(Spec):
     """An integer, optionally bounded (inclusive). An integral float such as ``1e6`` is accepted
-    and converted, since JSON writers often produce them."""
+    and converted, since JSON writers often produce them; booleans are refused.
+
+    Args:
+        default: see :class:`Spec`.
+        doc: see :class:`Spec`.
+        min: the smallest value allowed (inclusive), None for no lower bound.
+        max: the largest value allowed (inclusive), None for no upper bound.
+        nullable: see :class:`Spec`.
+        **table: ``feeds`` and ``class_default``, see :class:`Spec`.
+    """
 
     kind = "integer"
 
@@ -233,7 +263,14 @@ class Number(Spec):
     """A finite real number (an integer is accepted and converted to float), optionally bounded.
 
     Args:
-        min, max: bounds; ``min_open``/``max_open`` make them strict.
+        default: see :class:`Spec`.
+        doc: see :class:`Spec`.
+        min: the lower bound, None for none.
+        max: the upper bound, None for none.
+        min_open: the lower bound itself is refused (``min < value``).
+        max_open: the upper bound itself is refused (``value < max``).
+        nullable: see :class:`Spec`.
+        **table: ``feeds`` and ``class_default``, see :class:`Spec`.
     """
 
     kind = "number"
@@ -288,8 +325,13 @@ class Str(Spec):
     """A string.
 
     Args:
-        nonempty: the empty string is refused.
-        forbid: characters the string may not contain (for names used in file names).
+        default: see :class:`Spec`.
+        doc: see :class:`Spec`.
+        nonempty: the empty string (or only spaces) is refused.
+        forbid: characters the string may not contain (for names used in file names); when not
+            empty, ``"."`` and ``".."`` are refused too.
+        nullable: see :class:`Spec`.
+        **table: ``feeds`` and ``class_default``, see :class:`Spec`.
     """
 
     kind = "string"
@@ -319,7 +361,15 @@ class Str(Spec):
 
 class Choice(Spec):
     """One string out of a fixed set, matched case-insensitively and returned in its canonical
-    spelling (``"redqsac"`` becomes ``"REDQSAC"``)."""
+    spelling (``"redqsac"`` becomes ``"REDQSAC"``).
+
+    Args:
+        default: see :class:`Spec`.
+        doc: see :class:`Spec`.
+        options: the allowed values, in their canonical spelling.
+        nullable: see :class:`Spec`.
+        **table: ``feeds`` and ``class_default``, see :class:`Spec`.
+    """
 
     kind = "choice"
 
@@ -342,7 +392,16 @@ class Choice(Spec):
 
 
 class NumberList(Spec):
-    """A list (or tuple) of exactly ``length`` numbers, each within the bounds of ``item``."""
+    """A list (or tuple) of exactly ``length`` numbers, each within the bounds of ``item``.
+
+    Args:
+        default: see :class:`Spec`.
+        doc: see :class:`Spec`.
+        length: the number of items required.
+        item: the :class:`Number` each item must satisfy.
+        nullable: see :class:`Spec`.
+        **table: ``feeds`` and ``class_default``, see :class:`Spec`.
+    """
 
     kind = "list"
 
@@ -422,7 +481,12 @@ class AnyList(Spec):
 
 class Section(Spec):
     """A nested object with a fixed set of keys. Unknown keys are refused (with a suggestion
-    when one is close); missing keys take their defaults."""
+    when one is close); missing keys take their defaults.
+
+    Args:
+        fields: key name -> :class:`Spec` of that key, in the order of ``config.json``.
+        doc: one-line meaning of the section, shown in ``docs/config.md``.
+    """
 
     kind = "section"
 
@@ -435,6 +499,7 @@ class Section(Spec):
         return "an object (a dict of keys)"
 
     def default_value(self) -> dict[str, Any]:
+        """A new dict with every key of the section at its default."""
         return {name: spec.default_value() for name, spec in self.fields.items()}
 
     def _check(self, value: Any, path: str, *, fill: bool) -> Any:
@@ -454,6 +519,13 @@ class Section(Spec):
         return out
 
     def unknown(self, path: str, key: Any) -> SchemaViolation:
+        """The error for a ``key`` this section does not have, suggesting the closest known key
+        (returned for the caller to raise).
+
+        Args:
+            path: the key path of the section (``""`` for the top level).
+            key: the unknown key found.
+        """
         where = _join(path, str(key))
         close = difflib.get_close_matches(str(key), list(self.fields), n=1, cutoff=0.6)
         if not close:
@@ -690,6 +762,8 @@ SCHEMA = Section(
     },
     "config.json",
 )
+"""The schema of ``config.json``: every key with its type, default, range and meaning (the table
+of the Configuration page is generated from it)."""
 
 
 def defaults() -> dict[str, Any]:
@@ -753,7 +827,13 @@ def redq_subset_problem(n: int, m: int) -> str | None:
 
 
 def check_consistency(cfg: Mapping[str, Any]) -> None:
-    """Checks that involve several keys of a complete, validated config.
+    """Checks that involve several keys of a complete, validated config: REDQ's ``REDQ_M`` within
+    ``REDQ_N`` and its simultaneous update order, the two pacing ratios not blocking each other,
+    ``act_in_obs`` for the simulator and TrackMania, grayscale images for ``SIMFULL``, a
+    ``GYM_ID`` for ``GYM``.
+
+    Args:
+        cfg: a complete config, each key already checked by :data:`SCHEMA`.
 
     Raises:
         SchemaViolation: naming the key to change.
@@ -896,7 +976,14 @@ changed (starting points: copy one over your ``config.json``)."""
 
 
 def example_json(name: str) -> str:
-    """The text of the shipped example ``config/<name>``: a complete, valid config."""
+    """The text of the shipped example ``config/<name>``: a complete, valid config.
+
+    Args:
+        name: a file name among the keys of :data:`EXAMPLES` (``"config_simlidar.json"``).
+
+    Raises:
+        KeyError: ``name`` is not one of :data:`EXAMPLES`.
+    """
     cfg = SCHEMA.check(defaults(), "")
     delta = SCHEMA.check(EXAMPLES[name], "", fill=False)
 

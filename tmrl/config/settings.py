@@ -47,8 +47,10 @@ class NetSettings:
         max_frame_bytes: largest message accepted (``MAX_FRAME_BYTES``).
         server_memory_bytes: the relay's memory budget (``SERVER_MEMORY_BYTES``).
         server_partial_timeout: seconds a half-received message may wait (``SERVER_PARTIAL_TIMEOUT``).
-        wandb_project, wandb_entity, wandb_key, wandb_run_id: ``--trainer --wandb`` (``WANDB_*``,
-            the run id is ``RUN_NAME``).
+        wandb_project: Weights & Biases project of ``--trainer --wandb`` (``WANDB_PROJECT``).
+        wandb_entity: Weights & Biases entity, a user or team (``WANDB_ENTITY``).
+        wandb_key: Weights & Biases API key (``WANDB_KEY``).
+        wandb_run_id: Weights & Biases run id (``RUN_NAME``).
     """
 
     port: int
@@ -79,8 +81,13 @@ class NetSettings:
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], folder: Any = None) -> NetSettings:
-        """The settings of a complete, validated config (:func:`tmrl.config.loader.load_config`);
-        paths lie under ``folder`` (default: the data folder). Reads and creates nothing."""
+        """The settings of a loaded config. Reads and creates nothing.
+
+        Args:
+            cfg: a complete, validated config (:func:`tmrl.config.loader.load_config`).
+            folder: the data folder the paths lie under; None for the data folder of
+                :func:`tmrl.config.loader.data_folder`.
+        """
         from tmrl.config.loader import data_paths
 
         paths = data_paths(cfg, folder)
