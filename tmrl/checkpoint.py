@@ -695,12 +695,12 @@ def make_load_run_instance_fn(run_cls: Callable[[], Any]) -> Callable[[str | os.
     return load_run_instance_fn
 
 
-#: Settings of a training loop that :func:`update_run_instance` takes from the new one.
 _LOOP_SETTINGS = ("epochs", "rounds", "steps", "update_model_interval", "update_buffer_interval",
                   "max_training_steps_per_env_step", "start_training", "sleep_between_buffer_retrieval_attempts")
-#: Agent settings it takes, and the optimizer whose learning rate follows each.
+"""Settings of a training loop that :func:`update_run_instance` takes from the new one."""
 _AGENT_SETTINGS = {"lr_actor": "pi_optimizer", "lr_critic": "q_optimizer", "lr_entropy": "alpha_optimizer",
                    "gamma": None, "polyak": None}
+"""Agent settings it takes, and the optimizer whose learning rate follows each."""
 
 
 def update_run_instance(run_instance: Any, training_cls: Any) -> Any:

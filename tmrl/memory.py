@@ -290,8 +290,10 @@ class Memory(ABC):
 
     Attributes:
         data: list where user memories keep their samples (starts empty, as in the tutorial).
-        stat_train_return, stat_test_return, stat_train_steps, stat_test_steps: the latest
-            episode statistics of the workers, copied by :meth:`append`.
+        stat_train_return: the workers' latest training episode return, copied by :meth:`append`.
+        stat_test_return: the workers' latest test episode return, copied by :meth:`append`.
+        stat_train_steps: the workers' latest training episode length, copied by :meth:`append`.
+        stat_test_steps: the workers' latest test episode length, copied by :meth:`append`.
         rng: the NumPy generator used to draw batch indices.
     """
 
@@ -573,11 +575,11 @@ def _stack(column: list[Any], what: str) -> np.ndarray:
 
 # ==== the network buffer contract =================================================================
 
-#: What :meth:`ColumnBuffer.as_columns` returns: ``(act, obs, rew, terminated, truncated)``.
-#: ``act`` is an array of shape ``(n, *action_shape)`` (zeros where a sample's action was
-#: ``None``) or ``None`` when every action was ``None``; ``obs`` has the structure of one
-#: observation with an array of shape ``(n, *leaf_shape)`` at each leaf; the others are 1-D.
 SampleColumns = tuple[Any, Any, np.ndarray, np.ndarray, np.ndarray]
+"""What :meth:`ColumnBuffer.as_columns` returns: ``(act, obs, rew, terminated, truncated)``.
+``act`` is an array of shape ``(n, *action_shape)`` (zeros where a sample's action was
+``None``) or ``None`` when every action was ``None``; ``obs`` has the structure of one
+observation with an array of shape ``(n, *leaf_shape)`` at each leaf; the others are 1-D."""
 
 
 class SampleBuffer(Protocol):
@@ -686,7 +688,9 @@ class RingStorage:
         obs_spec: JSON-able description of the observation structure (``None`` when empty).
         obs: one ring array per observation leaf, shape ``(capacity, *leaf_shape)``.
         act: the actions, ``(capacity, *action_shape)``; ``None`` before the first action.
-        rew, terminated, truncated: per-slot float32 rewards and bool flags.
+        rew: per-slot float32 rewards.
+        terminated: per-slot bool flags, the episode ended at this sample.
+        truncated: per-slot bool flags, the episode was cut at this sample.
         count: the absolute counter each slot was written with (-1: never written).
         infos: per-slot infos when ``store_info``, else ``None``.
     """
@@ -1129,9 +1133,9 @@ class GenericTorchMemory(TorchMemory):
     :attr:`history_depth`; use :meth:`history_slots`, :meth:`obs_leaf` and :attr:`actions`.
     """
 
-    #: How many ``prev`` links a transition's observations reach back (1: only ``prev[j]``).
-    #: Transitions whose chain is cut by an overwritten sample within this depth are not sampled.
     history_depth: int = 1
+    """How many ``prev`` links a transition's observations reach back (1: only ``prev[j]``).
+    Transitions whose chain is cut by an overwritten sample within this depth are not sampled."""
 
     def __init__(
         self,

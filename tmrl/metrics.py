@@ -24,7 +24,6 @@ __all__ = ["STANDARD_COLUMNS", "MetricsLogger", "format_row"]
 
 logger = logging.getLogger(__name__)
 
-#: Columns that always come first in the CSV file, in this order (stable names across versions).
 STANDARD_COLUMNS = (
     "epoch",
     "round",
@@ -43,6 +42,7 @@ STANDARD_COLUMNS = (
     "round_time",
     "idle_time",
 )
+"""Columns that always come first in the CSV file, in this order (stable names across versions)."""
 
 
 def _fmt(value: Any) -> str:

@@ -72,12 +72,12 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: Version of the sample and weight payloads (inside the wire format's own versioning).
 PAYLOAD_VERSION = 1
+"""Version of the sample and weight payloads (inside the wire format's own versioning)."""
 
-#: Seconds a role interrupted by a signal gives its network process to flush before killing it
-#: (a role must be gone within 5 s of SIGTERM or Ctrl-C).
 STOP_TIMEOUT = 2.0
+"""Seconds a role interrupted by a signal gives its network process to flush before killing it
+(a role must be gone within 5 s of SIGTERM or Ctrl-C)."""
 
 
 def _one_line(err: BaseException) -> str:
@@ -1333,10 +1333,10 @@ class Trainer:
         self.run_instance: Any = None
         self.run_id: str | None = None
         self.callbacks: list[Any] = []
-        #: where the training loop reports each round (a :class:`tmrl.metrics.MetricsLogger`); ``None``:
-        #: the training instance's own (console only unless it was given one). ``python -m tmrl
-        #: --trainer`` sets one that also writes ``<data folder>/logs/<RUN_NAME>/metrics.csv``.
         self.metrics_logger: Any = None
+        """where the training loop reports each round (a :class:`tmrl.metrics.MetricsLogger`); ``None``:
+        the training instance's own (console only unless it was given one). ``python -m tmrl
+        --trainer`` sets one that also writes ``<data folder>/logs/<RUN_NAME>/metrics.csv``."""
         self.interface = TrainerInterface(
             server_ip=server_ip,
             server_port=server_port,

@@ -490,8 +490,8 @@ def finite_stat(value: Any) -> float | None:
     return f if math.isfinite(f) else None
 
 
-#: Largest sample a pinned schema accepts (all leaves together), in bytes.
 MAX_PINNED_SAMPLE_BYTES = 64 << 20
+"""Largest sample a pinned schema accepts (all leaves together), in bytes."""
 
 
 def _first_sample(tree: Any) -> Any:

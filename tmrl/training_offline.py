@@ -71,13 +71,22 @@ class RoundMetrics:
     """What one round of training did (:meth:`TrainingOffline.run_round`).
 
     Attributes:
-        epoch, round, rounds: where the round is (``round`` counts from 0 within the epoch).
-        total_updates, total_samples, memory_len: totals after the round.
-        return_train, return_test, episode_length_train, episode_length_test: the workers'
-            latest episode statistics.
-        round_time: wall time of the round (s); ``idle_time`` of it waiting for samples,
-            ``sampling_time`` building batches, ``training_time`` in ``agent.train``.
-        updates, samples: training steps done and samples received during the round.
+        epoch: the epoch the round belongs to (from 0).
+        round: the round's number within its epoch (from 0).
+        rounds: rounds per epoch.
+        total_updates: training steps done since the start of training, after the round.
+        total_samples: samples received since the start of training, after the round.
+        memory_len: samples in the replay memory after the round.
+        return_train: the workers' latest training episode return.
+        return_test: the workers' latest test episode return.
+        episode_length_train: the workers' latest training episode length (steps).
+        episode_length_test: the workers' latest test episode length (steps).
+        round_time: wall time of the round (s).
+        idle_time: part of ``round_time`` spent waiting for samples (s).
+        sampling_time: part of ``round_time`` spent building batches (s).
+        training_time: part of ``round_time`` spent in ``agent.train`` (s).
+        updates: training steps done during the round.
+        samples: samples received during the round.
         agent: the means of the agent's metrics over the round (``loss_actor``, ...).
         skipped_updates: updates with a non-finite loss or gradient, so far.
         restored_states: non-finite parameters replaced by the last good ones, so far.
@@ -111,10 +120,12 @@ class RoundMetrics:
 
     @property
     def updates_per_second(self) -> float:
+        """``updates / round_time`` (NaN for a round of no duration)."""
         return self.updates / self.round_time if self.round_time > 0 else math.nan
 
     @property
     def samples_per_second(self) -> float:
+        """``samples / round_time`` (NaN for a round of no duration)."""
         return self.samples / self.round_time if self.round_time > 0 else math.nan
 
     def as_row(self) -> dict[str, Any]:

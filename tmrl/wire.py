@@ -28,11 +28,14 @@ from tmrl.errors import UserError
 __all__ = ["MAGIC", "MAX_DEPTH", "VERSION", "DecodeError", "decode", "encode"]
 
 MAGIC = b"TMRW"
+"""The four bytes every message starts with."""
 VERSION = 1
+"""The format version, the byte after :data:`MAGIC`; :func:`decode` refuses any other."""
 MAX_DEPTH = 100
-#: Largest integer body (bytes of two's complement); far beyond any real use, and small enough that
-#: converting it stays cheap.
+"""Deepest nesting of containers that :func:`encode` writes and :func:`decode` reads."""
 MAX_BIGINT_BYTES = 8192
+"""Largest integer body (bytes of two's complement); far beyond any real use, and small enough that
+converting it stays cheap."""
 _ALIGN = 16
 _ALIGN_MIN = 256  # arrays at least this big (bytes) are aligned and decoded as views
 _MAX_NDIM = 64

@@ -13,15 +13,21 @@ from tmrl.errors import UserError
 
 __all__ = ["ALGORITHMS", "REDQSACAgent", "SACAgent", "SpinupSacAgent", "agent_class"]
 
-#: Values of ``ALG.ALGORITHM`` and the agents they select (the names come from the settings
-#: table, :data:`tmrl.config.schema.AGENT_CLASSES`).
 ALGORITHMS: dict[str, type] = {
     name: {cls.__name__: cls for cls in (SACAgent, REDQSACAgent)}[cls_name] for name, cls_name in AGENT_CLASSES.items()
 }
+"""Values of ``ALG.ALGORITHM`` and the agents they select (the names come from the settings
+table, :data:`tmrl.config.schema.AGENT_CLASSES`)."""
 
 
 def agent_class(name: str) -> type:
-    """The training agent class for a config's ``ALG.ALGORITHM`` (case-insensitive).
+    """The training agent class for a config's ``ALG.ALGORITHM``.
+
+    Args:
+        name: ``"SAC"`` or ``"REDQSAC"``; case, ``-`` and ``_`` are ignored (``"redq-sac"`` works).
+
+    Returns:
+        The class, :class:`~tmrl.algorithms.sac.SACAgent` or :class:`~tmrl.algorithms.redq.REDQSACAgent`.
 
     Raises:
         UserError: unknown algorithm name.

@@ -45,12 +45,12 @@ __all__ = ["UPDATE_ORDERS", "CriticSet", "SACAgent", "SpinupSacAgent", "make_opt
 
 logger = logging.getLogger(__name__)
 
-#: The optimizer of each name of :data:`tmrl.config.schema.OPTIMIZERS` (a test checks they match).
 _OPTIMIZERS: dict[str, Callable[..., torch.optim.Optimizer]] = {
     "adam": torch.optim.Adam,
     "adamw": torch.optim.AdamW,
     "sgd": torch.optim.SGD,
 }
+"""The optimizer of each name of :data:`tmrl.config.schema.OPTIMIZERS` (a test checks they match)."""
 
 
 def make_optimizer(
@@ -254,9 +254,9 @@ class SACAgent(TrainingAgent):
 
     model_nograd = cached_property(lambda self: no_grad(copy_shared(self.model)))
 
-    #: The steps a subclass may override; the fused update computes SAC's own and is used only
-    #: when none of them is overridden.
     STEPS = ("train", "policy_update_due", "target_q", "policy_q", "target_value", "actor_loss", "entropy_loss")
+    """The steps a subclass may override; the fused update computes SAC's own and is used only
+    when none of them is overridden."""
 
     def __init__(
         self,

@@ -21,12 +21,12 @@ import numpy as np
 
 __all__ = ["DEFAULT_BLACK_THRESHOLD", "LIDAR_BEAMS", "LIDAR_MIN_DIST", "Lidar"]
 
-#: Number of beams (angles 90 to 270 degrees every 10 degrees).
 LIDAR_BEAMS = 19
-#: Distance in pixels from the road point to the first pixel of every beam.
+"""Number of beams (angles 90 to 270 degrees every 10 degrees)."""
 LIDAR_MIN_DIST = 20
-#: A pixel is dark when every channel is below this (the original's ``LIDAR_BLACK_THRESHOLD``).
+"""Distance in pixels from the road point to the first pixel of every beam."""
 DEFAULT_BLACK_THRESHOLD = (55, 55, 55)
+"""A pixel is dark when every channel is below this (the original's ``LIDAR_BLACK_THRESHOLD``)."""
 
 
 class Lidar:
@@ -40,7 +40,8 @@ class Lidar:
 
     Attributes:
         road_point: ``(row, col)`` the beams start from.
-        rows, cols: ``(19, L)`` int arrays, the pixels of each beam padded to the longest beam.
+        rows: ``(19, L)`` int array, the pixel rows of each beam padded to the longest beam.
+        cols: ``(19, L)`` int array, the pixel columns of each beam, padded likewise.
         lengths: ``(19,)`` number of pixels of each beam.
         valid: ``(19, L)`` bool mask of the real (non-padding) entries.
     """
@@ -131,7 +132,14 @@ class Lidar:
     lidar_20 = measure
 
     def endpoints(self, distances: np.ndarray) -> np.ndarray:
-        """``(19, 2)`` pixel ``(row, col)`` where each beam stops, for drawing the rays."""
+        """Where each beam stops, for drawing the rays.
+
+        Args:
+            distances: the 19 distances the lidar measured (pixels along each beam).
+
+        Returns:
+            ``(19, 2)`` pixel ``(row, col)`` of each beam's end.
+        """
         idx = np.clip(np.asarray(distances).astype(np.int64), 0, np.maximum(self.lengths - 1, 0))
         beams = np.arange(LIDAR_BEAMS)
         return np.stack([self.rows[beams, idx], self.cols[beams, idx]], axis=1)

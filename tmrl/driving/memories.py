@@ -91,7 +91,15 @@ class HistoryMemory(RealTimeTorchMemory):
         self.history_depth = max(self.hist_len, self.act_buf_len)
 
     def build_obs(self, slots: np.ndarray) -> tuple:
-        """Stored elements with the frame replaced by its history, then the action buffer."""
+        """Stored elements with the frame replaced by its history, then the action buffer.
+
+        Args:
+            slots: the slots whose observations to build.
+
+        Raises:
+            UserError: the stored observations have no frame at ``frame_index`` (the sample
+                compressor and the memory do not match).
+        """
         elements = list(super().build_obs(slots))
         n_stored = len(elements) - self.act_buf_len
         if not 0 <= self.frame_index < n_stored:
@@ -134,9 +142,9 @@ class ImageMemory(HistoryMemory):
     scale = 1.0 / 256.0
 
 
-#: ``RTGYM_INTERFACE`` family -> memory class.
 MEMORY_FOR: dict[str, Callable[..., HistoryMemory]] = {
     "LIDAR": LidarMemory,
     "LIDARPROGRESS": LidarProgressMemory,
     "FULL": ImageMemory,
 }
+"""``RTGYM_INTERFACE`` family -> memory class."""

@@ -36,7 +36,6 @@ __all__ = [
     "resample_polyline",
 ]
 
-#: The ``REWARD_CONFIG`` defaults of the original TrackMania config.json.
 DEFAULT_REWARD_CONFIG: dict[str, float] = {
     "END_OF_TRACK": 100.0,
     "CONSTANT_PENALTY": 0.0,
@@ -46,6 +45,7 @@ DEFAULT_REWARD_CONFIG: dict[str, float] = {
     "MIN_STEPS": 70,
     "MAX_STRAY": 100.0,
 }
+"""The ``REWARD_CONFIG`` defaults of the original TrackMania config.json."""
 
 # Distances are computed over chunks of the polyline so that a step costs O(chunk) whatever the
 # track length; a search usually ends inside the first chunk.

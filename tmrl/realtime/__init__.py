@@ -62,13 +62,13 @@ __all__ = [
     "drone_config",
 ]
 
-#: Gymnasium id -> entry point registered by this package.
 ENV_IDS: dict[str, str] = {
     "real-time-gym-v1": "tmrl.realtime.env:RealTimeEnv",
     "real-time-gym-ts-v1": "tmrl.realtime.env:RealTimeEnvTS",
     "tmrl/real-time-gym-v1": "tmrl.realtime.env:RealTimeEnv",
     "tmrl/real-time-gym-ts-v1": "tmrl.realtime.env:RealTimeEnvTS",
 }
+"""Gymnasium id -> entry point registered by this package."""
 
 
 def _register() -> None:

@@ -50,7 +50,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: The methods every interface must have.
 REQUIRED_METHODS = (
     "send_control",
     "reset",
@@ -59,6 +58,7 @@ REQUIRED_METHODS = (
     "get_action_space",
     "get_default_action",
 )
+"""The methods every interface must have."""
 
 
 class _Borrowed:
@@ -188,16 +188,27 @@ def _read_spaces(interface: Any, problems: list[str]) -> tuple[spaces.Tuple, spa
 
 def check_spaces(interface: Any) -> list[str]:
     """Check ``get_observation_space()`` (a ``Tuple``), ``get_action_space()`` (a space) and
-    ``get_default_action()`` (in the action space): one call each."""
+    ``get_default_action()`` (in the action space): one call each.
+
+    Args:
+        interface: the interface object (a :class:`~tmrl.realtime.RealTimeGymInterface`).
+
+    Returns:
+        One problem per wrong or failing method (empty when all three are right).
+    """
     problems: list[str] = []
     _read_spaces(interface, problems)
     return problems
 
 
 def check_obs(obs: Any, observation_space: spaces.Tuple, method_name: str) -> list[str]:
-    """Check an observation that ``method_name`` (e.g. ``"reset()"``) returned: a list or tuple
-    with one element per space of ``observation_space`` (the interface's, without the action
-    buffer), each an element of its space.
+    """Check an observation that an interface method returned: a list or tuple with one element
+    per space of ``observation_space``, each an element of its space.
+
+    Args:
+        obs: the observation returned.
+        observation_space: the interface's observation space (without the action buffer).
+        method_name: the method that returned it, named in the problems (e.g. ``"reset()"``).
 
     Returns:
         One problem per wrong element (or one for a wrong type or length).
@@ -259,7 +270,15 @@ def _is_step_result(result: Any) -> bool:
 
 def check_step_result(result: Any, observation_space: spaces.Tuple) -> list[str]:
     """Check what ``get_obs_rew_terminated_info()`` returned: ``(obs, rew, terminated, info)``
-    with ``obs`` in ``observation_space``, a real reward, a bool and a dict."""
+    with ``obs`` in ``observation_space``, a real reward, a bool and a dict.
+
+    Args:
+        result: the value returned by the interface.
+        observation_space: the interface's observation space (without the action buffer).
+
+    Returns:
+        One problem per wrong element (empty when the result is right).
+    """
     what = "get_obs_rew_terminated_info()"
     if not _is_step_result(result):
         return [f"{what} must return a 4-tuple (obs, rew, terminated, info)"]

@@ -262,10 +262,10 @@ class Raised:
     error: BaseException
 
 
-#: What the environment sends to its time-step thread.
 Job = StartTimeStep | ChainTimeStep | CallInterface | StopThread
-#: What the time-step thread sends back.
+"""What the environment sends to its time-step thread."""
 Result = Observed | Returned | Raised
+"""What the time-step thread sends back."""
 
 
 class TimeStepRunner:
@@ -401,8 +401,8 @@ class RealTimeEnv(gymnasium.Env):
     """
 
     metadata = {"render_modes": ["human"]}  # noqa: RUF012  (declared by gymnasium.Env)
-    #: Whether every interface call (except render) runs on the time-step thread.
     _INTERFACE_ON_WORKER = False
+    """Whether every interface call (except render) runs on the time-step thread."""
 
     def __init__(self, config: Mapping[str, Any] | None = None, clock: Clock | None = None) -> None:
         cfg = read_config(DEFAULT_CONFIG_DICT if config is None else config)

@@ -111,6 +111,6 @@ DEFAULT_CONFIG_DICT: dict[str, Any] = {
 """Default configuration of a real-time environment. Copy it (``dict(DEFAULT_CONFIG_DICT)``) and
 change the copy; the environment never mutates the dict it is given."""
 
-#: Every key a configuration may hold: the defaults plus rtgym's two undocumented hooks
-#: ``act_prepro_func`` (applied to the action before ``send_control``) and ``obs_prepro_func``.
 CONFIG_KEYS: frozenset[str] = frozenset(DEFAULT_CONFIG_DICT) | {"act_prepro_func", "obs_prepro_func"}
+"""Every key a configuration may hold: the defaults plus rtgym's two undocumented hooks
+``act_prepro_func`` (applied to the action before ``send_control``) and ``obs_prepro_func``."""

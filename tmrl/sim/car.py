@@ -43,7 +43,8 @@ class CarParams:
         rolling: rolling resistance (m/s^2).
         wall_loss: share of the speed along a wall lost at each hit.
         gear_speeds: speeds (m/s) at which gears 2, 3, ... engage.
-        idle_rpm, max_rpm: the rpm range swept in each gear.
+        idle_rpm: the rpm at the bottom of each gear's speed range.
+        max_rpm: the rpm at the top of each gear's speed range.
     """
 
     wheelbase: float = 2.6
@@ -69,11 +70,14 @@ class CarState:
     """Where the car is and how it moves.
 
     Attributes:
-        x, y: position (m).
+        x: position along the world's x axis (m).
+        y: position along the world's y axis (m).
         heading: direction the car points to, radians counter-clockwise from +x.
-        vx, vy: velocity in the world frame (m/s).
+        vx: velocity along x in the world frame (m/s).
+        vy: velocity along y in the world frame (m/s).
         index: nearest centre point of the track.
         lateral: signed distance from the centre line, positive to the left (m).
+        wall_hits: wall contacts since the car was placed.
     """
 
     x: float = 0.0
@@ -124,7 +128,8 @@ class Car:
         """Advance the car by ``dt`` seconds with constant inputs.
 
         Args:
-            gas, brake: in [-1, 1]; only the positive part acts.
+            gas: in [-1, 1]; only the positive part acts.
+            brake: in [-1, 1]; only the positive part acts (at a standstill it reverses).
             steer: in [-1, 1]; > 0 turns right.
             dt: duration in seconds (small: 0.0125 s or so).
 

@@ -3,13 +3,11 @@
 Three real-time interfaces (:class:`tmrl.realtime.RealTimeGymInterface`), one per TrackMania
 interface, with the same observation Tuples:
 
-=====================  ==================================================  ==================
-interface              observation (before the action buffer)              TrackMania twin
-=====================  ==================================================  ==================
-SimLidarInterface      speed (1,), lidar history (hist, 19)                TM20LIDAR
-SimLidarProgressInt.   speed (1,), progress (1,), lidar history (hist, 19)  TM20LIDARPROGRESS
-SimFullInterface       speed, gear, rpm (1,) each, images (hist, h, w) u8  TM20FULL
-=====================  ==================================================  ==================
+| interface                   | observation (before the action buffer)               | TrackMania twin     |
+|-----------------------------|------------------------------------------------------|---------------------|
+| SimLidarInterface           | speed (1,), lidar history (hist, 19)                 | TM20LIDAR           |
+| SimLidarProgressInterface   | speed (1,), progress (1,), lidar history (hist, 19)  | TM20LIDARPROGRESS   |
+| SimFullInterface            | speed, gear, rpm (1,) each, images (hist, h, w) u8   | TM20FULL            |
 
 Speed is in km/h, lidar values in pixels along each beam of a 958 x 488 view (the TrackMania
 window's default size, so the numbers have the same range), progress in [0, 1], images 64 x 64
@@ -62,7 +60,6 @@ __all__ = [
     "realtime_config",
 ]
 
-#: rtgym settings the simulator configs ship with (TrackMania's, 20 steps per second).
 DEFAULT_SIM_RTGYM_CONFIG: dict[str, Any] = {
     "time_step_duration": 0.05,
     "start_obs_capture": 0.04,
@@ -72,6 +69,7 @@ DEFAULT_SIM_RTGYM_CONFIG: dict[str, Any] = {
     "wait_on_done": True,
     "ep_max_length": 1000,
 }
+"""rtgym settings the simulator configs ship with (TrackMania's, 20 steps per second)."""
 
 _DEFAULT_ACTION = np.zeros(3, dtype=np.float32)
 
@@ -250,12 +248,23 @@ class SimLidarInterface(_SimInterface):
     """Speed and a history of 19-beam lidars, like ``TM20LIDAR``.
 
     Args:
+        track: a track name, a seed, or a :class:`~tmrl.sim.track.Track` (default: the default
+            track, see :func:`~tmrl.sim.track.make_track`).
+        img_hist_len: length of the lidar history in each observation.
+        **kwargs: passed to the shared base: ``reward_config`` (a ``REWARD_CONFIG`` dict, see
+            :data:`tmrl.driving.reward.DEFAULT_REWARD_CONFIG`), ``car_params`` (a
+            :class:`~tmrl.sim.car.CarParams`), ``clock`` (a function returning seconds,
+            ``time.perf_counter`` by default; tests pass a fake one) and ``save_replays`` (save a
+            JSON replay and a top-down PNG of every completed lap, in ``replays/`` of the data
+            folder for ``True`` or in the folder given as a string).
         lidar_size: ``(width, height)`` of the view the lidar reads, in pixels (TrackMania's
             default window, 958 x 488, so that values have the same range).
         lidar_scale: metres per pixel of that view.
-        black_threshold: the lidar's dark-pixel threshold (``LIDAR_BLACK_THRESHOLD``).
-        **kwargs: see :class:`_SimInterface` (``track``, ``img_hist_len``, ``reward_config``,
-            ``car_params``, ``clock``).
+        black_threshold: the lidar's dark-pixel threshold, an RGB triple
+            (``LIDAR_BLACK_THRESHOLD``).
+
+    Raises:
+        UserError: ``img_hist_len`` < 1, or an unknown track.
     """
 
     def __init__(self, track: str | int | Track | None = None, img_hist_len: int = 4,
@@ -293,7 +302,8 @@ class SimLidarInterface(_SimInterface):
 
 
 class SimLidarProgressInterface(SimLidarInterface):
-    """Speed, progress along the track in [0, 1] and lidars, like ``TM20LIDARPROGRESS``."""
+    """Speed, progress along the track in [0, 1] and lidars, like ``TM20LIDARPROGRESS``. Takes
+    the arguments of :class:`SimLidarInterface`."""
 
     def _obs(self) -> list[Any]:
         progress = np.array([self.race.progress], dtype=np.float32)
@@ -312,9 +322,20 @@ class SimFullInterface(_SimInterface):
     """Speed, gear, rpm and a history of grayscale images from behind the car, like ``TM20FULL``.
 
     Args:
+        track: a track name, a seed, or a :class:`~tmrl.sim.track.Track` (default: the default
+            track, see :func:`~tmrl.sim.track.make_track`).
+        img_hist_len: length of the image history in each observation.
+        **kwargs: passed to the shared base: ``reward_config`` (a ``REWARD_CONFIG`` dict, see
+            :data:`tmrl.driving.reward.DEFAULT_REWARD_CONFIG`), ``car_params`` (a
+            :class:`~tmrl.sim.car.CarParams`), ``clock`` (a function returning seconds,
+            ``time.perf_counter`` by default; tests pass a fake one) and ``save_replays`` (save a
+            JSON replay and a top-down PNG of every completed lap, in ``replays/`` of the data
+            folder for ``True`` or in the folder given as a string).
         img_size: ``(width, height)`` of the images (``IMG_WIDTH``, ``IMG_HEIGHT``).
         view_width: metres of track across the image.
-        **kwargs: see :class:`_SimInterface`.
+
+    Raises:
+        UserError: ``img_hist_len`` < 1, or an unknown track.
     """
 
     def __init__(self, track: str | int | Track | None = None, img_hist_len: int = 4,
@@ -348,12 +369,12 @@ class SimFullInterface(_SimInterface):
         ))
 
 
-#: ``ENV.RTGYM_INTERFACE`` values of the simulator and their interfaces.
 SIM_INTERFACES: dict[str, type[_SimInterface]] = {
     "SIMLIDAR": SimLidarInterface,
     "SIMLIDARPROGRESS": SimLidarProgressInterface,
     "SIMFULL": SimFullInterface,
 }
+"""``ENV.RTGYM_INTERFACE`` values of the simulator and their interfaces."""
 
 
 class SimEnv(gymnasium.Env):
@@ -405,7 +426,16 @@ class SimEnv(gymnasium.Env):
         return tuple(obs) + tuple(a.copy() for a in self.act_buf) if self.act_buf_len else tuple(obs)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[tuple, dict]:
-        """New episode; ``seed`` is accepted for API compatibility (the simulator is deterministic)."""
+        """New episode: the car at rest on the start line, the action buffer filled with the
+        default action.
+
+        Args:
+            seed: accepted for Gymnasium's API (the simulator is deterministic).
+            options: passed to the interface's ``reset`` (which ignores it).
+
+        Returns:
+            ``(observation, info)``.
+        """
         super().reset(seed=seed)
         obs, info = self.interface.reset(seed=seed, options=options)
         default = self.interface.get_default_action()
@@ -420,7 +450,14 @@ class SimEnv(gymnasium.Env):
         when the environment steps (kept so that code written for real-time environments runs)."""
 
     def step(self, action: Any) -> tuple[tuple, float, bool, bool, dict]:
-        """Apply ``action`` for one time step; returns Gymnasium's 5-tuple."""
+        """Apply an action for one time step of simulated time.
+
+        Args:
+            action: ``[gas, brake, steer]``, clipped to [-1, 1].
+
+        Returns:
+            Gymnasium's ``(observation, reward, terminated, truncated, info)``.
+        """
         act = np.clip(np.asarray(action, dtype=np.float32).reshape(3), -1.0, 1.0)
         obs, rew, terminated, info = self.interface.step_for(act, self.time_step_duration)
         if self.act_buf_len:
@@ -431,21 +468,33 @@ class SimEnv(gymnasium.Env):
 
 
 class SimLidarEnv(SimEnv):
-    """Fast :class:`SimLidarInterface` environment (Gymnasium id ``tmrl/SimLidar-v0``)."""
+    """Fast :class:`SimLidarInterface` environment (Gymnasium id ``tmrl/SimLidar-v0``).
+
+    Args:
+        **kwargs: the arguments of :class:`SimEnv` other than ``interface``.
+    """
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(SimLidarInterface, **kwargs)
 
 
 class SimLidarProgressEnv(SimEnv):
-    """Fast :class:`SimLidarProgressInterface` environment (``tmrl/SimLidarProgress-v0``)."""
+    """Fast :class:`SimLidarProgressInterface` environment (``tmrl/SimLidarProgress-v0``).
+
+    Args:
+        **kwargs: the arguments of :class:`SimEnv` other than ``interface``.
+    """
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(SimLidarProgressInterface, **kwargs)
 
 
 class SimFullEnv(SimEnv):
-    """Fast :class:`SimFullInterface` environment (``tmrl/SimFull-v0``)."""
+    """Fast :class:`SimFullInterface` environment (``tmrl/SimFull-v0``).
+
+    Args:
+        **kwargs: the arguments of :class:`SimEnv` other than ``interface``.
+    """
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(SimFullInterface, **kwargs)
@@ -457,6 +506,9 @@ class SimFullEnv(SimEnv):
 
 def interface_class(name: str) -> type[_SimInterface]:
     """The simulator interface for an ``ENV.RTGYM_INTERFACE`` value.
+
+    Args:
+        name: ``"SIMLIDAR"``, ``"SIMLIDARPROGRESS"`` or ``"SIMFULL"`` (any case).
 
     Raises:
         UserError: not a simulator interface name.
@@ -470,9 +522,17 @@ def interface_class(name: str) -> type[_SimInterface]:
 
 
 def interface_kwargs(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """Keyword arguments of the interface selected by a validated tmrl config: ``IMG_HIST_LEN``,
+    """Keyword arguments of the interface selected by a config: ``IMG_HIST_LEN``,
     ``REWARD_CONFIG``, ``IMG_WIDTH``/``IMG_HEIGHT`` (full), then ``RTGYM_CONFIG.interface_kwargs``
-    on top (``track``, ``lidar_size``, ``lidar_scale``, ``view_width``...)."""
+    on top (``track``, ``lidar_size``, ``lidar_scale``, ``view_width``...).
+
+    Args:
+        cfg: a validated tmrl config whose ``ENV.RTGYM_INTERFACE`` is a simulator's.
+
+    Raises:
+        UserError: not a simulator interface, or a key of ``interface_kwargs`` the interface
+            does not take.
+    """
     env = cfg["ENV"]
     name = str(env["RTGYM_INTERFACE"]).upper()
     interface_class(name)
@@ -505,7 +565,15 @@ _FULL_KWARGS = frozenset({"img_size", "view_width"})
 
 def realtime_config(cfg: Mapping[str, Any], **extra_kwargs: Any) -> dict[str, Any]:
     """The :mod:`tmrl.realtime` configuration of a simulator run: the defaults,
-    ``ENV.RTGYM_CONFIG`` on top, and the interface with :func:`interface_kwargs`."""
+    ``ENV.RTGYM_CONFIG`` on top, and the interface with :func:`interface_kwargs`.
+
+    Args:
+        cfg: a validated tmrl config whose ``ENV.RTGYM_INTERFACE`` is a simulator's.
+        **extra_kwargs: more interface arguments, over the config's (e.g. ``clock``).
+
+    Returns:
+        A dict for ``gymnasium.make("real-time-gym-ts-v1", config=...)``.
+    """
     from tmrl.realtime import DEFAULT_CONFIG_DICT
 
     env = cfg["ENV"]
@@ -523,7 +591,12 @@ def realtime_config(cfg: Mapping[str, Any], **extra_kwargs: Any) -> dict[str, An
 def fast_env(cfg: Mapping[str, Any], **extra_kwargs: Any) -> SimEnv:
     """The plain Gymnasium environment of a simulator run (fast mode): same observations and
     action buffer as :func:`realtime_config`'s environment, ``time_step_duration`` of simulated
-    time per step, ``ep_max_length`` steps per episode at most."""
+    time per step, ``ep_max_length`` steps per episode at most.
+
+    Args:
+        cfg: a validated tmrl config whose ``ENV.RTGYM_INTERFACE`` is a simulator's.
+        **extra_kwargs: more interface arguments, over the config's (e.g. ``track``).
+    """
     env = cfg["ENV"]
     rt = dict(DEFAULT_SIM_RTGYM_CONFIG)
     rt.update(env.get("RTGYM_CONFIG", {}))
@@ -545,7 +618,14 @@ def pipeline_parts(name: str) -> dict[str, Any]:
     ``act_buf_len`` and the memory arguments) and ``model_cls`` (actor-critic class taking ``n``
     critics: :class:`~tmrl.driving.models.LidarActorCritic` for lidar,
     :class:`~tmrl.driving.models.CNNActorCritic` for images) and ``actor_cls`` (the worker's
-    policy class, the same as ``model_cls(...).actor``)."""
+    policy class, the same as ``model_cls(...).actor``).
+
+    Args:
+        name: a ``SIM*`` or ``TM20*`` value of ``ENV.RTGYM_INTERFACE`` (any case).
+
+    Raises:
+        UserError: any other value.
+    """
     from tmrl.driving import compressors, memories, preprocessors
     from tmrl.driving.models import CNNActorCritic, LidarActor, LidarActorCritic, SquashedGaussianCNNActor
 

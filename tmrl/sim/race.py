@@ -20,8 +20,8 @@ from tmrl.sim.track import Track
 
 __all__ = ["PHYSICS_DT", "Race", "follow_centre_line"]
 
-#: Physics substep in seconds; every call to :meth:`Race.advance` is split into such steps.
 PHYSICS_DT = 0.0125
+"""Physics substep in seconds; every call to :meth:`Race.advance` is split into such steps."""
 
 
 class Race:

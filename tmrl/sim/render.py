@@ -36,8 +36,11 @@ __all__ = [
 ]
 
 ROAD = 170
+"""Gray level of the road in the raster."""
 BORDER = 0
+"""Gray level of the black border just outside each wall (what the lidar detects)."""
 GROUND = 40
+"""Gray level of the ground beyond the borders (also below the lidar's threshold)."""
 CENTRE_MARK = 220
 CHECKER_LIGHT = 255
 CHECKER_DARK = 110  # above the lidar threshold: the start line is not a wall
@@ -118,7 +121,15 @@ class TrackMap:
         return img.reshape(self.height, self.width)
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Raster values at world coordinates ``x``, ``y`` (any shape); ground outside the raster."""
+        """Raster values at world coordinates, nearest pixel; :data:`GROUND` outside the raster.
+
+        Args:
+            x: x coordinates in metres (any shape).
+            y: y coordinates in metres (same shape as ``x``).
+
+        Returns:
+            uint8 values of that shape.
+        """
         ix = np.floor((x - self.origin[0]) / self.resolution).astype(np.int64)
         iy = np.floor((y - self.origin[1]) / self.resolution).astype(np.int64)
         inside = (ix >= 0) & (ix < self.width) & (iy >= 0) & (iy < self.height)
@@ -127,14 +138,26 @@ class TrackMap:
         return out
 
     def topdown(self, max_size: int = 800) -> np.ndarray:
-        """The raster as an image with north up (row 0 = largest ``y``), downscaled so that its
-        largest side is at most ``max_size`` pixels."""
+        """The raster as an image with north up (row 0 = largest ``y``), downscaled by keeping
+        every k-th pixel.
+
+        Args:
+            max_size: the image's largest side is at most this many pixels.
+        """
         img = self.image[::-1]
         k = max(1, int(np.ceil(max(img.shape) / max_size)))
         return np.ascontiguousarray(img[::k, ::k])
 
     def to_topdown_pixels(self, xy: np.ndarray, max_size: int = 800) -> np.ndarray:
-        """``(N, 2)`` world positions -> ``(N, 2)`` ``(row, col)`` in :meth:`topdown`'s image."""
+        """Where world positions fall in :meth:`topdown`'s image.
+
+        Args:
+            xy: ``(N, 2)`` world positions in metres.
+            max_size: the ``max_size`` given to :meth:`topdown`.
+
+        Returns:
+            ``(N, 2)`` integer ``(row, col)`` pixels (possibly outside the image).
+        """
         k = max(1, int(np.ceil(max(self.height, self.width) / max_size)))
         ix = (np.asarray(xy)[:, 0] - self.origin[0]) / self.resolution
         iy = (np.asarray(xy)[:, 1] - self.origin[1]) / self.resolution
@@ -147,7 +170,13 @@ def _cached_map(track: Track, resolution: float) -> TrackMap:
 
 
 def track_map(track: Track, resolution: float = 0.25) -> TrackMap:
-    """The (cached) :class:`TrackMap` of ``track``: drawing one takes a fraction of a second."""
+    """The :class:`TrackMap` of ``track``, cached (eight maps at most): drawing one takes a
+    fraction of a second.
+
+    Args:
+        track: the track to draw.
+        resolution: metres per raster pixel.
+    """
     return _cached_map(track, float(resolution))
 
 
@@ -157,12 +186,14 @@ class Camera:
     metres to its right.
 
     Args:
-        height, width: image size in pixels.
+        height: image height in pixels.
+        width: image width in pixels.
         scale: metres per pixel.
         anchor: ``(row, col)`` of the car's position in the image (default: column centre, 85 %
             of the height).
-        rows, cols: optional arrays of the pixels to sample (any same shape) instead of the
-            whole image; :meth:`render` then returns values of that shape.
+        rows: optional array of the pixel rows to sample (with ``cols``, any same shape) instead
+            of the whole image; :meth:`render` then returns values of that shape.
+        cols: optional array of the pixel columns to sample, with ``rows``.
         draw_car: paint the car (a 2 m x 4 m rectangle) over the view.
     """
 
@@ -180,7 +211,17 @@ class Camera:
             self.car_mask = (np.abs(self.right) <= 1.0) & (self.ahead >= -2.0) & (self.ahead <= 2.0)
 
     def render(self, tmap: TrackMap, x: float, y: float, heading: float) -> np.ndarray:
-        """The view from a car at ``(x, y)`` heading ``heading`` radians: uint8 array."""
+        """The view from a car.
+
+        Args:
+            tmap: the raster of the track (:func:`track_map`).
+            x: the car's x position in metres.
+            y: the car's y position in metres.
+            heading: the direction the car points to, radians counter-clockwise from +x.
+
+        Returns:
+            uint8 values, ``(height, width)`` or the shape of the ``rows`` given.
+        """
         c, s = np.cos(heading), np.sin(heading)
         wx = x + self.ahead * c + self.right * s
         wy = y + self.ahead * s - self.right * c
@@ -205,8 +246,18 @@ def _polyline(img: np.ndarray, rows: np.ndarray, cols: np.ndarray, colour: tuple
 
 def draw_trajectory(tmap: TrackMap, xy: np.ndarray, max_size: int = 800,
                     colour: tuple[int, int, int] = (230, 40, 40)) -> np.ndarray:
-    """Top-down RGB picture of the track with the path ``xy`` (``(N, 2)`` world positions) drawn
-    over it, for example the best lap of a run."""
+    """Top-down RGB picture of the track with a path drawn over it, for example the best lap of
+    a run.
+
+    Args:
+        tmap: the raster of the track (:func:`track_map`).
+        xy: ``(N, 2)`` world positions of the path, in metres (nothing is drawn below two).
+        max_size: largest side of the picture in pixels (see :meth:`TrackMap.topdown`).
+        colour: RGB colour of the path.
+
+    Returns:
+        A ``(h, w, 3)`` uint8 array (write it with :func:`write_png`).
+    """
     img = np.repeat(tmap.topdown(max_size)[:, :, None], 3, axis=2).copy()
     if len(xy) >= 2:
         px = tmap.to_topdown_pixels(np.asarray(xy, dtype=np.float64), max_size)
@@ -215,7 +266,14 @@ def draw_trajectory(tmap: TrackMap, xy: np.ndarray, max_size: int = 800,
 
 
 def encode_png(img: np.ndarray) -> bytes:
-    """PNG bytes of a ``(h, w)`` grayscale or ``(h, w, 3)`` RGB uint8 array (standard library only)."""
+    """PNG bytes of an image (standard library only).
+
+    Args:
+        img: a ``(h, w)`` grayscale or ``(h, w, 3)`` RGB uint8 array.
+
+    Raises:
+        ValueError: any other shape.
+    """
     arr = np.ascontiguousarray(img, dtype=np.uint8)
     if arr.ndim == 2:
         colour_type = 0

@@ -31,12 +31,13 @@ __all__ = [
     "track_from_seed",
 ]
 
-#: Distance between consecutive centre points, in metres (the reward recorder's spacing).
 POINT_SPACING = 0.1
-#: Width of the black border drawn outside each wall, in metres.
+"""Distance between consecutive centre points, in metres (the reward recorder's spacing)."""
 BORDER_WIDTH = 1.0
+"""Width of the black border drawn outside each wall, in metres."""
 
 DEFAULT_TRACK = "classic"
+"""The track :func:`make_track` gives when none is named."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,6 +50,14 @@ class Track:
             start/finish line; the loop closes from ``centre[-1]`` back to ``centre[0]``.
         half_width: distance from the centre line to each wall, in metres.
         difficulty: ``"easy"``, ``"medium"`` or ``"hard"``.
+        spacing: distance between consecutive centre points, in metres (default
+            :data:`POINT_SPACING`).
+        tangents: ``(N, 2)`` unit vectors along the loop at each centre point (computed).
+        normals: ``(N, 2)`` unit vectors to the left of the tangents (computed).
+        curvature: ``(N,)`` signed curvature at each centre point, in 1/m, positive in left bends
+            (computed).
+
+    Every array is read-only. Build tracks with :func:`make_track` rather than by hand.
     """
 
     name: str
@@ -261,8 +270,8 @@ _NAMED: dict[str, tuple[str, int]] = {
     "technical": ("hard", 2),
 }
 
-#: Names accepted by :func:`named_track`, easiest first.
 TRACK_NAMES: tuple[str, ...] = tuple(_NAMED)
+"""Names accepted by :func:`named_track`, easiest first."""
 
 
 @functools.lru_cache(maxsize=8)
@@ -283,7 +292,11 @@ def named_track(name: str) -> Track:
 
 
 def make_track(spec: str | int | None = None) -> Track:
-    """A track from a name, a seed (an int or a string of digits, e.g. ``"42"``), or the default.
+    """A track from a name, a seed, or the default.
+
+    Args:
+        spec: a name of :data:`TRACK_NAMES`, a seed (an int, a string of digits such as ``"42"``,
+            or ``"seed-42"``), or None for :data:`DEFAULT_TRACK`.
 
     Raises:
         UserError: neither a known name nor an integer.
