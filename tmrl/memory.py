@@ -723,6 +723,9 @@ class RingStorage:
     def obs_rows(self, obs: list[Any]) -> list[np.ndarray]:
         """One array per leaf from a list of observations (the first one fixes the structure).
 
+        Args:
+            obs: the observations, one per sample, all of the stored structure.
+
         Raises:
             UserError: the structure or a leaf's shape differs from the stored ones, or a leaf is
                 not numeric.
@@ -780,6 +783,11 @@ class RingStorage:
     def act_column_rows(self, act: np.ndarray | None, keep: slice) -> np.ndarray | None:
         """Rows ``keep`` of actions already stacked (zeros where they were ``None``); allocates
         the action ring from the first ones.
+
+        Args:
+            act: the stacked actions ``(n, *action_shape)``, or ``None`` when every action was
+                ``None`` (then ``None`` is returned).
+            keep: the rows to keep.
 
         Raises:
             UserError: the action shape differs from the stored one.
@@ -935,7 +943,12 @@ class EpisodeLinks:
 
     def write(self, start: int, prev: np.ndarray) -> None:
         """Store the links of the samples from counter ``start`` on (after the storage wrote
-        their rows)."""
+        their rows).
+
+        Args:
+            start: absolute counter of the first sample.
+            prev: the previous-sample counter of each new sample, as :meth:`chain` returns them.
+        """
         _ring_write(self.prev, start, prev)
         self._valid = None
 

@@ -357,6 +357,12 @@ class QMember:
         self.index = index
 
     def __call__(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
+        """Q values of shape ``(B,)``.
+
+        Args:
+            obs: a batched observation.
+            act: actions ``(B, act_dim)``.
+        """
         return self.ensemble(obs, act, members=[self.index])[0]
 
     forward = __call__
@@ -380,7 +386,12 @@ class MLPQFunction(nn.Module):
         self.q = mlp([dim_in, *hidden_sizes, 1], activation)
 
     def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
-        """Q values of shape ``(B,)``."""
+        """Q values of shape ``(B,)``.
+
+        Args:
+            obs: a batched observation.
+            act: actions ``(B, act_dim)``.
+        """
         x = torch.cat((flatten_obs(obs), act.reshape(act.shape[0], -1).to(torch.float32)), dim=-1)
         return self.q(x).squeeze(-1)
 

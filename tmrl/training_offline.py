@@ -166,7 +166,11 @@ class TrainingCallback:
     """
 
     def on_epoch_start(self, training: TrainingOffline) -> None:
-        """Before the first round of an epoch."""
+        """Before the first round of an epoch.
+
+        Args:
+            training: the training loop.
+        """
 
     def on_round_end(self, training: TrainingOffline, metrics: RoundMetrics) -> bool | None:
         """After each round, once its row is logged. Return False to end the epoch now (it is

@@ -745,7 +745,11 @@ class RealTimeEnv(gymnasium.Env):
         return render() if callable(render) else None
 
     def set_default_action(self, default_action: Any) -> None:
-        """Change the action applied at the next reset (and used to fill the buffer)."""
+        """Change the action applied at the next reset (and used to fill the action buffer).
+
+        Args:
+            default_action: an element of the action space.
+        """
         self.default_action = default_action
 
     def set_time_step_duration(

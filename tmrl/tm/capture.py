@@ -64,7 +64,14 @@ class WindowSizeError(UserError):
 
 @dataclass(frozen=True)
 class Geometry:
-    """Client area of a window in screen pixels."""
+    """Client area of a window in screen pixels.
+
+    Attributes:
+        left: x of the area's left edge on the screen.
+        top: y of the area's top edge on the screen.
+        width: width of the area.
+        height: height of the area.
+    """
 
     left: int
     top: int
@@ -72,11 +79,18 @@ class Geometry:
     height: int
 
     def as_monitor(self) -> dict[str, int]:
+        """The area as the ``monitor`` dict mss grabs (``left``, ``top``, ``width``, ``height``)."""
         return {"left": self.left, "top": self.top, "width": self.width, "height": self.height}
 
 
 def display_problem(system: str | None = None, env: dict[str, str] | None = None) -> str | None:
-    """None when a screen can be captured in this session, else a one-line reason and fix."""
+    """None when a screen can be captured in this session, else a one-line reason and fix.
+
+    Args:
+        system: the operating system as :func:`platform.system` names it; None for this one.
+        env: the environment variables to judge (``DISPLAY``, ``WAYLAND_DISPLAY``); None for
+            this process's.
+    """
     system = system or platform.system()
     env = dict(os.environ) if env is None else env
     if system == "Linux":
@@ -286,8 +300,10 @@ class WindowCapture:
 
     Args:
         title: exact window title (default ``"Trackmania"``).
-        width, height: expected client-area size in pixels (config ``ENV.WINDOW_WIDTH`` /
-            ``ENV.WINDOW_HEIGHT``; the original defaults are 256 x 128).
+        width: expected client-area width in pixels (config ``ENV.WINDOW_WIDTH``; the original
+            default is 256).
+        height: expected client-area height in pixels (config ``ENV.WINDOW_HEIGHT``; the original
+            default is 128).
         display: X display name on Linux (default: ``$DISPLAY``).
         backend: window backend (tests); default: the platform's.
 
@@ -345,7 +361,17 @@ class WindowCapture:
         return geo
 
     def check_size(self, geo: Geometry | None = None) -> Geometry:
-        """Raise :class:`WindowSizeError` unless the client area is ``width x height``."""
+        """Check the window's client area against the expected ``width x height``.
+
+        Args:
+            geo: the geometry to check; None to measure the window now (:meth:`geometry`).
+
+        Returns:
+            The geometry checked.
+
+        Raises:
+            WindowSizeError: the area has another size (the message says how to fix it).
+        """
         geo = self.geometry() if geo is None else geo
         if (geo.width, geo.height) != (self.width, self.height):
             raise WindowSizeError(
@@ -436,7 +462,10 @@ def preprocess(
 
     Args:
         bgra: ``(H, W, 4)`` or ``(H, W, 3)`` uint8, blue first.
-        width, height: output size (config ``ENV.IMG_WIDTH``/``ENV.IMG_HEIGHT``); None keeps the size.
+        width: output width (config ``ENV.IMG_WIDTH``); None (or ``height`` None) keeps the
+            capture's size.
+        height: output height (config ``ENV.IMG_HEIGHT``); None (or ``width`` None) keeps the
+            capture's size.
         grayscale: ``(height, width)`` luminance (ITU-R 601 weights) if True, else RGB
             ``(height, width, 3)``.
         use_cv2: force OpenCV (True) or NumPy (False); default: OpenCV when installed.

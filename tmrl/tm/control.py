@@ -47,9 +47,13 @@ logger = logging.getLogger(__name__)
 
 # XUSB button bits (the values of vgamepad.XUSB_BUTTON), kept here so no import is needed.
 DPAD_UP = 0x0001
+"""Button code of the D-pad's up direction."""
 DPAD_DOWN = 0x0002
+"""Button code of the D-pad's down direction."""
 BUTTON_A = 0x1000
+"""Button code of A (confirms; closes the finish pop-up)."""
 BUTTON_B = 0x2000
+"""Button code of B (respawns)."""
 
 UINPUT_PATH = "/dev/uinput"
 UDEV_RULE = 'KERNEL=="uinput", MODE="0660", GROUP="input", OPTIONS+="static_node=uinput"'
@@ -95,6 +99,10 @@ def _uinput_fix(path: str = UINPUT_PATH) -> str | None:
 
 def check_gamepad_driver(system: str | None = None, uinput_path: str = UINPUT_PATH) -> tuple[bool, str]:
     """Whether a virtual gamepad can be created here, without creating one on Linux.
+
+    Args:
+        system: the operating system as :func:`platform.system` names it; None for this one.
+        uinput_path: the Linux uinput device the gamepad is created through.
 
     Returns:
         ``(True, description)`` or ``(False, one-line fix)``.
@@ -195,7 +203,12 @@ class GamepadControl:
         self.press_time = press_time
 
     def send(self, action: Sequence[float]) -> None:
-        """Apply ``[gas, brake, steer]``: values are clipped to [-1, 1]; negative gas or brake is 0."""
+        """Set the triggers and the stick.
+
+        Args:
+            action: ``[gas, brake, steer]``, clipped to [-1, 1]; negative gas or brake is 0,
+                steer > 0 turns right.
+        """
         gas, brake, steer = (_clip(float(a)) for a in action[:3])
         self.pad.right_trigger_float(value_float=max(gas, 0.0))
         self.pad.left_trigger_float(value_float=max(brake, 0.0))
@@ -203,7 +216,11 @@ class GamepadControl:
         self.pad.update()
 
     def tap(self, button: int) -> None:
-        """Press and release one button."""
+        """Press one button, hold it ``press_time`` seconds, release it.
+
+        Args:
+            button: a vgamepad button code (:data:`BUTTON_A`, :data:`BUTTON_B`...).
+        """
         self.pad.press_button(button=button)
         self.pad.update()
         self._sleep(self.press_time)
@@ -221,7 +238,12 @@ class GamepadControl:
         self.tap(BUTTON_A)
 
     def save_replay(self, settle_time: float = 5.0, step_time: float = 0.2) -> None:
-        """Save the replay from the finish screen: wait, D-pad down, A, D-pad up, A."""
+        """Save the replay from the finish screen: wait, D-pad down, A, D-pad up, A.
+
+        Args:
+            settle_time: seconds to wait for the finish screen before the first press.
+            step_time: seconds between two presses.
+        """
         self._sleep(settle_time)
         self.pad.reset()
         for i, button in enumerate((DPAD_DOWN, BUTTON_A, DPAD_UP, BUTTON_A)):
@@ -248,6 +270,7 @@ class KeyboardControl:
         keys: key names for ``gas``, ``brake``, ``left``, ``right``, ``respawn``; default: the
             platform's TrackMania bindings (:data:`KEYS`).
         sleep: wait function between press and release.
+        press_time: seconds the respawn key is held.
     """
 
     def __init__(
@@ -273,7 +296,12 @@ class KeyboardControl:
             self._down.discard(key)
 
     def send(self, action: Sequence[float]) -> None:
-        """Apply ``[gas, brake, steer]`` as key presses and releases (only changes are sent)."""
+        """Press and release keys for an action (only changes are sent).
+
+        Args:
+            action: ``[gas, brake, steer]``: gas if ``gas > 0``, brake if ``brake > 0``, right if
+                ``steer > 0.5``, left if ``steer < -0.5``.
+        """
         gas, brake, steer = (float(a) for a in action[:3])
         self._set("gas", gas > 0)
         self._set("brake", brake > 0)
@@ -281,10 +309,12 @@ class KeyboardControl:
         self._set("left", steer < -0.5)
 
     def release_all(self) -> None:
+        """Release the driving keys that are down."""
         for name in ("gas", "brake", "left", "right"):
             self._set(name, False)
 
     def respawn(self) -> None:
+        """Release the driving keys, then tap the respawn key."""
         self.release_all()
         key = self.keys["respawn"]
         self.kb.press(key)
@@ -295,7 +325,13 @@ class KeyboardControl:
         """Keyboard players close the pop-up by respawning; nothing extra to do."""
 
     def save_replay(self, settle_time: float = 5.0, step_time: float = 0.2) -> None:
-        """Not available with the keyboard (the original clicks with the mouse); logs and returns."""
+        """Not available with the keyboard (the original clicks with the mouse); logs a warning and
+        returns.
+
+        Args:
+            settle_time: ignored (the gamepad's signature).
+            step_time: ignored.
+        """
         logger.warning("saving replays needs the gamepad (ENV.VIRTUAL_GAMEPAD=true); skipped")
 
 

@@ -71,7 +71,8 @@ class TM20FullInterface(RealTimeGymInterface):
         reward_path: the reward trajectory file; None: ``reward/reward.npy`` of the data folder
             (or a legacy ``reward.pkl`` there).
         window_title: title of the game window.
-        openplanet_host, openplanet_port: address of the TMRL_GrabData plugin (127.0.0.1:9000).
+        openplanet_host: host of the TMRL_GrabData plugin (127.0.0.1).
+        openplanet_port: port of the TMRL_GrabData plugin (9000).
         telemetry_timeout: seconds without a new telemetry frame before a step fails (10).
         client: telemetry source (an :class:`~tmrl.tm.openplanet.OpenPlanetClient`); default: one
             connected at the first reset.

@@ -58,8 +58,12 @@ class RewardFileError(UserError):
 
 # ---------------------------------------------------------------------------------------- paths
 def default_reward_path(data_folder: str | os.PathLike[str] | None = None) -> Path:
-    """``<data folder>/reward/reward.npy``; the data folder comes from ``tmrl.config.loader`` when
-    not given, else from ``$TMRL_DATA`` or ``~/TmrlData``."""
+    """Where the reward trajectory is read and written: ``<data folder>/reward/reward.npy``.
+
+    Args:
+        data_folder: the data folder; None for :func:`tmrl.config.loader.data_folder`
+            (``$TMRL_DATA``, else ``~/TmrlData``).
+    """
     if data_folder is None:
         try:
             from tmrl.config.loader import data_folder as _data_folder  # type: ignore[import-not-found]
@@ -72,7 +76,13 @@ def default_reward_path(data_folder: str | os.PathLike[str] | None = None) -> Pa
 
 # ---------------------------------------------------------------------------------------- geometry
 def trim_stationary_start(positions: np.ndarray, tolerance: float = 1e-3) -> np.ndarray:
-    """Drop the leading points where the car has not yet left its first position (the countdown)."""
+    """Drop the leading points where the car has not yet left its first position (the countdown),
+    keeping the last of them as the path's start.
+
+    Args:
+        positions: ``(N, 3)`` positions in driving order.
+        tolerance: a point closer than this to the first one (metres) counts as not moved.
+    """
     positions = np.asarray(positions, dtype=np.float64)
     if len(positions) == 0:
         return positions
@@ -115,6 +125,13 @@ def validate_recording(
     allow_unfinished: bool = False,
 ) -> None:
     """Refuse a recording that would make a useless reward.
+
+    Args:
+        positions: the ``(N, 3)`` positions recorded.
+        finished: whether the plugin reported the race finished.
+        min_points: fewest positions accepted.
+        min_length: shortest path accepted, in metres.
+        allow_unfinished: accept a recording that never reached the finish line.
 
     Raises:
         DegenerateRecording: too few positions, no movement, a path shorter than ``min_length``
@@ -260,6 +277,10 @@ def read_legacy_reward_pickle(path: str | os.PathLike[str], max_bytes: int = 512
     Only the opcodes a pickled numeric NumPy array uses are interpreted (protocols 2 to 5, in-band
     data) and only the NumPy array constructors are recognised, by name; the array is built here
     with ``np.frombuffer``. Nothing in the file is imported or called.
+
+    Args:
+        path: the pickle file (tmrl 0.7's ``reward.pkl``).
+        max_bytes: larger files are refused without being read (default 512 MiB).
 
     Raises:
         ValueError: the file holds anything other than one numeric NumPy array (message says so).
@@ -474,6 +495,8 @@ def record_reward(
             ``retrieve_data(timeout=...)`` returning the 11 telemetry values).
         path: output file; default :func:`default_reward_path`.
         wait_start: blocks until the user asks to start (e.g. presses Enter).
+        step: distance between two points of the saved trajectory, in metres.
+        min_length: shortest path accepted, in metres (see :func:`validate_recording`).
         stop_requested: polled after each frame; True stops the recording (before the finish,
             which is then refused as degenerate).
         max_duration: seconds after which the recording stops.
