@@ -643,7 +643,9 @@ def test_docs_give_one_tls_default():
     assert SCHEMA.fields["TLS"].default is False
     root = Path(__file__).resolve().parents[1]
     text = " ".join(
-        (root / name).read_text() for name in ("README.md", "docs/networking.md", "docs/transport.md")
+        (root / name).read_text() for name in (
+            "README.md", "docs/networking.md", "docs/transport.md", "docs/security.md", "docs/deployment.md"
+        )
     )
     assert "TLS is on by default" not in text and "TLS is off by default" in text
 
