@@ -408,6 +408,30 @@ def test_a_fake_trainer_cannot_crash_workers_even_through_the_stored_broadcast(t
     assert (tmp_path / "w.json").read_bytes() == _json_weights(0.75)
 
 
+def test_two_workers_sharing_a_model_path_take_the_same_weights_at_once(tmp_path, port_factory, closing):
+    """Two workers of one machine with one data folder: B takes the broadcast while A is loading it
+    (A's load runs B's update), and both end with the weights, nothing left behind."""
+    port = port_factory()
+    closing.append(relay(port))
+    a, b = _worker(tmp_path, port, "shared"), _worker(tmp_path, port, "shared")
+    closing += [a, b]
+    fake = TrainerLink("127.0.0.1", port, PW, security=None)
+    closing.append(fake)
+    assert a.wait_connected(30) and b.wait_connected(30) and fake.wait_connected(30)
+    fake.broadcast_weights(pack_weights(_json_weights(0.5), None, 1))
+    load = a.actor.load
+
+    def load_while_b_takes_them(path, device):
+        assert b.update_actor_weights(verbose=False, blocking=True) == 1
+        return load(path, device)
+
+    a.actor.load = load_while_b_takes_them
+    assert a.update_actor_weights(verbose=False, blocking=True) == 1
+    assert a.actor.bias == 0.5 and b.actor.bias == 0.5 and a.rejected_weights == b.rejected_weights == 0
+    assert (tmp_path / "shared.json").read_bytes() == _json_weights(0.5)
+    assert not list(tmp_path.glob(".shared.json*"))
+
+
 def test_a_torch_worker_refuses_non_finite_or_misshapen_weights(tmp_path, port_factory, closing):
     from safetensors.numpy import save
 

@@ -2137,7 +2137,8 @@ class RolloutWorker:
         ``model_path`` is replaced only once the new weights have loaded."""
         from tmrl.util import atomic_write_bytes
 
-        candidate = self.model_path.with_name(f".{self.model_path.name}.incoming")
+        # one name per worker: several workers of one machine may share a data folder and model_path
+        candidate = self.model_path.with_name(f".{self.model_path.name}.{os.getpid()}-{id(self):x}.incoming")
         try:
             msg, data = unpack_weights(envelope, self._pinned_key())
             check_spaces(self.spaces, msg.get("spaces"))
