@@ -564,3 +564,18 @@ def test_a_memory_that_refuses_a_buffer_costs_a_counter_not_the_trainer(caplog):
     assert training.update_buffer(OneBuffer()) == 0 and training.update_buffer(OneBuffer()) == 0
     assert training.memory_errors == 2 and training.total_samples == 0
     assert sum("refused 1 samples" in r.getMessage() for r in caplog.records) == 1  # traceback once, then counted
+
+
+def test_cuda_inference_without_a_gpu_drives_on_the_cpu_with_one_line(_isolated_data_folder):
+    """CUDA_INFERENCE true on a machine where PyTorch sees no GPU: the worker still starts (its
+    policy on the CPU) and says so, instead of a traceback from torch."""
+    _write_config(_isolated_data_folder, {"CUDA_INFERENCE": True, "ENV": {"RTGYM_INTERFACE": "SIMLIDAR"}})
+    code = ("import torch\n"
+            "assert not torch.cuda.is_available()\n"
+            "from tmrl.roles import worker_from_config\n"
+            "w = worker_from_config(standalone=True)\n"
+            "print('device', w.device, next(w.actor.parameters()).device)\n")
+    out = _python(code, env=dict(os.environ))
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr[-2000:]
+    assert "device cpu cpu" in out.stdout
+    assert out.stderr.count("CUDA_INFERENCE is true but PyTorch sees no CUDA device") == 1, out.stderr[-2000:]

@@ -161,7 +161,7 @@ def test_wrong_password_lines_on_both_sides(relay, caplog):
     made.append(link)
     _wait_for(lambda: link.refused, "the refusal")
     assert link.refused == "wrong password"
-    _assert_quoted(_wait_for(lambda: _log_line(caplog, "refused this workers"), "the worker's line"))
+    _assert_quoted(_wait_for(lambda: _log_line(caplog, "refused this worker"), "the worker's line"))
     _assert_quoted(_wait_for(lambda: _log_line(caplog, ": wrong password"), "the server's line"))
 
 

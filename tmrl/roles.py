@@ -212,11 +212,14 @@ def worker_from_config(standalone: bool = False, save_replays: bool = False) -> 
     from tmrl.networking import RolloutWorker
 
     cc, co, settings = _constants(), _objects(), _settings()
+    device = getattr(co, "DEVICE_INFERENCE", "cpu")  # "cuda" only when CUDA_INFERENCE and a GPU is there
+    if getattr(cc, "CUDA_INFERENCE", False) and device == "cpu":
+        logger.warning("CUDA_INFERENCE is true but PyTorch sees no CUDA device: the policy runs on the CPU")
     return RolloutWorker(
         env_cls=_with_replays(_env_cls()) if save_replays else _env_cls(),
         actor_module_cls=co.POLICY,
         sample_compressor=getattr(co, "SAMPLE_COMPRESSOR", None),
-        device="cuda" if getattr(cc, "CUDA_INFERENCE", False) else "cpu",
+        device=device,
         max_samples_per_episode=settings.max_samples_per_episode,
         obs_preprocessor=getattr(co, "OBS_PREPROCESSOR", None),
         crc_debug=bool(getattr(cc, "CRC_DEBUG", False)),

@@ -253,7 +253,8 @@ def check_tls(cfg: Mapping[str, Any], credentials_dir: Path | None = None) -> Ch
             return _fail(
                 name,
                 f"TLS is on but {cert} is missing",
-                f"run the server once to create the credentials, then copy its certificate.pem to {folder}",
+                f"run python -m tmrl --install on the server machine to create the credentials, then copy its "
+                f"certificate.pem to {folder}",
             )
         return _pass(name, f"certificate at {cert}")
     if remote and not cfg.get("ALLOW_PLAIN_TCP", False):

@@ -60,6 +60,12 @@ _STDIN: Any = None  # the raw pipe from the parent, opened by main()
 _COMPACT_BYTES = 1 << 20
 
 
+def _role_of(groups: Any) -> str:
+    """The role a link plays, for messages: its relay groups in the singular (``worker``)."""
+    names = {"workers": "worker", "trainers": "trainer"}
+    return "/".join(names.get(g, g) for g in groups)
+
+
 def _parse_length(raw: bytes) -> int | None:
     """The frame length in a tlspyo header (decimal, left-justified, space padded), or None."""
     digits = raw.rstrip(b" ")
@@ -1134,7 +1140,7 @@ def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
                     self._client.last_refusal = reason
                     hint = " (check the password on both machines)" if reason == "wrong password" else ""
                     log_link.error(
-                        "the relay at %s refused this %s: %s%s", where, "/".join(groups), reason, hint
+                        "the relay at %s refused this %s: %s%s", where, _role_of(groups), reason, hint
                     )
                 self._client.status(connected=False, refused=reason)
             elif cmd == "OBJ":

@@ -69,8 +69,9 @@ class _Link:
         if security is None:
             if server_ip not in LOCAL_HOSTS and not allow_plain_tcp:
                 raise UserError(
-                    f"plain TCP (security=None) to {server_ip} is refused: turn TLS on, or allow plain TCP "
-                    "explicitly on a trusted network (allow_plain_tcp=True)"
+                    f"plain TCP (security=None) to {server_ip} is refused: turn TLS on (\"TLS\": true in "
+                    "config.json), or allow plain TCP explicitly on a trusted network (\"ALLOW_PLAIN_TCP\": true; "
+                    "allow_plain_tcp=True in a script)"
                 )
             logger.warning(
                 "TLS is off: traffic to %s:%d is neither encrypted nor authenticated", server_ip, server_port
