@@ -579,3 +579,19 @@ def test_cuda_inference_without_a_gpu_drives_on_the_cpu_with_one_line(_isolated_
     assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr[-2000:]
     assert "device cpu cpu" in out.stdout
     assert out.stderr.count("CUDA_INFERENCE is true but PyTorch sees no CUDA device") == 1, out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("seed", [3, None])
+def test_seed_fixes_the_initial_weights_of_a_role(_isolated_data_folder, seed):
+    """SEED seeds the generators before a role builds its actor: two workers started with SEED 3
+    begin with the same weights; with SEED null they do not."""
+    _write_config(_isolated_data_folder, {"SEED": seed, "ENV": {"RTGYM_INTERFACE": "SIMLIDAR"}})
+    code = ("from tmrl.roles import worker_from_config\n"
+            "w = worker_from_config(standalone=True)\n"
+            "print(repr(sum(float(p.double().sum()) for p in w.actor.parameters())))\n")
+    sums = []
+    for _ in range(2):
+        out = _python(code, env=dict(os.environ))
+        assert out.returncode == 0, out.stderr[-2000:]
+        sums.append(out.stdout.strip().splitlines()[-1])
+    assert (sums[0] == sums[1]) is (seed is not None), sums

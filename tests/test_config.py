@@ -335,7 +335,7 @@ def test_wrong_type_names_full_path_value_and_expectation(tmp_path):
         ({"ENV": []}, "ENV must be an object (a dict of keys), got []"),
         ({"ENV": {"GYM_KWARGS": 3}}, "ENV.GYM_KWARGS must be an object"),
         ({"RUN_NAME": "../x"}, "RUN_NAME must be a non-empty string without / or \\"),
-        ({"SEED": "1"}, 'SEED must be an integer or null, got "1"'),
+        ({"SEED": "1"}, 'SEED must be a non-negative integer or null, got "1"'),
         ([1, 2], "the top level must be an object"),
         ({"ALG": {"ALGORITHM": "REDQSAC", "REDQ_N": 2, "REDQ_M": 3}}, "ALG.REDQ_M must be at most ALG.REDQ_N (2), got 3"),
         ({"ENV": {"RTGYM_INTERFACE": "GYM", "GYM_ID": ""}}, "ENV.GYM_ID must name a Gymnasium environment"),

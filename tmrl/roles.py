@@ -134,10 +134,26 @@ def _set_aside(path: str) -> None:
     logger.warning("RESET_TRAINING is true: starting a new run; the previous checkpoint is now %s", old)
 
 
+def _seed_generators() -> None:
+    """Seed Python's, NumPy's and PyTorch's global generators with ``SEED`` (nothing when null)."""
+    seed = getattr(_constants(), "SEED", None)
+    if seed is None:
+        return
+    import random
+
+    import numpy as np
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
 def trainer_from_config() -> Any:
     """The :class:`~tmrl.networking.Trainer` that ``--trainer`` runs, built from the config."""
     from tmrl.networking import Trainer
 
+    _seed_generators()
     co = _objects()
     return Trainer(
         training_cls=co.TRAINER,
@@ -211,6 +227,7 @@ def worker_from_config(standalone: bool = False, save_replays: bool = False) -> 
     (``save_replays``: with the interface's replays on, for :func:`tmrl.tools.save_replays.save_replays`)."""
     from tmrl.networking import RolloutWorker
 
+    _seed_generators()
     cc, co, settings = _constants(), _objects(), _settings()
     device = getattr(co, "DEVICE_INFERENCE", "cpu")  # "cuda" only when CUDA_INFERENCE and a GPU is there
     if getattr(cc, "CUDA_INFERENCE", False) and device == "cpu":

@@ -721,18 +721,22 @@ SCHEMA = Section(
         "WANDB_KEY": Str("YourWandbApiKey", "wandb API key of --trainer --wandb"),
         "PORT": Int(55555, "public port of the server", min=1, max=65535,
                     feeds=("Server.port", "Trainer.server_port", "RolloutWorker.server_port")),
-        "LOCAL_PORT_SERVER": Int(55556, "local port of the server's relay (must differ from the others)",
+        "LOCAL_PORT_SERVER": Int(55556, "kept so that tmrl 0.7 config files load; unused (the server needs one port: PORT)",
                                  min=1, max=65535),
-        "LOCAL_PORT_TRAINER": Int(55557, "local port of the trainer's relay (must differ from the others)",
+        "LOCAL_PORT_TRAINER": Int(55557, "kept so that tmrl 0.7 config files load; unused (the trainer opens no port)",
                                   min=1, max=65535),
-        "LOCAL_PORT_WORKER": Int(55558, "local port of a worker's relay (change it for each extra worker on a "
-                                        "machine)", min=1, max=65535),
-        "BUFFER_SIZE": Int(536870912, "socket buffer size of the transport, in bytes (not the replay memory)",
+        "LOCAL_PORT_WORKER": Int(55558, "kept so that tmrl 0.7 config files load; unused (workers open no port, "
+                                        "several can share a machine)", min=1, max=65535),
+        "BUFFER_SIZE": Int(536870912, "kept so that tmrl 0.7 config files load; unused (the transport sizes its "
+                           "own socket buffers; MAX_FRAME_BYTES bounds a message)",
                            min=1),
         "HEADER_SIZE": Int(12, "size of the transport's message header, in bytes", min=1,
                            feeds=("Server.header_size", "Trainer.header_size", "RolloutWorker.header_size")),
-        "SEED": Int(None, "seed of the random generators (null: a fresh random seed each run)", nullable=True),
-        "DEBUG_MODE": Bool(False, "extra consistency checks and verbose logs"),
+        "SEED": Int(None, "seeds Python's, NumPy's and PyTorch's generators when a role starts "
+                           "(initial weights, exploration); a distributed run still varies with sample arrival order; null: "
+                           "no seeding", nullable=True, min=0),
+        "DEBUG_MODE": Bool(False, "kept so that tmrl 0.7 config files load; unused (CRC_DEBUG checks samples "
+                                            "end to end)"),
         "MAX_EPOCHS": Int(10000, "number of training epochs (a checkpoint is saved after each)", min=1,
                           feeds=("TorchTrainingOffline.epochs",), class_default=10),
         "ROUNDS_PER_EPOCH": Int(100, "rounds per epoch (metrics are reported after each)", min=1,
