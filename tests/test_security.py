@@ -432,6 +432,37 @@ def test_two_workers_sharing_a_model_path_take_the_same_weights_at_once(tmp_path
     assert not list(tmp_path.glob(".shared.json*"))
 
 
+def test_run_synchronous_counts_the_broadcasts_a_worker_never_saw(tmp_path, port_factory, closing):
+    """A worker keeps only the newest weights: three broadcasts it did not read in time arrive as
+    one. Pacing by models received counts the trainer's versions, so it does not wait forever for
+    models the trainer already made (and the trainer, waiting for samples, will not make)."""
+    port = port_factory()
+    closing.append(relay(port))
+    w = _worker(tmp_path, port)
+    closing.append(w)
+    fake = TrainerLink("127.0.0.1", port, PW, security=None)
+    closing.append(fake)
+    assert w.wait_connected(30) and fake.wait_connected(30)
+    fake.broadcast_weights(pack_weights(_json_weights(0.1), None, 1))
+    assert w.update_actor_weights(verbose=False, blocking=True) == 1 and w.weights_version == 1
+    for version in (2, 3, 4):
+        fake.broadcast_weights(pack_weights(_json_weights(0.1 * version), None, version))
+    deadline = time.monotonic() + 30  # until the three broadcasts have reached the worker as one
+    while b'{"bias": 0.4' not in (w._link._weights or b"") and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert b'{"bias": 0.4' in (w._link._weights or b"")
+    result: list[int] = []
+    # 3 steps taken, 1 model so far, at most 1 step per model: it needs models 2, 3 and 4
+    waiter = threading.Thread(target=lambda: result.append(w._wait_for_models(3, 1, 1.0, False, False)), daemon=True)
+    waiter.start()
+    waiter.join(20)
+    stuck = waiter.is_alive()
+    if stuck:  # the bug: it waits for a fifth broadcast; give it one so that the thread ends
+        fake.broadcast_weights(pack_weights(_json_weights(0.5), None, 5))
+        waiter.join(20)
+    assert not stuck and result == [4] and w.weights_version == 4 and w.actor.bias == pytest.approx(0.4)
+
+
 def test_a_torch_worker_refuses_non_finite_or_misshapen_weights(tmp_path, port_factory, closing):
     from safetensors.numpy import save
 

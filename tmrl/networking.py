@@ -2037,7 +2037,11 @@ class RolloutWorker:
         while (steps_done + 1) / models > limit:
             if send:
                 self.send_and_clear_buffer()
-            models += self.update_actor_weights(verbose=verbose, blocking=True)
+            before = self.weights_version
+            if self.update_actor_weights(verbose=verbose, blocking=True):
+                # only the newest broadcast is kept: the versions skipped in between were models
+                # too (counting receptions alone waited forever for broadcasts already made)
+                models += max(1, self.weights_version - before)
         return models
 
     def run_env_benchmark(self, nb_steps: int, test: bool = False, verbose: bool = True) -> Any:
