@@ -294,6 +294,32 @@ def test_a_non_finite_update_is_skipped_and_counted(agent_name, caplog):
     assert agent.skipped_updates == 3 and params_finite(agent)
 
 
+def test_the_last_good_state_is_a_copy_that_reuses_its_own_tensors():
+    import torch
+
+    from tmrl.algorithms.guard import copy_state_into
+    from tmrl.algorithms.sac import SACAgent
+    from tmrl.models import MLPActorCritic
+
+    agent = SACAgent(OBS, ACT, "cpu", model_cls=partial(MLPActorCritic, hidden_sizes=(8, 8)))
+    agent.train(_batch())  # the optimizers hold state too
+    live = agent.state_dict()
+    snap = copy_state_into(None, live)
+    kept = {k: v.clone() for k, v in snap["model"].items()}
+    with torch.no_grad():
+        for p in agent.model.parameters():
+            p.add_(1.0)  # the live state moves on...
+    for key, value in snap["model"].items():  # ...the copy does not
+        assert torch.equal(value, kept[key]) and value.data_ptr() != live["model"][key].data_ptr()
+    ptrs = {k: v.data_ptr() for k, v in snap["model"].items()}
+    again = copy_state_into(snap, agent.state_dict())
+    for key, value in again["model"].items():  # the next copy lands in the same tensors
+        assert value.data_ptr() == ptrs[key] and torch.equal(value, agent.model.state_dict()[key])
+    adam = again["optimizer_critic"]["state"]
+    assert adam and all(torch.is_tensor(s["exp_avg"]) for s in adam.values())
+    assert again["optimizer_critic"]["param_groups"] == live["optimizer_critic"]["param_groups"]
+
+
 def test_non_finite_parameters_are_restored_and_never_broadcast_or_saved(tmp_path, port_factory, closing):
     import torch
 

@@ -343,11 +343,11 @@ class TrainingOffline:
         state_dict = getattr(self.agent, "state_dict", None)
         if not callable(state_dict):
             return True
-        from tmrl.algorithms.guard import all_finite
+        from tmrl.algorithms.guard import all_finite, copy_state_into
 
         state = state_dict()
         if all_finite(state):
-            self._last_good_state = copy.deepcopy(state)
+            self._last_good_state = copy_state_into(self._last_good_state, state)
             return True
         if self._last_good_state is None:
             logger.error("the agent's parameters are not finite and there is no earlier good state to restore")

