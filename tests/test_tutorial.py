@@ -100,26 +100,29 @@ def sample(position, target, terminated=False, truncated=False, act=(0.0, 0.0)):
     return np.array(act, np.float32), obs, -1.0, terminated, truncated, {}
 
 
+def _buffer(*samples):
+    buffer = Buffer(maxlen=100)
+    for s in samples:
+        buffer.append_sample(s)
+    return buffer
+
+
 def test_memory_never_joins_two_episodes_and_forgets_the_oldest():
     tutorial = load_tutorial()
-    memory = tutorial.TutorialMemory(memory_size=7, batch_size=2, nb_steps=1, device="cpu")
-    buffer = Buffer(maxlen=100)
-    for i in range(4):  # episode A: a reset sample then three steps, the last one terminal
-        buffer.append_sample(sample((i, 0), (9, 9), terminated=i == 3, act=(i, i)))
-    memory.append(buffer)
+    memory = tutorial.TutorialMemory(memory_size=9, batch_size=2, nb_steps=1, device="cpu")
+    # episode A: a reset sample then three steps, the last one terminal
+    memory.append(_buffer(*(sample((i, 0), (9, 9), terminated=i == 3, act=(i, i)) for i in range(4))))
     assert len(memory) == 3
     for item in range(len(memory)):
         prev_obs, act, _, new_obs, *_ = memory.get_transition(item)
         assert new_obs[0][0] == prev_obs[0][0] + 1 and act[0] == new_obs[0][0]
-
-    buffer = Buffer(maxlen=100)  # episode B, cut by the end of the buffer (not terminal, not truncated)
-    for i in range(4):
-        buffer.append_sample(sample((10 + i, 0), (5, 5), act=(10 + i, 0)))
-    memory.append(buffer)
-    # 8 samples, 7 kept: A's reset sample is forgotten; no transition from A's end to B's start
-    assert len(memory.data) == 7
-    starts = [memory.get_transition(i)[0][0][0] for i in range(len(memory))]
-    assert sorted(starts) == [1, 2, 10, 11, 12]
+    # episode B, cut by the end of its buffer (neither terminal nor truncated), then episode C
+    memory.append(_buffer(*(sample((10 + i, 0), (5, 5), act=(10 + i, 0)) for i in range(3))))
+    memory.append(_buffer(*(sample((20 + i, 0), (4, 4), act=(20 + i, 0)) for i in range(3))))
+    # 10 samples, 9 kept: A's reset sample is forgotten; no transition from A to B nor from B to C
+    assert len(memory.data) == 9
+    starts = sorted(memory.get_transition(i)[0][0][0] for i in range(len(memory)))
+    assert starts == [1, 2, 10, 11, 20, 21]
     batch = memory.sample()
     assert batch.obs[0].shape == (2, 2) and batch.act.shape == (2, 2)
 
