@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from tmrl.algorithms import ALGORITHMS, REDQSACAgent, SACAgent
+from tmrl.algorithms import ALGORITHMS, DroQAgent, REDQSACAgent, SACAgent, TQCAgent
 from tmrl.algorithms.sac import _OPTIMIZERS
 from tmrl.config import schema
 from tmrl.config.settings import NetSettings
@@ -22,7 +22,8 @@ from tmrl.training_offline import TorchTrainingOffline
 
 CLASSES = {
     cls.__name__: cls
-    for cls in (SACAgent, REDQSACAgent, TorchTrainingOffline, GenericTorchMemory, Server, Trainer, RolloutWorker, Buffer)
+    for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, TorchTrainingOffline, GenericTorchMemory, Server, Trainer,
+                RolloutWorker, Buffer)
 }
 
 
@@ -48,7 +49,7 @@ def test_every_fed_argument_exists_and_its_class_default_is_the_tables():
 def test_every_hyperparameter_of_the_agents_is_in_the_table():
     """An agent argument the config cannot set is a setting missing from the table."""
     not_settings = {"self", "observation_space", "action_space", "device", "model_cls", "fused"}
-    for cls in (SACAgent, REDQSACAgent):
+    for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent):
         fed = set(schema.fed_arguments()[cls.__name__])
         assert set(_parameters(cls)) - not_settings == fed
 

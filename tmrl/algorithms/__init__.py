@@ -1,4 +1,5 @@
-"""Training algorithms: SAC (:mod:`tmrl.algorithms.sac`) and REDQ-SAC (:mod:`tmrl.algorithms.redq`).
+"""Training algorithms: SAC (:mod:`tmrl.algorithms.sac`), REDQ-SAC (:mod:`tmrl.algorithms.redq`),
+DroQ (:mod:`tmrl.algorithms.droq`) and TQC (:mod:`tmrl.algorithms.tqc`).
 
 ``ALG.ALGORITHM`` in ``config.json`` names one of them; :func:`agent_class` maps that name to
 the class.
@@ -6,16 +7,17 @@ the class.
 
 from __future__ import annotations
 
+from tmrl.algorithms.droq import DroQAgent
 from tmrl.algorithms.redq import REDQSACAgent
 from tmrl.algorithms.sac import SACAgent, SpinupSacAgent
+from tmrl.algorithms.tqc import TQCAgent
 from tmrl.config.schema import AGENT_CLASSES
 from tmrl.errors import UserError
 
-__all__ = ["ALGORITHMS", "REDQSACAgent", "SACAgent", "SpinupSacAgent", "agent_class"]
+__all__ = ["ALGORITHMS", "DroQAgent", "REDQSACAgent", "SACAgent", "SpinupSacAgent", "TQCAgent", "agent_class"]
 
-ALGORITHMS: dict[str, type] = {
-    name: {cls.__name__: cls for cls in (SACAgent, REDQSACAgent)}[cls_name] for name, cls_name in AGENT_CLASSES.items()
-}
+_CLASSES = {cls.__name__: cls for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent)}
+ALGORITHMS: dict[str, type] = {name: _CLASSES[cls_name] for name, cls_name in AGENT_CLASSES.items()}
 """Values of ``ALG.ALGORITHM`` and the agents they select (the names come from the settings
 table, :data:`tmrl.config.schema.AGENT_CLASSES`)."""
 
@@ -24,10 +26,12 @@ def agent_class(name: str) -> type:
     """The training agent class for a config's ``ALG.ALGORITHM``.
 
     Args:
-        name: ``"SAC"`` or ``"REDQSAC"``; case, ``-`` and ``_`` are ignored (``"redq-sac"`` works).
+        name: ``"SAC"``, ``"REDQSAC"``, ``"DROQ"`` or ``"TQC"``; case, ``-`` and ``_`` are ignored
+            (``"redq-sac"`` works).
 
     Returns:
-        The class, :class:`~tmrl.algorithms.sac.SACAgent` or :class:`~tmrl.algorithms.redq.REDQSACAgent`.
+        The class: :class:`~tmrl.algorithms.sac.SACAgent`, :class:`~tmrl.algorithms.redq.REDQSACAgent`,
+        :class:`~tmrl.algorithms.droq.DroQAgent` or :class:`~tmrl.algorithms.tqc.TQCAgent`.
 
     Raises:
         UserError: unknown algorithm name.

@@ -195,10 +195,22 @@ SAMPLE_PREPROCESSOR: Any = None
 
 # --- environment, models, compression, memory ----------------------------------------------------
 
+# The agent class of each ALG.ALGORITHM lives in its own module; DroQ and TQC bring their own models.
+_AGENT_MODULES = {"SAC": "tmrl.algorithms.sac", "REDQSAC": "tmrl.algorithms.redq", "DROQ": "tmrl.algorithms.droq",
+                  "TQC": "tmrl.algorithms.tqc"}
+_MLP_MODELS = {"SAC": ("tmrl.models", "MLPActorCritic"), "REDQSAC": ("tmrl.models", "REDQMLPActorCritic"),
+               "DROQ": ("tmrl.algorithms.droq", "DroQMLPActorCritic"), "TQC": ("tmrl.algorithms.tqc", "TQCActorCritic")}
+
+
+def _mlp_model(alg: str) -> Any:
+    """The actor-critic class of an algorithm for flat (MLP) observations."""
+    return _attr(*_MLP_MODELS[alg])
+
+
 if cfg.RTGYM_INTERFACE == "GYM":
     ENV_CLS = partial(_GenericGymEnv, id=cfg.GYM_ID, gym_kwargs=dict(cfg.GYM_KWARGS))
     POLICY = _attr("tmrl.models", "SquashedGaussianMLPActor")
-    TRAIN_MODEL = _attr("tmrl.models", "MLPActorCritic" if ALG_NAME == "SAC" else "REDQMLPActorCritic")
+    TRAIN_MODEL = _mlp_model(ALG_NAME)
     MEMORY = partial(_attr("tmrl.memory", "GenericTorchMemory"), **_memory_common)
 
 elif cfg.RTGYM_INTERFACE == "DRONE":
@@ -225,7 +237,7 @@ elif cfg.RTGYM_INTERFACE == "DRONE":
     _no_limit(CONFIG_DICT)
     ENV_CLS = partial(_GenericGymEnv, id=cfg.RTGYM_VERSION, gym_kwargs={"config": CONFIG_DICT})
     POLICY = _attr("tmrl.models", "SquashedGaussianMLPActor")
-    TRAIN_MODEL = _attr("tmrl.models", "MLPActorCritic" if ALG_NAME == "SAC" else "REDQMLPActorCritic")
+    TRAIN_MODEL = _mlp_model(ALG_NAME)
     if _rtgym["act_in_obs"]:
         SAMPLE_COMPRESSOR = DropActionBuffer(cfg.ACT_BUF_LEN)
         MEMORY = partial(_attr("tmrl.memory", "RealTimeTorchMemory"), act_buf_len=cfg.ACT_BUF_LEN,
@@ -268,6 +280,13 @@ else:  # the driving interfaces: simulator (SIM*) and TrackMania (TM20*) share t
     OBS_PREPROCESSOR = _parts["obs_preprocessor"]
     SAMPLE_COMPRESSOR = _parts["sample_compressor"]
     POLICY = _parts["actor_cls"]
+    if ALG_NAME in ("DROQ", "TQC"):
+        # Their critics (dropout Q-functions, quantile critics) exist as MLPs only, while the driving
+        # pipelines' actors scale (lidar) or encode (images) their observations.
+        raise ConfigError(
+            f"ALG.ALGORITHM {ALG_NAME} is available with the GYM and DRONE interfaces only, not with "
+            f"ENV.RTGYM_INTERFACE {cfg.RTGYM_INTERFACE}: use SAC or REDQSAC there"
+        )
     TRAIN_MODEL = _parts["model_cls"]  # REDQ passes its number of critics (n) itself
     MEMORY = partial(
         _parts["memory_cls"],
@@ -285,7 +304,7 @@ CONFIG_DICT_MODIFIERS: dict[str, Any] = dict(_rtgym)
 
 # Every ALG key reaches its agent argument by the settings table (tmrl/config/schema.py, ``feeds``).
 _agent_name = AGENT_CLASSES[ALG_NAME]
-_agent_module = "tmrl.algorithms.sac" if ALG_NAME == "SAC" else "tmrl.algorithms.redq"
+_agent_module = _AGENT_MODULES[ALG_NAME]
 AGENT = partial(_attr(_agent_module, _agent_name), model_cls=TRAIN_MODEL, **arguments(cfg.TMRL_CONFIG, _agent_name))
 
 # --- training loop -------------------------------------------------------------------------------

@@ -553,7 +553,7 @@ RTGYM_INTERFACES = (
 progress), the built-in simulated track (same three observations), any Gymnasium environment
 (``ENV.GYM_ID``), and the real-time simulated drone of :mod:`tmrl.realtime`."""
 
-ALGORITHMS = ("SAC", "REDQSAC")
+ALGORITHMS = ("SAC", "REDQSAC", "DROQ", "TQC")
 """Values of ``ALG.ALGORITHM``."""
 
 PASSWORD_PLACEHOLDER = "YourRandomPasswordHere"
@@ -565,20 +565,21 @@ OPTIMIZERS = ("adam", "adamw", "sgd")
 UPDATE_ORDERS = ("simultaneous", "sequential")
 """Values of ``ALG.UPDATE_ORDER`` (``SACAgent(update_order=...)``)."""
 
-AGENT_CLASSES = {"SAC": "SACAgent", "REDQSAC": "REDQSACAgent"}
+AGENT_CLASSES = {"SAC": "SACAgent", "REDQSAC": "REDQSACAgent", "DROQ": "DroQAgent", "TQC": "TQCAgent"}
 """The agent class each value of ``ALG.ALGORITHM`` selects (:data:`tmrl.algorithms.ALGORITHMS`)."""
 
 _MIB = 1024 * 1024
 
 
 def _agents(arg: str, class_default: Any) -> dict[str, Any]:
-    """``feeds`` and ``class_default`` of an ``ALG`` key that both agents take."""
+    """``feeds`` and ``class_default`` of an ``ALG`` key that every agent takes."""
     return {"feeds": tuple(f"{cls}.{arg}" for cls in AGENT_CLASSES.values()), "class_default": class_default}
 
 
 _ALG = Section(
     {
-        "ALGORITHM": Choice("SAC", "training algorithm (SAC: SACAgent, REDQSAC: REDQSACAgent)", ALGORITHMS),
+        "ALGORITHM": Choice("SAC", "training algorithm (SAC: SACAgent, REDQSAC: REDQSACAgent, DROQ: DroQAgent, "
+                            "TQC: TQCAgent)", ALGORITHMS),
         "LEARN_ENTROPY_COEF": Bool(False, "learn the entropy coefficient (SAC v2) instead of keeping ALPHA fixed",
                                    **_agents("learn_entropy_coef", True)),
         "LR_ACTOR": Number(1e-05, "learning rate of the actor", min=0, min_open=True, **_agents("lr_actor", 1e-3)),
@@ -598,6 +599,15 @@ _ALG = Section(
                       class_default=2),
         "REDQ_Q_UPDATES_PER_POLICY_UPDATE": Int(20, "REDQ critic updates for each actor update", min=1,
                                                 feeds=("REDQSACAgent.q_updates_per_policy_update",), class_default=1),
+        "DROQ_DROPOUT_RATE": Number(0.01, "dropout rate of the DroQ critics", min=0, max=1, max_open=True,
+                                    feeds=("DroQAgent.dropout_rate",), class_default=0.01),
+        "DROQ_Q_UPDATES_PER_POLICY_UPDATE": Int(20, "DroQ critic updates for each actor update", min=1,
+                                                feeds=("DroQAgent.q_updates_per_policy_update",), class_default=20),
+        "TQC_N": Int(5, "number of TQC critics", min=1, feeds=("TQCAgent.n",), class_default=5),
+        "TQC_QUANTILES": Int(25, "quantiles output by each TQC critic", min=1, feeds=("TQCAgent.n_quantiles",),
+                             class_default=25),
+        "TQC_DROP_PER_CRITIC": Int(2, "largest target quantiles dropped per TQC critic (below TQC_QUANTILES)", min=0,
+                                   feeds=("TQCAgent.drop_per_critic",), class_default=2),
         "OPTIMIZER_ACTOR": Choice("adam", "optimizer of the actor", OPTIMIZERS, **_agents("optimizer_actor", "adam")),
         "OPTIMIZER_CRITIC": Choice("adam", "optimizer of the critic(s)", OPTIMIZERS,
                                    **_agents("optimizer_critic", "adam")),
