@@ -342,6 +342,10 @@ def test_wrong_type_names_full_path_value_and_expectation(tmp_path):
         ({"ALG": {"UPDATE_ORDER": "later"}}, 'ALG.UPDATE_ORDER must be one of "simultaneous", "sequential"'),
         ({"ALG": {"ALGORITHM": "REDQSAC", "UPDATE_ORDER": "sequential"}},
          'ALG.UPDATE_ORDER must be "simultaneous" when ALG.ALGORITHM is "REDQSAC"'),
+        ({"ALG": {"ALGORITHM": "DROQ", "UPDATE_ORDER": "sequential"}},
+         'ALG.UPDATE_ORDER must be "simultaneous" when ALG.ALGORITHM is "DROQ"'),
+        ({"ALG": {"ALGORITHM": "TQC", "TQC_QUANTILES": 5, "TQC_DROP_PER_CRITIC": 5}},
+         "ALG.TQC_DROP_PER_CRITIC must be below ALG.TQC_QUANTILES (5), got 5: TQC would drop every quantile"),
     ],
 )
 def test_each_class_of_mistake_is_one_line(tmp_path, raw, expected):

@@ -842,7 +842,8 @@ def redq_subset_problem(n: int, m: int) -> str | None:
 
 def check_consistency(cfg: Mapping[str, Any]) -> None:
     """Checks that involve several keys of a complete, validated config: REDQ's ``REDQ_M`` within
-    ``REDQ_N`` and its simultaneous update order, the two pacing ratios not blocking each other,
+    ``REDQ_N``, the simultaneous update order of REDQ, DroQ and TQC, TQC's dropped quantiles fewer
+    than its quantiles, the two pacing ratios not blocking each other,
     ``act_in_obs`` for the simulator and TrackMania, grayscale images for ``SIMFULL``, a
     ``GYM_ID`` for ``GYM``.
 
@@ -856,11 +857,17 @@ def check_consistency(cfg: Mapping[str, Any]) -> None:
     problem = redq_subset_problem(alg["REDQ_N"], alg["REDQ_M"]) if alg["ALGORITHM"] == "REDQSAC" else None
     if problem:
         raise SchemaViolation("ALG.REDQ_M", problem)
-    if alg["ALGORITHM"] == "REDQSAC" and alg["UPDATE_ORDER"] != "simultaneous":
+    if alg["ALGORITHM"] in ("REDQSAC", "DROQ", "TQC") and alg["UPDATE_ORDER"] != "simultaneous":
         raise SchemaViolation(
             "ALG.UPDATE_ORDER",
-            f'ALG.UPDATE_ORDER must be "simultaneous" when ALG.ALGORITHM is "REDQSAC" (the sequential order is '
-            f"SAC's), got {show(alg['UPDATE_ORDER'])}",
+            f'ALG.UPDATE_ORDER must be "simultaneous" when ALG.ALGORITHM is {show(alg["ALGORITHM"])} (the '
+            f"sequential order is SAC's), got {show(alg['UPDATE_ORDER'])}",
+        )
+    if alg["ALGORITHM"] == "TQC" and alg["TQC_DROP_PER_CRITIC"] >= alg["TQC_QUANTILES"]:
+        raise SchemaViolation(
+            "ALG.TQC_DROP_PER_CRITIC",
+            f"ALG.TQC_DROP_PER_CRITIC must be below ALG.TQC_QUANTILES ({alg['TQC_QUANTILES']}), got "
+            f"{alg['TQC_DROP_PER_CRITIC']}: TQC would drop every quantile",
         )
     pace, ratio = cfg["MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP"], cfg["MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP"]
     if pace and pace * ratio < 1.0:
