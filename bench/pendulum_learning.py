@@ -1,14 +1,18 @@
 """Learning check: SAC in a plain synchronous loop (one environment step, one update) on
-Pendulum-v1 or on the built-in simulator, with the two update orders side by side.
+Pendulum-v1 or on the built-in simulator, with the two update orders side by side, and the other
+agents beside it in environment steps.
 
     python -m bench pendulum_learning                        # Pendulum, both orders, 5 seeds each
     python -m bench pendulum_learning --env simlidar --steps 20000
+    python -m bench pendulum_learning --orders simultaneous --agents SAC,REDQSAC,DROQ,TQC --updates-per-step 1
 
 ``simultaneous`` (our default: the actor loss reads the critics before their step, one backward
 pass) against ``sequential`` (the original tmrl SAC: after it), ``ALG.UPDATE_ORDER``. Each run is
 a fresh process; seeds alternate the order of the two. Printed per order: medians and spread of
 the environment steps until the mean test return exceeds the threshold (Pendulum: -200), the best
-and last test returns, the updates per second inside ``train()`` and the wall time.
+and last test returns, the updates per second inside ``train()`` and the wall time. ``--agents``
+adds REDQ-SAC, DroQ and TQC (on Pendulum, with their MLP models) with their own class default
+settings, labelled by name; ``--updates-per-step`` (the update-to-data ratio) applies to all.
 
 The loop: ``--start-steps`` uniformly random actions, then the policy; samples go through a
 standalone :class:`tmrl.networking.RolloutWorker` (the simulator's preprocessor and compressor
@@ -73,13 +77,33 @@ def _parts(env_name: str, batch_size: int, memory_size: int) -> dict[str, Any]:
             "max_samples": DEMO_SETTINGS["ep_max_length"]}
 
 
+#: The MLP actor-critic each agent trains on Pendulum (as config_objects builds them).
+PENDULUM_MODELS = {"SAC": ("tmrl.models", "MLPActorCritic"), "REDQSAC": ("tmrl.models", "REDQMLPActorCritic"),
+                   "DROQ": ("tmrl.algorithms.droq", "DroQMLPActorCritic"),
+                   "TQC": ("tmrl.algorithms.tqc", "TQCActorCritic")}
+
+
+def _agent(name: str, order: str, env_name: str, spaces: tuple[Any, Any], model_cls: Any) -> Any:
+    """The agent ``name`` (an ``ALG.ALGORITHM`` value) with its class defaults."""
+    import importlib
+
+    from tmrl.algorithms import agent_class
+
+    if name == "SAC":
+        return agent_class(name)(*spaces, "cpu", model_cls=model_cls, update_order=order)
+    if env_name != "pendulum":
+        raise SystemExit(f"{name} is measured on Pendulum only (its MLP models do not read the simulator's lidar)")
+    module, attr = PENDULUM_MODELS[name]
+    return agent_class(name)(*spaces, "cpu", model_cls=getattr(importlib.import_module(module), attr))
+
+
 def run(env_name: str, order: str, seed: int, steps: int, start_steps: int, eval_every: int, eval_episodes: int,
-        batch_size: int, append_every: int, threads: int) -> dict[str, Any]:
+        batch_size: int, append_every: int, threads: int, agent_name: str = "SAC",
+        updates_per_step: int = 1) -> dict[str, Any]:
     """One learning run; returns its test curve and timings."""
     import numpy as np
     import torch
 
-    from tmrl.algorithms.sac import SACAgent
     from tmrl.networking import Buffer, RolloutWorker
 
     torch.set_num_threads(threads)
@@ -91,8 +115,8 @@ def run(env_name: str, order: str, seed: int, steps: int, start_steps: int, eval
     worker_kwargs = dict(env_cls=p["env_cls"], actor_module_cls=p["actor_cls"], standalone=True, model_history=0,
                          max_samples_per_episode=p["max_samples"], model_path=os.devnull + "_none", **p["worker"])
     worker, tester = RolloutWorker(**worker_kwargs), RolloutWorker(**worker_kwargs)
-    agent = SACAgent(worker.env.observation_space, worker.env.action_space, "cpu", model_cls=p["model_cls"],
-                     update_order=order)
+    agent = _agent(agent_name, order, env_name, (worker.env.observation_space, worker.env.action_space),
+                   p["model_cls"])
     worker.env.action_space.seed(seed)
     worker.actor, tester.actor = _UniformActor(worker.env.action_space), agent.get_actor()
     curve, updates, t_update = [], 0, 0.0
@@ -113,13 +137,14 @@ def run(env_name: str, order: str, seed: int, steps: int, start_steps: int, eval
             worker.buffer = Buffer()
         if step > start_steps and len(memory) >= batch_size:
             t0 = time.perf_counter()
-            agent.train(memory.sample())
+            for _ in range(updates_per_step):
+                agent.train(memory.sample())
             t_update += time.perf_counter() - t0
-            updates += 1
+            updates += updates_per_step
         if step % eval_every == 0:
             ret = float(np.mean([tester.run_episode() for _ in range(eval_episodes)]))
             curve.append((step, ret))
-            print(f"    [{env_name} {order} seed {seed}] step {step:6d} test return {ret:8.1f} "
+            print(f"    [{env_name} {agent_name} {order} seed {seed}] step {step:6d} test return {ret:8.1f} "
                   f"({time.perf_counter() - start:.0f} s)", file=sys.stderr, flush=True)
     return {"curve": curve, "wall_s": time.perf_counter() - start, "updates": updates,
             "updates_per_s": updates / max(t_update, 1e-9)}
@@ -148,34 +173,49 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--append-every", type=int, default=10, help="env steps between memory appends")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--threshold", type=float, default=None, help="test return to reach (Pendulum: -200)")
+    ap.add_argument("--agents", default="SAC", help="comma-separated ALG.ALGORITHM values: SAC (in each --orders), "
+                    "REDQSAC, DROQ, TQC (their own class defaults; Pendulum only)")
+    ap.add_argument("--updates-per-step", type=int, default=1, help="updates per environment step, every agent")
     args = ap.parse_args(argv)
     orders = [o for o in args.orders.split(",") if o]
     if set(orders) - set(ORDERS):
         ap.error(f"unknown order(s) {sorted(set(orders) - set(ORDERS))}: use {', '.join(ORDERS)}")
+    agents = [a.strip().upper() for a in args.agents.split(",") if a.strip()]
+    if set(agents) - set(PENDULUM_MODELS):
+        ap.error(f"unknown agent(s) {sorted(set(agents) - set(PENDULUM_MODELS))}: use {', '.join(PENDULUM_MODELS)}")
+    if args.updates_per_step < 1:
+        ap.error("--updates-per-step must be at least 1")
+    # a variant is (label, agent, order): SAC once per order (labelled by the order), the others once
+    variants = {o: ("SAC", o) for o in orders} if "SAC" in agents else {}
+    variants.update({a: (a, "simultaneous") for a in agents if a != "SAC"})
     threshold = args.threshold if args.threshold is not None else THRESHOLDS[args.env]
     settings = {k: v for k, v in vars(args).items() if k not in ("orders", "seeds")}
-    settings.update(threshold=threshold, algorithm="SAC, MLP 256x256, lr 1e-3, gamma 0.99, alpha 0.2 learned")
+    settings.update(threshold=threshold, algorithm="each agent's class defaults (SAC: MLP 256x256, lr 1e-3, "
+                    "gamma 0.99, alpha 0.2 learned)")
     rec = harness.Recorder("pendulum_learning", settings)
     side = harness.ours_side()
-    for seed, order in harness.alternate(orders, args.seeds):
+    for seed, label in harness.alternate(list(variants), args.seeds):
+        agent_name, order = variants[label]
         kwargs = dict(env_name=args.env, order=order, seed=seed, steps=args.steps, start_steps=args.start_steps,
                       eval_every=args.eval_every, eval_episodes=args.eval_episodes, batch_size=args.batch_size,
-                      append_every=args.append_every, threads=args.threads)
+                      append_every=args.append_every, threads=args.threads, agent_name=agent_name,
+                      updates_per_step=args.updates_per_step)
         # A fresh process per run; its progress lines go to stderr, its result to stdout.
         out = subprocess.run(side.command("pendulum_learning", "--run", json.dumps(kwargs)), env=side.env,
                              cwd=side.cwd, stdout=subprocess.PIPE, text=True, check=False)
         if out.returncode != 0:
-            raise SystemExit(f"the {order} run of seed {seed} failed (exit code {out.returncode})")
+            raise SystemExit(f"the {label} run of seed {seed} failed (exit code {out.returncode})")
         res = json.loads(out.stdout.strip().splitlines()[-1])
-        case = f"{args.env} SAC"
+        case = args.env
         returns = [r for _, r in res["curve"]]
         reached = next((s for s, r in res["curve"] if threshold is not None and r > threshold), None)
         if threshold is not None:
-            rec.add(case, f"steps_to_{threshold:g}", order, reached, round=seed, higher_is_better=False,
+            rec.add(case, f"steps_to_{threshold:g}", label, reached, round=seed, higher_is_better=False,
                     unit="steps", curve=res["curve"])
-        rec.add(case, "best_test_return", order, max(returns), round=seed)
-        rec.add(case, "last_test_return", order, returns[-1], round=seed)
-        rec.add(case, "updates_per_s_in_train", order, res["updates_per_s"], round=seed, unit="1/s")
-        rec.add(case, "wall_s", order, res["wall_s"], round=seed, higher_is_better=False, unit="s")
-    rec.print_table(ratios=[("simultaneous", "sequential")])
+        rec.add(case, "best_test_return", label, max(returns), round=seed)
+        rec.add(case, "last_test_return", label, returns[-1], round=seed)
+        rec.add(case, "updates_per_s_in_train", label, res["updates_per_s"], round=seed, unit="1/s")
+        rec.add(case, "wall_s", label, res["wall_s"], round=seed, higher_is_better=False, unit="s")
+    pairs = [("simultaneous", "sequential")] if {"simultaneous", "sequential"} <= set(variants) else []
+    rec.print_table(ratios=pairs + [(a, "simultaneous") for a in variants if a not in ORDERS and "simultaneous" in variants])
     rec.close()
