@@ -4,13 +4,34 @@
 - :class:`WorkerLink`: a worker's connection (send samples, receive the latest weights).
 - :class:`TrainerLink`: the trainer's connection (receive samples, broadcast weights).
 - :func:`ensure_credentials`: TLS key and self-signed certificate.
+- :mod:`tmrl.transport.base`: the contract the roles use (:class:`WorkerTransport`,
+  :class:`TrainerTransport`, :class:`RelayTransport`) and :data:`BACKENDS`, the transports that
+  implement it (today ``"tlspyo"`` only).
 
 Everything on the wire is :mod:`tmrl.wire` data; see docs/transport.md. Importing this package
 imports neither Twisted nor tlspyo: they run in the network processes only.
 """
 
+from tmrl.transport.base import Backend, RelayTransport, TrainerTransport, WorkerTransport
 from tmrl.transport.credentials import CERT_FILE, KEY_FILE, ensure_credentials
 from tmrl.transport.links import TrainerLink, WorkerLink
 from tmrl.transport.relay import RelayServer
 
-__all__ = ["CERT_FILE", "KEY_FILE", "RelayServer", "TrainerLink", "WorkerLink", "ensure_credentials"]
+BACKENDS: dict[str, Backend] = {
+    "tlspyo": Backend(name="tlspyo", relay=RelayServer, worker=WorkerLink, trainer=TrainerLink),
+}
+"""The transport backends, by name: each builds a relay, a worker's and the trainer's link."""
+
+__all__ = [
+    "BACKENDS",
+    "CERT_FILE",
+    "KEY_FILE",
+    "Backend",
+    "RelayServer",
+    "RelayTransport",
+    "TrainerLink",
+    "TrainerTransport",
+    "WorkerLink",
+    "WorkerTransport",
+    "ensure_credentials",
+]
