@@ -25,6 +25,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from bench import harness
 
@@ -116,6 +117,18 @@ def _trainer_interface(impl: str, port: int, workdir: Path):
     )
 
 
+def _first_weights(impl: str, iface: Any) -> None:
+    """Broadcast an actor's initial weights once, as a trainer does when it starts: our workers
+    wait for the trainer's first weights after their first episode (tmrl 0.7.1's do not wait, and
+    load them as they would any)."""
+    import gymnasium
+    import numpy as np
+
+    actor = _actor_cls(impl, 1)(gymnasium.spaces.Box(-1.0, 1.0, (3,), np.float32),
+                                gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32))
+    iface.broadcast_model(actor)
+
+
 def role_sink(
     impl: str,
     port: int,
@@ -131,9 +144,10 @@ def role_sink(
     retrieved buffer is also stored in the implementation's own replay memory (its
     GenericTorchMemory, 1M samples), as its trainer does between training steps."""
     iface = _trainer_interface(impl, port, workdir)
+    _first_weights(impl, iface)
     memory = None
     if into_memory:
-        if impl == "ours":
+        if impl != "tmrl":  # ours, or an earlier checkout of ours (--before)
             from tmrl.memory import GenericTorchMemory
 
             memory = GenericTorchMemory(device="cpu", nb_steps=1, memory_size=1_000_000, batch_size=256)
@@ -201,7 +215,7 @@ def role_bytes(impl: str) -> None:
     )
     w.collect_train_episode(EPISODE - 1)
     n = len(w.buffer)
-    if impl == "ours":
+    if impl != "tmrl":  # ours, or an earlier checkout of ours (--before)
         from tmrl import wire
         from tmrl.networking import pack_buffer
 
