@@ -271,7 +271,7 @@ class EnsembleQFunction(nn.Module):
         Returns:
             Q values of shape ``(k, B)``, ``k`` = number of members evaluated.
         """
-        x = torch.cat((flatten_obs(obs), act.reshape(act.shape[0], -1).to(torch.float32)), dim=-1)
+        x = flatten_obs((obs, act))  # the observation then the action, as one (B, D) float32 input
         weights: list[torch.Tensor] = list(self.weights)
         biases: list[torch.Tensor] = list(self.biases)
         if members is not None:
@@ -392,7 +392,7 @@ class MLPQFunction(nn.Module):
             obs: a batched observation.
             act: actions ``(B, act_dim)``.
         """
-        x = torch.cat((flatten_obs(obs), act.reshape(act.shape[0], -1).to(torch.float32)), dim=-1)
+        x = flatten_obs((obs, act))  # the observation then the action, as one (B, D) float32 input
         return self.q(x).squeeze(-1)
 
 

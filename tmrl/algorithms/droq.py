@@ -91,7 +91,7 @@ class DropoutQFunction(nn.Module):
             obs: a batched observation.
             act: actions ``(B, act_dim)``.
         """
-        x = torch.cat((flatten_obs(obs), act.reshape(act.shape[0], -1).to(torch.float32)), dim=-1)
+        x = flatten_obs((obs, act))  # the observation then the action, as one (B, D) float32 input
         return self.net(x).squeeze(-1)
 
 
