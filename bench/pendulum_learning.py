@@ -77,24 +77,19 @@ def _parts(env_name: str, batch_size: int, memory_size: int) -> dict[str, Any]:
             "max_samples": DEMO_SETTINGS["ep_max_length"]}
 
 
-#: The MLP actor-critic each agent trains on Pendulum (as config_objects builds them).
-PENDULUM_MODELS = {"SAC": ("tmrl.models", "MLPActorCritic"), "REDQSAC": ("tmrl.models", "REDQMLPActorCritic"),
-                   "DROQ": ("tmrl.algorithms.droq", "DroQMLPActorCritic"),
-                   "TQC": ("tmrl.algorithms.tqc", "TQCActorCritic")}
+AGENTS = ("SAC", "REDQSAC", "DROQ", "TQC")
 
 
 def _agent(name: str, order: str, env_name: str, spaces: tuple[Any, Any], model_cls: Any) -> Any:
-    """The agent ``name`` (an ``ALG.ALGORITHM`` value) with its class defaults."""
-    import importlib
-
+    """The agent ``name`` (an ``ALG.ALGORITHM`` value) with its class defaults (and its own MLP
+    model, the class default, except SAC, which trains the environment's model)."""
     from tmrl.algorithms import agent_class
 
     if name == "SAC":
         return agent_class(name)(*spaces, "cpu", model_cls=model_cls, update_order=order)
     if env_name != "pendulum":
         raise SystemExit(f"{name} is measured on Pendulum only (its MLP models do not read the simulator's lidar)")
-    module, attr = PENDULUM_MODELS[name]
-    return agent_class(name)(*spaces, "cpu", model_cls=getattr(importlib.import_module(module), attr))
+    return agent_class(name)(*spaces, "cpu")
 
 
 def run(env_name: str, order: str, seed: int, steps: int, start_steps: int, eval_every: int, eval_episodes: int,
@@ -181,8 +176,8 @@ def main(argv: list[str] | None = None) -> None:
     if set(orders) - set(ORDERS):
         ap.error(f"unknown order(s) {sorted(set(orders) - set(ORDERS))}: use {', '.join(ORDERS)}")
     agents = [a.strip().upper() for a in args.agents.split(",") if a.strip()]
-    if set(agents) - set(PENDULUM_MODELS):
-        ap.error(f"unknown agent(s) {sorted(set(agents) - set(PENDULUM_MODELS))}: use {', '.join(PENDULUM_MODELS)}")
+    if set(agents) - set(AGENTS):
+        ap.error(f"unknown agent(s) {sorted(set(agents) - set(AGENTS))}: use {', '.join(AGENTS)}")
     if args.updates_per_step < 1:
         ap.error("--updates-per-step must be at least 1")
     # a variant is (label, agent, order): SAC once per order (labelled by the order), the others once

@@ -195,16 +195,11 @@ SAMPLE_PREPROCESSOR: Any = None
 
 # --- environment, models, compression, memory ----------------------------------------------------
 
-# The agent class of each ALG.ALGORITHM lives in its own module; DroQ and TQC bring their own models.
-_AGENT_MODULES = {"SAC": "tmrl.algorithms.sac", "REDQSAC": "tmrl.algorithms.redq", "DROQ": "tmrl.algorithms.droq",
-                  "TQC": "tmrl.algorithms.tqc"}
-_MLP_MODELS = {"SAC": ("tmrl.models", "MLPActorCritic"), "REDQSAC": ("tmrl.models", "REDQMLPActorCritic"),
-               "DROQ": ("tmrl.algorithms.droq", "DroQMLPActorCritic"), "TQC": ("tmrl.algorithms.tqc", "TQCActorCritic")}
-
-
 def _mlp_model(alg: str) -> Any:
-    """The actor-critic class of an algorithm for flat (MLP) observations."""
-    return _attr(*_MLP_MODELS[alg])
+    """The actor-critic class of an algorithm for flat (MLP) observations: its agent's default
+    ``model_cls`` (the registry, :data:`tmrl.algorithms.ALGORITHMS`, names the agent)."""
+    agent = _attr("tmrl.algorithms", "agent_class")(alg)
+    return inspect.signature(agent).parameters["model_cls"].default
 
 
 if cfg.RTGYM_INTERFACE == "GYM":
@@ -304,8 +299,8 @@ CONFIG_DICT_MODIFIERS: dict[str, Any] = dict(_rtgym)
 
 # Every ALG key reaches its agent argument by the settings table (tmrl/config/schema.py, ``feeds``).
 _agent_name = AGENT_CLASSES[ALG_NAME]
-_agent_module = _AGENT_MODULES[ALG_NAME]
-AGENT = partial(_attr(_agent_module, _agent_name), model_cls=TRAIN_MODEL, **arguments(cfg.TMRL_CONFIG, _agent_name))
+AGENT = partial(_attr("tmrl.algorithms", "agent_class")(ALG_NAME), model_cls=TRAIN_MODEL,
+                **arguments(cfg.TMRL_CONFIG, _agent_name))
 
 # --- training loop -------------------------------------------------------------------------------
 
