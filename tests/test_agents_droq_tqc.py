@@ -16,6 +16,22 @@ import torch
 import torch.nn.functional as F
 from gymnasium import spaces
 
+# the probe problems, spaces and helpers of SAC's and REDQ's tests, shared
+from test_algorithms import (  # noqa: F401 (_one_thread: the autouse fixture, one torch thread)
+    ACT,
+    ACT2,
+    OBS,
+    OBS2,
+    OBS3,
+    _one_thread,
+    first_step_error,
+    policy_error,
+    probe_batch,
+    random_batch,
+    two_step_batch,
+)
+from test_algorithms import _move_targets_away as move_targets_away
+
 from tmrl.algorithms import ALGORITHMS, DroQAgent, TQCAgent, agent_class
 from tmrl.algorithms.droq import DroQMLPActorCritic
 from tmrl.algorithms.fused_sac import fused_unsupported_reason
@@ -26,75 +42,7 @@ from tmrl.errors import UserError
 from tmrl.models import MLPActorCritic
 from tmrl.util import partial
 
-OBS = spaces.Tuple((spaces.Box(-1.0, 1.0, (1,), np.float32),))
-OBS2 = spaces.Tuple((spaces.Box(-1.0, 1.0, (2,), np.float32),))
-OBS3 = spaces.Tuple((spaces.Box(-1.0, 1.0, (2,), np.float32), spaces.Box(0.0, 1.0, (3,), np.float32)))
-ACT = spaces.Box(-1.0, 1.0, (1,), np.float32)
-ACT2 = spaces.Box(np.array([-2.0, 0.0], np.float32), np.array([2.0, 1.0], np.float32))
 SMALL = (16, 16)
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
-# --- probe helpers (the same problems as tests/test_algorithms.py) -------------------------------
-
-
-def probe_batch(gen: torch.Generator, size: int = 128) -> tuple:
-    """One-step episodes: obs uniform in [-1, 1], reward -(a - obs)^2, always terminated."""
-    o = torch.rand(size, 1, generator=gen) * 2 - 1
-    a = torch.rand(size, 1, generator=gen) * 2 - 1
-    return (o,), a, -(a - o).square().sum(-1), (o,), torch.ones(size), torch.zeros(size)
-
-
-def policy_error(agent) -> float:
-    o = torch.linspace(-0.9, 0.9, 19).reshape(-1, 1)
-    with torch.no_grad():
-        a, _ = agent.get_actor()((o,), test=True)
-    return (a - o).abs().mean().item()
-
-
-def two_step_batch(gen: torch.Generator, size: int = 128) -> tuple:
-    """Phase 0 at ``x``: reward 0, next observation ``(clip(a + x/2), 1)``, not terminal; phase 1
-    at ``y``: reward ``-4 y^2``, terminal. The best first action ``-x/2`` needs bootstrapping."""
-    half = size // 2
-    x, a0 = (torch.rand(half, 1, generator=gen) * 2 - 1 for _ in range(2))
-    y, a1 = (torch.rand(half, 1, generator=gen) * 2 - 1 for _ in range(2))
-    zeros, ones = torch.zeros(half, 1), torch.ones(half, 1)
-    o = torch.cat((torch.cat((x, zeros), 1), torch.cat((y, ones), 1)))
-    o2 = torch.cat((torch.cat(((a0 + x / 2).clamp(-1, 1), ones), 1), torch.cat((y, ones), 1)))
-    r = torch.cat((torch.zeros(half), -4 * y.squeeze(1) ** 2))
-    d = torch.cat((torch.zeros(half), torch.ones(half)))
-    return (o,), torch.cat((a0, a1)), r, (o2,), d, torch.zeros(size)
-
-
-def first_step_error(agent) -> float:
-    x = torch.linspace(-0.9, 0.9, 19).reshape(-1, 1)
-    with torch.no_grad():
-        a, _ = agent.get_actor()((torch.cat((x, torch.zeros_like(x)), 1),), test=True)
-    return (a + x / 2).abs().mean().item()
-
-
-def random_batch(gen: torch.Generator, size: int = 16) -> tuple:
-    def obs():
-        return tuple(torch.rand(size, *s.shape, generator=gen) for s in OBS3)
-
-    a = torch.rand(size, 2, generator=gen)
-    r = torch.randn(size, generator=gen)
-    d = (torch.rand(size, generator=gen) < 0.25).float()
-    return obs(), a, r, obs(), d, torch.zeros(size)
-
-
-def move_targets_away(agent, seed: int) -> None:
-    gen = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in agent.model_target.parameters():
-            p.add_(0.3 * torch.randn(p.shape, generator=gen))
 
 
 def droq(**kwargs) -> DroQAgent:

@@ -6,7 +6,7 @@ checks of the TD3 update and of the entry's model.
 
 from __future__ import annotations
 
-import importlib.util
+import itertools
 import json
 import os
 import re
@@ -19,6 +19,7 @@ import gymnasium
 import numpy as np
 import pytest
 import torch
+from test_examples_usage import load_example, ok  # the other examples' helpers
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
@@ -44,19 +45,6 @@ def run_example(name: str, *args: str, tmp_path: Path, timeout: float = 120,
                           check=False)
 
 
-def ok(out: subprocess.CompletedProcess) -> str:
-    assert out.returncode == 0, f"exit {out.returncode}\n{out.stdout[-3000:]}\n{out.stderr[-3000:]}"
-    assert "Traceback" not in out.stderr
-    return out.stdout
-
-
-def load_example(name: str):
-    spec = importlib.util.spec_from_file_location(f"example_{name.removesuffix('.py')}", EXAMPLES / name)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def rounds(out: str) -> list[tuple[int, int]]:
     """``(env steps, updates)`` of each round line."""
     return [(int(m[2]), int(m[3])) for m in ROUND.findall(out)]
@@ -66,7 +54,7 @@ def assert_training_went_on(out: str) -> None:
     found = rounds(out)
     assert len(found) >= 2, out[-2000:]
     updates = [u for _, u in found]
-    assert updates[0] > 0 and all(b > a for a, b in zip(updates, updates[1:])), updates
+    assert updates[0] > 0 and all(b > a for a, b in itertools.pairwise(updates)), updates
 
 
 # --- examples/custom_agent.py: TD3 ------------------------------------------------------------------

@@ -13,27 +13,16 @@ import logging
 import os
 import signal
 import time
-from collections.abc import Callable
 from typing import Any
 
 import pytest
+from test_transport import _wait_for  # polls a condition another process makes true
 
 from tmrl.transport import BACKENDS, RelayTransport, TrainerTransport, WorkerTransport, base
 
 pytestmark = pytest.mark.timeout(120)
 
 PASSWORD = "contract password"
-
-
-def _wait_for(cond: Callable[[], Any], timeout: float = 30.0, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.02)
 
 
 def _child_processes() -> set[int]:
@@ -114,6 +103,7 @@ class _TlspyoHarness(_Harness):
     def wait_in_flight(self, n: int) -> None:
         _wait_for(
             lambda: sum("sent a sample batch" in r.getMessage() for r in self.caplog.records) >= n,
+            30.0,
             what=f"{n} sample batches sent to the trainer",
         )
 
@@ -193,7 +183,7 @@ def test_a_late_worker_gets_the_latest_weights_only(backend):
     versions = [bytes([v]) * (3 << 20) for v in range(1, 6)]  # several frames each
     for weights in versions:
         trainer.broadcast_weights(weights)
-    _wait_for(lambda: early.latest_weights() == versions[-1], what="the last broadcast at the early worker")
+    _wait_for(lambda: early.latest_weights() == versions[-1], 30.0, what="the last broadcast at the early worker")
     late = backend.worker()
     seen = []
     deadline = time.monotonic() + 3.0

@@ -6,7 +6,6 @@ never builds a transition across two episodes and forgets the oldest samples."""
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import os
 import re
@@ -19,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import free_port
+from test_examples_usage import load_example, ok  # the other examples' helpers
 
 from tmrl.networking import Buffer
 
@@ -28,10 +28,7 @@ EPISODE = re.compile(r"^episode (\d+): return +(-?[\d.]+) in (\d+) steps \(weigh
 
 
 def load_tutorial():
-    spec = importlib.util.spec_from_file_location("example_tutorial", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_example("tutorial.py")
 
 
 def env_for(data: Path) -> dict:
@@ -43,12 +40,6 @@ def env_for(data: Path) -> dict:
 def run(*args: str, data: Path, timeout: float = 240) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(SCRIPT), *args], env=env_for(data), cwd=data.parent,
                           capture_output=True, text=True, timeout=timeout, check=False)
-
-
-def ok(out: subprocess.CompletedProcess) -> str:
-    assert out.returncode == 0, f"exit {out.returncode}\n{out.stdout[-3000:]}\n{out.stderr[-3000:]}"
-    assert "Traceback" not in out.stderr, out.stderr[-3000:]
-    return out.stdout
 
 
 def test_the_interface_passes_the_checker(tmp_path):
@@ -135,7 +126,7 @@ def stop(proc: subprocess.Popen, timeout: float = 30) -> tuple[str, str]:
 def test_three_parts_as_three_processes(tmp_path):
     data = tmp_path / "data"
     port = str(free_port())
-    popen = dict(env=env_for(data), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    popen = {"env": env_for(data), "cwd": tmp_path, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
     server = subprocess.Popen([sys.executable, str(SCRIPT), "--server", "--port", port], **popen)
     worker = trainer = None
     try:
