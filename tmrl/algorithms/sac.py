@@ -254,7 +254,8 @@ class SACAgent(TrainingAgent):
 
     model_nograd = cached_property(lambda self: no_grad(copy_shared(self.model)))
 
-    STEPS = ("train", "policy_update_due", "target_q", "policy_q", "target_value", "actor_loss", "entropy_loss")
+    STEPS = ("train", "policy_update_due", "target_q", "policy_q", "target_value", "critic_loss", "actor_loss",
+             "entropy_loss")
     """The steps a subclass may override; the fused update computes SAC's own and is used only
     when none of them is overridden."""
 
@@ -403,7 +404,7 @@ class SACAgent(TrainingAgent):
         # Q(o, a) of every critic; in the simultaneous order also Q(o, pi) with the critic weights
         # detached, so that the actor loss moves the actor only.
         q, q_pi_all = self.critics.with_policy_values(b.obs, b.act, pi if simultaneous else None)
-        loss_critic = (q - backup).square().mean()  # mean over critics: one scale for SAC and REDQ
+        loss_critic = self.critic_loss(q, backup)
         loss_alpha = self.entropy_loss(logp_pi) if logp_pi is not None else None
         loss_actor = self.actor_loss(alpha, logp_pi, q_pi_all) if q_pi_all is not None else None
         if not self._step(loss_critic, loss_actor, loss_alpha, update_policy):
@@ -460,6 +461,16 @@ class SACAgent(TrainingAgent):
         a2, logp_a2 = self.actor(batch.next_obs)
         r, d = batch.rew.reshape(-1), batch.terminated.reshape(-1)
         return r + self.gamma * (1.0 - d) * (self.target_q(batch.next_obs, a2) - alpha * logp_a2)
+
+    def critic_loss(self, q: torch.Tensor, backup: torch.Tensor) -> torch.Tensor:
+        """The critics' regression on the target. SAC: the squared error, averaged over critics
+        (one scale for SAC and REDQ whatever the number of critics).
+
+        Args:
+            q: ``Q(o, a)`` of every critic, shape ``(k, B)``.
+            backup: the target, as :meth:`target_value` returns it.
+        """
+        return (q - backup).square().mean()
 
     def actor_loss(self, alpha: torch.Tensor, logp_pi: torch.Tensor, q_pi_all: torch.Tensor) -> torch.Tensor:
         """``mean(alpha log pi(a|o) - policy_q(Q(o, a)))``, ``a ~ pi(.|o)``.

@@ -3,7 +3,8 @@ with Truncated Mixture of Continuous Distributional Quantile Critics", arXiv:200
 
 SAC with distributional critics: each of ``N`` critics ``Z_n(o, a)`` outputs ``M`` quantiles
 ``theta_n^1..M`` of the return at the fractions ``tau_m = (2m - 1) / (2M)``. One update
-(:meth:`TQCAgent.train`), read against section 4 of the paper:
+(:meth:`tmrl.algorithms.sac.SACAgent.train` with the steps below), read against section 4 of the
+paper:
 
 - target: with ``a' ~ pi(.|o')``, pool the ``N M`` quantiles of all *target*
   critics at ``(o', a')``, sort them, keep the ``kN`` smallest (``k = M - d``, ``d`` =
@@ -29,10 +30,9 @@ with SAC (learning rates, gamma, polyak, alpha) keep SAC's class defaults (the s
 gives all agents one class default per key); the paper uses learning rates of 3e-4, gamma 0.99,
 polyak 0.995 (tau = 0.005) and a learned alpha with target entropy ``-act_dim``.
 
-The squared-error critic loss of :meth:`tmrl.algorithms.sac.SACAgent.train` does not fit
-quantile critics, so TQC has its own :meth:`TQCAgent.train` (the same sequence of steps, with
-SAC's actor loss, entropy loss, optimizers, non-finite guard and Polyak averaging); it never
-takes the fused SAC update. Its cost is the paper's critics: about 160 ms per update at batch
+SAC's squared-error critic loss does not fit quantile critics: TQC overrides
+:meth:`TQCAgent.critic_loss` and keeps SAC's sequence of steps, actor loss, entropy loss,
+optimizers, non-finite guard and Polyak averaging; it never takes the fused SAC update. Its cost is the paper's critics: about 160 ms per update at batch
 256 on one CPU thread of this project's machine (SAC's autograd update: 11 ms), of which the
 quantile loss over ``N x B x M x kN`` pairs is about 20-35 ms; on a CPU, smaller critics
 (``critic_hidden_sizes``) or fewer of them are the lever.
@@ -250,38 +250,6 @@ class TQCAgent(SACAgent):
             self.model_cls, self.observation_space, self.action_space, n=self.n, n_quantiles=self.n_quantiles
         )
 
-    # --- one update, top to bottom ------------------------------------------------------------
-
-    def train(self, batch: tuple) -> dict[str, Any]:
-        """One TQC update on ``batch`` (a :class:`~tmrl.batch.Batch` or a 6-tuple): the truncated
-        target atoms from the target critics, the critics' quantile regression on them, the actor
-        and the entropy coefficient, then Polyak averaging.
-
-        Returns:
-            ``loss_actor``, ``loss_critic`` (the quantile Huber loss), ``entropy_coef``,
-            ``loss_entropy_coef`` (learned alpha), and ``debug_log_pi``, ``debug_q`` (mean of the
-            critics' quantiles), ``debug_backup`` (mean of the target atoms), 0-dim tensors.
-        """
-        b = Batch(*batch)
-        alpha = self._entropy_coef()
-        update_policy = self.policy_update_due()
-        # a~ ~ pi(.|o), reparameterised: what the actor and entropy losses differentiate through
-        pi, logp_pi = self.actor(b.obs) if update_policy else (None, None)
-        atoms = self.target_value(b, alpha)  # (B, kN), sorted
-        # Z(o, a) of every critic, and Z(o, a~) with the critic weights detached: (N, B, M) each
-        z, z_pi_all = self.critics.with_policy_values(b.obs, b.act, pi)
-        loss_critic = quantile_huber_loss(z, atoms)
-        loss_alpha = self.entropy_loss(logp_pi) if logp_pi is not None else None
-        loss_actor = self.actor_loss(alpha, logp_pi, z_pi_all) if z_pi_all is not None else None
-        if not self._step(loss_critic, loss_actor, loss_alpha, update_policy):
-            return self.guard.skipped_metrics()
-        self._update_targets()
-        if loss_actor is not None:
-            self.loss_pi = loss_actor.detach()
-        if loss_alpha is not None:
-            self.loss_alpha = loss_alpha.detach()
-        return self._metrics(alpha, loss_critic, z, atoms, logp_pi)
-
     # --- the steps that differ from SAC ---------------------------------------------------------
 
     def target_q(self, next_obs: Any, next_act: torch.Tensor) -> torch.Tensor:
@@ -308,6 +276,16 @@ class TQCAgent(SACAgent):
         a2, logp_a2 = self.actor(batch.next_obs)
         r, d = batch.rew.reshape(-1, 1), batch.terminated.reshape(-1, 1)
         return r + self.gamma * (1.0 - d) * (self.target_q(batch.next_obs, a2) - alpha * logp_a2.unsqueeze(1))
+
+    def critic_loss(self, q: torch.Tensor, backup: torch.Tensor) -> torch.Tensor:
+        """The quantile Huber loss of every critic's quantiles against the truncated target
+        atoms (:func:`quantile_huber_loss`).
+
+        Args:
+            q: ``theta_n^m(o, a)`` of every critic, shape ``(N, B, M)``.
+            backup: the target atoms, shape ``(B, kN)`` (:meth:`target_value`).
+        """
+        return quantile_huber_loss(q, backup)
 
     def policy_q(self, q_pi_all: torch.Tensor) -> torch.Tensor:
         """The mean over all quantiles of all critics, shape ``(B,)``.
