@@ -329,7 +329,7 @@ def test_wrong_type_names_full_path_value_and_expectation(tmp_path):
         ({"BATCH_SIZE": True}, "BATCH_SIZE must be a positive integer, got true"),
         ({"BATCH_SIZE": 2.5}, "BATCH_SIZE must be a positive integer, got 2.5"),
         ({"ALG": {"GAMMA": 1.5}}, "ALG.GAMMA must be a number in [0, 1], got 1.5"),
-        ({"ALG": {"ALGORITHM": "PPO"}}, 'ALG.ALGORITHM must be one of "SAC", "REDQSAC", "DROQ", "TQC", got "PPO"'),
+        ({"ALG": {"ALGORITHM": "PPO"}}, 'ALG.ALGORITHM must be one of "SAC", "REDQSAC", "DROQ", "TQC", "CROSSQ", got "PPO"'),
         ({"ALG": {"BETAS_ACTOR": [0.9]}}, "ALG.BETAS_ACTOR must be a list of 2 numbers in [0, 1), got [0.9]"),
         ({"ENV": {"RTGYM_INTERFACE": "TM2020"}}, 'ENV.RTGYM_INTERFACE must be one of "TM20FULL"'),
         ({"ENV": []}, "ENV must be an object (a dict of keys), got []"),
@@ -627,3 +627,32 @@ def test_wheel_ships_the_default_config(tmp_path):
     core = [line for line in metadata.splitlines() if line.startswith("Requires-Dist:") and "extra ==" not in line]
     for banned in ("mss", "vgamepad", "opencv", "pywin32", "xlib", "wandb"):
         assert not any(banned in line.lower() for line in core), core
+
+
+@pytest.mark.parametrize(
+    "raw, expected",
+    [
+        ({"TRANSPORT": "zeromq"}, 'TRANSPORT must be one of "tlspyo", "nats", got "zeromq"'),
+        ({"NATS": {"STREAM": "a.b"}}, "NATS.STREAM must be a non-empty string without . or"),
+        ({"NATS": {"MAX_PAYLOAD": 2**30}}, "NATS.MAX_PAYLOAD must be an integer from 1048576 to 67108864"),
+        ({"NATS": {"TLS": "maybe"}}, 'NATS.TLS must be one of "auto", "on", "off"'),
+        ({"NATS": {"URL": ""}}, "NATS.URL is not a known key; did you mean NATS.URLS?"),
+    ],
+)
+def test_transport_mistakes_are_one_line(tmp_path, raw, expected):
+    assert expected in error_of(raw, tmp_path)
+
+
+def test_the_roles_get_the_nats_options_only_with_the_nats_transport(tmp_path):
+    from tmrl.config.settings import NetSettings
+
+    assert NetSettings.from_config(loader.validate({}), tmp_path).transport_options("worker") == {}
+    cfg = loader.validate({"TRANSPORT": "NATS", "NATS": {"URLS": "nats://a:4222,nats://b:4222",
+                                                         "WORKER_CREDENTIALS": "~/w.json"}})
+    settings = NetSettings.from_config(cfg, tmp_path)
+    assert settings.transport == "nats"
+    worker = settings.transport_options("worker")
+    assert worker["urls"] == "nats://a:4222,nats://b:4222" and worker["credentials"] == Path("~/w.json").expanduser()
+    assert "credentials" not in settings.transport_options("trainer")
+    relay = settings.transport_options("relay")
+    assert relay["store_dir"] == tmp_path / "nats" and relay["max_payload"] == 8 * 2**20

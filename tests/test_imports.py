@@ -69,6 +69,19 @@ def test_importing_every_module_creates_and_reads_nothing(tmp_path):
     assert report["threads"] == [], "a module started a thread at import"
 
 
+def test_importing_tmrl_imports_no_optional_transport_library():
+    """The NATS backend is registered in tmrl.transport.BACKENDS, but its client library (nats-py)
+    is imported by a NATS link's thread only; tlspyo and Twisted run in the network processes."""
+    code = (
+        "import sys, tmrl, tmrl.transport, tmrl.networking, tmrl.cli, tmrl.transport.nats_backend; "
+        "from tmrl.transport import BACKENDS; assert 'nats' in BACKENDS; "
+        "print(sorted(m for m in ('nats', 'tlspyo', 'twisted') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
 def test_config_constants_creates_nothing_either(tmp_path):
     data = tmp_path / "missing"
     home = tmp_path / "home"

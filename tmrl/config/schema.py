@@ -553,7 +553,7 @@ RTGYM_INTERFACES = (
 progress), the built-in simulated track (same three observations), any Gymnasium environment
 (``ENV.GYM_ID``), and the real-time simulated drone of :mod:`tmrl.realtime`."""
 
-ALGORITHMS = ("SAC", "REDQSAC", "DROQ", "TQC")
+ALGORITHMS = ("SAC", "REDQSAC", "DROQ", "TQC", "CROSSQ")
 """Values of ``ALG.ALGORITHM``."""
 
 PASSWORD_PLACEHOLDER = "YourRandomPasswordHere"
@@ -565,7 +565,8 @@ OPTIMIZERS = ("adam", "adamw", "sgd")
 UPDATE_ORDERS = ("simultaneous", "sequential")
 """Values of ``ALG.UPDATE_ORDER`` (``SACAgent(update_order=...)``)."""
 
-AGENT_CLASSES = {"SAC": "SACAgent", "REDQSAC": "REDQSACAgent", "DROQ": "DroQAgent", "TQC": "TQCAgent"}
+AGENT_CLASSES = {"SAC": "SACAgent", "REDQSAC": "REDQSACAgent", "DROQ": "DroQAgent", "TQC": "TQCAgent",
+                 "CROSSQ": "CrossQAgent"}
 """The agent class each value of ``ALG.ALGORITHM`` selects (:data:`tmrl.algorithms.ALGORITHMS`)."""
 
 _MIB = 1024 * 1024
@@ -579,7 +580,7 @@ def _agents(arg: str, class_default: Any) -> dict[str, Any]:
 _ALG = Section(
     {
         "ALGORITHM": Choice("SAC", "training algorithm (SAC: SACAgent, REDQSAC: REDQSACAgent, DROQ: DroQAgent, "
-                            "TQC: TQCAgent)", ALGORITHMS),
+                            "TQC: TQCAgent, CROSSQ: CrossQAgent)", ALGORITHMS),
         "LEARN_ENTROPY_COEF": Bool(False, "learn the entropy coefficient (SAC v2) instead of keeping ALPHA fixed",
                                    **_agents("learn_entropy_coef", True)),
         "LR_ACTOR": Number(1e-05, "learning rate of the actor", min=0, min_open=True, **_agents("lr_actor", 1e-3)),
@@ -608,6 +609,16 @@ _ALG = Section(
                              class_default=25),
         "TQC_DROP_PER_CRITIC": Int(2, "largest target quantiles dropped per TQC critic (below TQC_QUANTILES)", min=0,
                                    feeds=("TQCAgent.drop_per_critic",), class_default=2),
+        "CROSSQ_POLICY_DELAY": Int(3, "CrossQ critic updates for each actor update", min=1,
+                                   feeds=("CrossQAgent.policy_delay",), class_default=3),
+        "CROSSQ_CRITIC_WIDTH": Int(1024, "width of the two hidden layers of each CrossQ critic (the paper: 2048, "
+                                         "for a GPU)", min=1, feeds=("CrossQAgent.critic_width",), class_default=1024),
+        "CROSSQ_BN_MOMENTUM": Number(0.01, "momentum of the CrossQ critics' batch normalisation (weight of each "
+                                           "batch in the running statistics)", min=0, max=1, min_open=True,
+                                    feeds=("CrossQAgent.bn_momentum",), class_default=0.01),
+        "CROSSQ_RENORM_WARMUP_STEPS": Int(100000, "CrossQ critic updates of plain batch normalisation before batch "
+                                                  "renormalisation", min=0,
+                                          feeds=("CrossQAgent.renorm_warmup_steps",), class_default=100000),
         "OPTIMIZER_ACTOR": Choice("adam", "optimizer of the actor", OPTIMIZERS, **_agents("optimizer_actor", "adam")),
         "OPTIMIZER_CRITIC": Choice("adam", "optimizer of the critic(s)", OPTIMIZERS,
                                    **_agents("optimizer_critic", "adam")),
@@ -726,6 +737,38 @@ SCHEMA = Section(
                                                 "would exceed it is closed", min=64 * _MIB),
         "SERVER_PARTIAL_TIMEOUT": Number(60.0, "seconds the server waits for the next part of a half-received "
                                                "message before it drops it and closes the connection", min=1),
+        "TRANSPORT": Choice("tlspyo", 'how samples and weights cross the network: "tlspyo" (tmrl\'s relay) or '
+                                      '"nats" (NATS JetStream, pip install "tmrl[nats]"; see the Scale-out page)',
+                            ("tlspyo", "nats")),
+        "NATS": Section(
+            {
+                "URLS": Str("", "comma-separated URLs of an existing NATS cluster (nats://host:4222,...); empty: "
+                                "the server (--server) starts and supervises a local nats-server on PORT"),
+                "STREAM": Str("tmrl-samples", "JetStream stream of the sample batches", nonempty=True,
+                              forbid=".*>/\\"),
+                "BUCKET": Str("tmrl-weights", "object-store and key-value bucket of the weights", nonempty=True,
+                              forbid=".*>/\\"),
+                "MAX_BYTES": Int(1024 * _MIB, "bound of the samples stream in bytes: beyond it the oldest batches "
+                                              "are discarded (the trainer counts them)", min=_MIB),
+                "MAX_MSGS": Int(100000, "bound of the samples stream in batches: beyond it the oldest are "
+                                        "discarded (the trainer counts them)", min=1),
+                "MAX_PAYLOAD": Int(8 * _MIB, "largest message the local nats-server accepts, in bytes (a sample "
+                                             "batch must fit)", min=_MIB, max=64 * _MIB),
+                "REPLICAS": Int(1, "copies of the stream and buckets in a NATS cluster (3 on a three-node "
+                                   "cluster survives the loss of one node; 1 for a single server)", min=1, max=5),
+                "TLS": Choice("auto", 'TLS to the NATS server: "auto" (on when TLS is true or the server is on '
+                                      'another machine), "on" or "off"', ("auto", "on", "off")),
+                "WORKER_CREDENTIALS": Str("", "a worker's NATS credentials file (worker.json from --install); "
+                                              "empty: nats/worker.json in the credentials folder when it exists, "
+                                              "else derived from PASSWORD"),
+                "TRAINER_CREDENTIALS": Str("", "the trainer's NATS credentials file (trainer.json from --install); "
+                                               "empty: nats/trainer.json in the credentials folder when it exists, "
+                                               "else derived from PASSWORD"),
+                "STORE_DIRECTORY": Str("", "folder of the local nats-server's JetStream store (empty: nats/ in "
+                                           "the data folder)"),
+            },
+            "the NATS JetStream transport (TRANSPORT \"nats\"; see docs/scale-out.md)",
+        ),
         "WANDB_PROJECT": Str("tmrl", "wandb project of --trainer --wandb"),
         "WANDB_ENTITY": Str("tmrl", "wandb entity (user or team) of --trainer --wandb"),
         "WANDB_KEY": Str("YourWandbApiKey", "wandb API key of --trainer --wandb"),
@@ -944,6 +987,10 @@ _SIM_TRAINING: dict[str, Any] = {
     "MEMORY_SIZE": 200000,
     # The fast simulator runs far faster than the trainer: keep three samples per update at most.
     "MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP": 3.0,
+    # In real time (SIM_FAST_MODE false) the clock sets the pace and the trainer, otherwise idle, does
+    # up to 4 updates per sample: SAC laps in fewer environment steps so (bench/track_learning.py).
+    # In fast mode the line above binds first and this one changes nothing.
+    "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 4.0,
 }
 _SIM_RTGYM: dict[str, Any] = {
     "time_step_duration": 0.05,

@@ -11,7 +11,7 @@ from here.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +51,9 @@ class NetSettings:
         wandb_entity: Weights & Biases entity, a user or team (``WANDB_ENTITY``).
         wandb_key: Weights & Biases API key (``WANDB_KEY``).
         wandb_run_id: Weights & Biases run id (``RUN_NAME``).
+        transport: the transport backend, a key of :data:`tmrl.transport.BACKENDS` (``TRANSPORT``).
+        nats: the ``NATS`` section (used when ``transport`` is ``"nats"``).
+        data_folder: the data folder (the NATS server's store lies under it by default).
     """
 
     port: int
@@ -78,6 +81,9 @@ class NetSettings:
     wandb_entity: str
     wandb_key: str
     wandb_run_id: str
+    transport: str = "tlspyo"
+    nats: Mapping[str, Any] = field(default_factory=dict)
+    data_folder: Path | None = None
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], folder: Any = None) -> NetSettings:
@@ -118,6 +124,9 @@ class NetSettings:
             wandb_entity=cfg["WANDB_ENTITY"],
             wandb_key=cfg["WANDB_KEY"],
             wandb_run_id=cfg["RUN_NAME"],
+            transport=cfg["TRANSPORT"],
+            nats=dict(cfg["NATS"]),
+            data_folder=paths.root,
         )
 
     @classmethod
@@ -140,6 +149,32 @@ class NetSettings:
             "allow_pickle": self.allow_pickle,
             "max_frame_bytes": self.max_frame_bytes,
         }
+
+    def transport_options(self, role: str) -> dict[str, Any]:
+        """The options only the chosen transport takes, for ``role`` (``"relay"``, ``"worker"`` or
+        ``"trainer"``): none for tlspyo; the ``NATS`` section's for nats."""
+        if self.transport != "nats":
+            return {}
+        n = self.nats
+        opts: dict[str, Any] = {
+            "urls": n["URLS"],
+            "tls": n["TLS"],
+            "stream": n["STREAM"],
+            "bucket": n["BUCKET"],
+            "max_bytes": int(n["MAX_BYTES"]),
+            "max_msgs": int(n["MAX_MSGS"]),
+            "replicas": int(n["REPLICAS"]),
+        }
+        if role == "relay":
+            store = str(n["STORE_DIRECTORY"]).strip()
+            root = self.data_folder if self.data_folder is not None else Path(".")
+            opts["store_dir"] = Path(store).expanduser() if store else root / "nats"
+            opts["max_payload"] = int(n["MAX_PAYLOAD"])
+        else:
+            creds = str(n[f"{role.upper()}_CREDENTIALS"]).strip()
+            if creds:
+                opts["credentials"] = Path(creds).expanduser()
+        return opts
 
     def relay_options(self) -> dict[str, Any]:
         """The relay's memory bounds."""

