@@ -1,7 +1,7 @@
 """DroQ (tmrl/algorithms/droq.py) and TQC (tmrl/algorithms/tqc.py): one update against a step
 written here from each paper's equations (plain SGD, tiny networks, target critics moved away
 from the online ones), learning on probe problems, checkpoint round trips, determinism, and
-their selection through the config."""
+their selection through the config (the lidar models: tests/test_driving_models.py)."""
 
 from __future__ import annotations
 
@@ -470,10 +470,15 @@ def test_tqc_is_selected_through_the_config(config_objects):
 
 
 @pytest.mark.parametrize("algo", ["DROQ", "TQC"])
-def test_driving_interfaces_refuse_droq_and_tqc_in_one_line(config_objects, algo):
-    with pytest.raises(ConfigError, match="GYM and DRONE interfaces only") as err:
-        config_objects({"ENV": {"RTGYM_INTERFACE": "SIMLIDAR"}, "ALG": {"ALGORITHM": algo}})
+def test_image_interfaces_refuse_droq_and_tqc_in_one_line_lidar_ones_take_them(config_objects, algo):
+    from tmrl.driving.models import LIDAR_MODELS
+
+    with pytest.raises(ConfigError, match="has no image model") as err:
+        config_objects({"ENV": {"RTGYM_INTERFACE": "SIMFULL"}, "ALG": {"ALGORITHM": algo}})
     assert "\n" not in str(err.value)
+    # tests/test_driving_models.py trains them on the lidar interfaces
+    assert config_objects({"ENV": {"RTGYM_INTERFACE": "SIMLIDAR"}, "ALG": {"ALGORITHM": algo}}).TRAIN_MODEL is \
+        LIDAR_MODELS[algo]
 
 
 def test_the_table_registry_and_signatures_agree_for_droq_and_tqc():

@@ -1,5 +1,7 @@
 """Tests of tmrl.driving.models: the CNN actor-critic on full-observation batches (shapes from
-the space, sizes from arguments, a SAC update, weights round trip) and the lidar MLP wiring."""
+the space, sizes from arguments, a SAC update, weights round trip), the lidar MLP wiring, and the
+lidar models of DroQ, TQC and CrossQ (scaling, selection through the config, training on simulator
+samples, the workers loading their actor)."""
 
 from __future__ import annotations
 
@@ -9,6 +11,8 @@ import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
+from test_config_objects import SMALL as SIM_SMALL
+from test_config_objects import FakeInterface, fresh_objects  # noqa: F401 (fresh_objects: a fixture)
 
 from tmrl.driving.models import CNNActorCritic, ImageEncoder, REDQCNNActorCritic, lidar_actor_critic
 from tmrl.errors import UserError
@@ -177,3 +181,118 @@ def test_critics_read_the_images_once_for_both_losses_with_the_same_result(algo)
         assert torch.allclose(p1, p2, atol=1e-6)
     for s1, s2 in zip(stats_shared, stats_generic):
         assert torch.allclose(s1["loss_actor"], s2["loss_actor"]) and torch.allclose(s1["loss_critic"], s2["loss_critic"])
+
+
+# --- the lidar models of DroQ, TQC and CrossQ ---------------------------------------------------
+
+LIDAR_ALGOS = ["DROQ", "TQC", "CROSSQ"]
+SMALL_MODELS = {"DROQ": {}, "TQC": {"n": 2, "n_quantiles": 5, "critic_hidden_sizes": (32, 32)},
+                "CROSSQ": {"critic_hidden_sizes": (32, 32)}}
+
+
+def lidar_space() -> spaces.Tuple:
+    return spaces.Tuple([spaces.Box(0, 1000, (1,)), spaces.Box(0, 1, (1,)), spaces.Box(0, np.inf, (76,)), ACT, ACT])
+
+
+@pytest.mark.parametrize("algo", LIDAR_ALGOS)
+def test_lidar_models_scale_like_the_lidar_actor_critic_and_share_the_workers_actor(algo):
+    from tmrl.algorithms.crossq import CrossQActorCritic
+    from tmrl.algorithms.droq import DroQMLPActorCritic
+    from tmrl.algorithms.tqc import TQCActorCritic
+    from tmrl.config import schema
+    from tmrl.driving.models import LIDAR_MODELS, LidarActor, LidarActorCritic, lidar_model_cls
+
+    assert set(LIDAR_MODELS) == set(schema.ALGORITHMS) and LIDAR_MODELS["REDQSAC"] is LidarActorCritic
+    assert lidar_model_cls(algo.lower()) is LIDAR_MODELS[algo]
+    torch.manual_seed(0)
+    space = lidar_space()
+    model = lidar_model_cls(algo)(space, ACT, hidden_sizes=(32, 32), **SMALL_MODELS[algo])
+    assert type(model.actor) is LidarActor
+    plain = {"DROQ": DroQMLPActorCritic, "TQC": TQCActorCritic, "CROSSQ": CrossQActorCritic}[algo](
+        space, ACT, hidden_sizes=(32, 32), **SMALL_MODELS[algo])
+    # the same weights without the scaling, fed pre-scaled inputs: same actions and Q values
+    plain.load_state_dict({k.replace(".critic.", "."): v for k, v in model.state_dict().items()})
+    model.eval()  # no dropout, running statistics: deterministic critics
+    plain.eval()
+    obs = (torch.rand(4, 1) * 300, torch.rand(4, 1), torch.rand(4, 76) * 400, torch.rand(4, 3), torch.rand(4, 3))
+    pre = (obs[0] * 0.01, obs[1], obs[2] * 0.01, obs[3], obs[4])
+    a, _ = model.actor(obs, test=True)
+    assert torch.allclose(plain.actor(pre, test=True)[0], a, atol=1e-6)
+    for q, q_plain in zip(model.qs, plain.qs):
+        assert torch.allclose(q(obs, a), q_plain(pre, a), atol=1e-5)
+    # The workers' policy class loads the trained actor's weights.
+    worker_actor = LidarActor(space, ACT, hidden_sizes=(32, 32))
+    worker_actor.load_state_dict(model.actor.state_dict())
+    assert torch.allclose(worker_actor(obs, test=True)[0], a)
+    with pytest.raises(UserError, match="no lidar model"):
+        lidar_model_cls("PPO")
+
+
+def _lidar_alg_settings(algo: str) -> dict:
+    return {"DROQ": {"DROQ_Q_UPDATES_PER_POLICY_UPDATE": 2},
+            "TQC": {"TQC_N": 2, "TQC_QUANTILES": 5, "TQC_DROP_PER_CRITIC": 1},
+            "CROSSQ": {"CROSSQ_POLICY_DELAY": 2, "CROSSQ_CRITIC_WIDTH": 64, "CROSSQ_RENORM_WARMUP_STEPS": 2}}[algo]
+
+
+@pytest.mark.parametrize("algo, iface", [("DROQ", "SIMLIDAR"), ("TQC", "SIMLIDAR"), ("CROSSQ", "SIMLIDAR"),
+                                         ("CROSSQ", "SIMLIDARPROGRESS")])
+def test_agents_train_on_simulator_lidar_samples_and_workers_load_their_actor(
+    algo, iface, fresh_objects, tmp_path,  # noqa: F811 (the imported fixture)
+):
+    from tmrl.algorithms import agent_class
+    from tmrl.driving.models import LIDAR_MODELS, LidarActor
+    from tmrl.networking import RolloutWorker, pack_buffer, unpack_buffer
+
+    torch.manual_seed(0)
+    o = fresh_objects({**SIM_SMALL, "ENV": {"RTGYM_INTERFACE": iface, "RTGYM_CONFIG": {"ep_max_length": 30}},
+                       "ALG": {"ALGORITHM": algo, **_lidar_alg_settings(algo)}})
+    assert o.TRAIN_MODEL is LIDAR_MODELS[algo] and o.POLICY is LidarActor
+    env = o.ENV_CLS()
+    obs, _ = env.reset()
+    worker = RolloutWorker(env_cls=o.ENV_CLS, actor_module_cls=o.POLICY, sample_compressor=o.SAMPLE_COMPRESSOR,
+                           obs_preprocessor=o.OBS_PREPROCESSOR, standalone=True, model_path=str(tmp_path / "w.tmod"),
+                           model_history=0)
+    try:
+        worker.collect_train_episode()
+        worker.collect_train_episode()
+        buffer = unpack_buffer(pack_buffer(worker.buffer, worker.source_id, 0))  # the network's format
+        training = o.TRAINER(sleep_between_buffer_retrieval_attempts=0.0)
+        training.max_wait_s = 60.0
+        agent = training.agent
+        assert type(agent) is agent_class(algo) and type(agent.model) is LIDAR_MODELS[algo]
+        interface = FakeInterface(buffer)
+        before = {k: v.clone() for k, v in agent.get_actor().state_dict().items()}
+        stats = training.run_epoch(interface)
+        assert training.total_updates == 5 and np.isfinite(stats[-1]["loss_critic"])
+        assert agent.skipped_updates == 0
+        # The memory's batches are what the agent trained on: the actor moved, the worker loads it.
+        assert any(not torch.equal(before[k], v) for k, v in interface.broadcasts[-1].items())
+        worker.actor.load_state_dict(interface.broadcasts[-1])
+        assert worker.env.action_space.contains(np.asarray(worker.act(o.OBS_PREPROCESSOR(obs)), np.float32))
+    finally:
+        worker.close()
+        env.close()
+
+
+@pytest.mark.parametrize("algo", LIDAR_ALGOS)
+@pytest.mark.parametrize("iface", ["TM20LIDAR", "TM20LIDARPROGRESS"])
+def test_trackmania_lidar_interfaces_pick_the_algorithms_lidar_model(
+    algo, iface, fresh_objects,  # noqa: F811 (the imported fixture)
+):
+    from tmrl.driving.models import LIDAR_MODELS, LidarActor
+
+    o = fresh_objects({"ENV": {"RTGYM_INTERFACE": iface}, "ALG": {"ALGORITHM": algo}})
+    assert o.TRAIN_MODEL is LIDAR_MODELS[algo] and o.POLICY is LidarActor and o.AGENT.keywords["model_cls"] is \
+        LIDAR_MODELS[algo]
+
+
+@pytest.mark.parametrize("algo", LIDAR_ALGOS)
+@pytest.mark.parametrize("iface", ["SIMFULL", "TM20FULL"])
+def test_image_interfaces_refuse_the_mlp_only_algorithms_in_one_line(
+    algo, iface, fresh_objects,  # noqa: F811 (the imported fixture)
+):
+    from tmrl.config.loader import ConfigError
+
+    with pytest.raises(ConfigError, match=f"ALG.ALGORITHM {algo} has no image model") as err:
+        fresh_objects({"ENV": {"RTGYM_INTERFACE": iface}, "ALG": {"ALGORITHM": algo}})
+    assert "\n" not in str(err.value) and "SIMLIDAR" in str(err.value)

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from tmrl.algorithms import ALGORITHMS, DroQAgent, REDQSACAgent, SACAgent, TQCAgent
+from tmrl.algorithms import ALGORITHMS, CrossQAgent, DroQAgent, REDQSACAgent, SACAgent, TQCAgent
 from tmrl.algorithms.sac import _OPTIMIZERS
 from tmrl.config import schema
 from tmrl.config.settings import NetSettings
@@ -22,8 +22,8 @@ from tmrl.training_offline import TorchTrainingOffline
 
 CLASSES = {
     cls.__name__: cls
-    for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, TorchTrainingOffline, GenericTorchMemory, Server, Trainer,
-                RolloutWorker, Buffer)
+    for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, CrossQAgent, TorchTrainingOffline, GenericTorchMemory,
+                Server, Trainer, RolloutWorker, Buffer)
 }
 
 

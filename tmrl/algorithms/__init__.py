@@ -1,5 +1,6 @@
 """Training algorithms: SAC (:mod:`tmrl.algorithms.sac`), REDQ-SAC (:mod:`tmrl.algorithms.redq`),
-DroQ (:mod:`tmrl.algorithms.droq`) and TQC (:mod:`tmrl.algorithms.tqc`).
+DroQ (:mod:`tmrl.algorithms.droq`), TQC (:mod:`tmrl.algorithms.tqc`) and CrossQ
+(:mod:`tmrl.algorithms.crossq`).
 
 ``ALG.ALGORITHM`` in ``config.json`` names one of them; :func:`agent_class` maps that name to
 the class.
@@ -7,6 +8,7 @@ the class.
 
 from __future__ import annotations
 
+from tmrl.algorithms.crossq import CrossQAgent
 from tmrl.algorithms.droq import DroQAgent
 from tmrl.algorithms.redq import REDQSACAgent
 from tmrl.algorithms.sac import SACAgent, SpinupSacAgent
@@ -14,9 +16,11 @@ from tmrl.algorithms.tqc import TQCAgent
 from tmrl.config.schema import AGENT_CLASSES
 from tmrl.errors import UserError
 
-__all__ = ["ALGORITHMS", "DroQAgent", "REDQSACAgent", "SACAgent", "SpinupSacAgent", "TQCAgent", "agent_class"]
+__all__ = [
+    "ALGORITHMS", "CrossQAgent", "DroQAgent", "REDQSACAgent", "SACAgent", "SpinupSacAgent", "TQCAgent", "agent_class",
+]
 
-_CLASSES = {cls.__name__: cls for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent)}
+_CLASSES = {cls.__name__: cls for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, CrossQAgent)}
 ALGORITHMS: dict[str, type] = {name: _CLASSES[cls_name] for name, cls_name in AGENT_CLASSES.items()}
 """Values of ``ALG.ALGORITHM`` and the agents they select (the names come from the settings
 table, :data:`tmrl.config.schema.AGENT_CLASSES`)."""
@@ -26,12 +30,13 @@ def agent_class(name: str) -> type:
     """The training agent class for a config's ``ALG.ALGORITHM``.
 
     Args:
-        name: ``"SAC"``, ``"REDQSAC"``, ``"DROQ"`` or ``"TQC"``; case, ``-`` and ``_`` are ignored
+        name: ``"SAC"``, ``"REDQSAC"``, ``"DROQ"``, ``"TQC"`` or ``"CROSSQ"``; case, ``-`` and ``_`` are ignored
             (``"redq-sac"`` works).
 
     Returns:
         The class: :class:`~tmrl.algorithms.sac.SACAgent`, :class:`~tmrl.algorithms.redq.REDQSACAgent`,
-        :class:`~tmrl.algorithms.droq.DroQAgent` or :class:`~tmrl.algorithms.tqc.TQCAgent`.
+        :class:`~tmrl.algorithms.droq.DroQAgent`, :class:`~tmrl.algorithms.tqc.TQCAgent` or
+        :class:`~tmrl.algorithms.crossq.CrossQAgent`.
 
     Raises:
         UserError: unknown algorithm name.

@@ -36,6 +36,10 @@ optimizers, non-finite guard and Polyak averaging; it never takes the fused SAC 
 256 on one CPU thread of this project's machine (SAC's autograd update: 11 ms), of which the
 quantile loss over ``N x B x M x kN`` pairs is about 20-35 ms; on a CPU, smaller critics
 (``critic_hidden_sizes``) or fewer of them are the lever.
+
+Lidar observations (the ``SIMLIDAR*`` and ``TM20LIDAR*`` interfaces): :class:`tmrl.driving.models.LidarTQCActorCritic`,
+this model with the lidar input scaling and :class:`~tmrl.driving.models.LidarActor` as the actor
+(``tmrl.driving.models.LIDAR_MODELS``). There is no image model.
 """
 
 from __future__ import annotations

@@ -71,6 +71,7 @@ __all__ = [
 _SIM = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
 _TM = ("TM20FULL", "TM20LIDAR", "TM20LIDARPROGRESS")
 _SUPPORTED = ("GYM", "DRONE", *_SIM, *_TM)
+_IMAGE = ("SIMFULL", "TM20FULL")
 
 
 def _module(name: str) -> Any:
@@ -275,14 +276,18 @@ else:  # the driving interfaces: simulator (SIM*) and TrackMania (TM20*) share t
     OBS_PREPROCESSOR = _parts["obs_preprocessor"]
     SAMPLE_COMPRESSOR = _parts["sample_compressor"]
     POLICY = _parts["actor_cls"]
-    if ALG_NAME in ("DROQ", "TQC"):
-        # Their critics (dropout Q-functions, quantile critics) exist as MLPs only, while the driving
-        # pipelines' actors scale (lidar) or encode (images) their observations.
+    if ALG_NAME in ("SAC", "REDQSAC"):
+        TRAIN_MODEL = _parts["model_cls"]  # REDQ passes its number of critics (n) itself
+    elif cfg.RTGYM_INTERFACE in _IMAGE:
+        # Their critics (dropout, quantile, batch-normalised) exist as MLPs only: none reads images.
         raise ConfigError(
-            f"ALG.ALGORITHM {ALG_NAME} is available with the GYM and DRONE interfaces only, not with "
-            f"ENV.RTGYM_INTERFACE {cfg.RTGYM_INTERFACE}: use SAC or REDQSAC there"
+            f"ALG.ALGORITHM {ALG_NAME} has no image model, so it does not run with ENV.RTGYM_INTERFACE "
+            f"{cfg.RTGYM_INTERFACE}: use a lidar interface ({', '.join(i for i in (*_SIM, *_TM) if i not in _IMAGE)}) "
+            "or ALG.ALGORITHM SAC or REDQSAC"
         )
-    TRAIN_MODEL = _parts["model_cls"]  # REDQ passes its number of critics (n) itself
+    else:
+        # The algorithm's MLP actor-critic with the lidar scaling; its actor is the workers' LidarActor.
+        TRAIN_MODEL = _attr("tmrl.driving.models", "lidar_model_cls")(ALG_NAME)
     MEMORY = partial(
         _parts["memory_cls"],
         hist_len=cfg.IMG_HIST_LEN,

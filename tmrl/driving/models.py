@@ -13,7 +13,9 @@ Lidar observations are flat vectors once preprocessed. :class:`LidarActorCritic`
 actor-critic with one change: speed (km/h) and lidar distances (pixels) are multiplied by 0.01
 inside the networks, so that every input is of order one (raw lidar values reach 400, which slows
 SAC down several times over on the simulator). Observations, samples and memories keep the
-original units.
+original units. The other algorithms' lidar models (:data:`LIDAR_MODELS`: DroQ, TQC, CrossQ) are
+their MLP actor-critics with the same scaling: :class:`LidarActor` as the actor, each critic
+wrapped in a :class:`ScaledCritic`.
 """
 
 from __future__ import annotations
@@ -28,6 +30,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from tmrl.actor import TorchActorModule
+from tmrl.algorithms.crossq import CrossQActorCritic
+from tmrl.algorithms.droq import DroQMLPActorCritic
+from tmrl.algorithms.tqc import TQCActorCritic
 from tmrl.errors import UserError
 from tmrl.models import (
     LOG_STD_MAX,
@@ -41,17 +46,23 @@ from tmrl.models import (
 
 __all__ = [
     "DEFAULT_CNN",
+    "LIDAR_MODELS",
     "CNNActorCritic",
     "CNNQFunction",
     "ImageEncoder",
     "LidarActor",
     "LidarActorCritic",
+    "LidarCrossQActorCritic",
+    "LidarDroQActorCritic",
     "LidarQFunctions",
+    "LidarTQCActorCritic",
     "REDQCNNActorCritic",
+    "ScaledCritic",
     "SquashedGaussianCNNActor",
     "VanillaCNN",
     "conv2d_out_dims",
     "lidar_actor_critic",
+    "lidar_model_cls",
     "lidar_obs_scales",
     "num_flat_features",
 ]
@@ -541,3 +552,110 @@ def lidar_actor_critic(observation_space: Any, action_space: Any, hidden_sizes: 
         activation: activation class.
     """
     return LidarActorCritic(observation_space, action_space, hidden_sizes=hidden_sizes, activation=activation, n=n)
+
+
+# --- the lidar models of DroQ, TQC and CrossQ ---------------------------------------------------
+
+
+class ScaledCritic(nn.Module):
+    """A critic ``Q(obs, act)`` that reads observations scaled per element (as
+    :class:`LidarActor` does) and is otherwise ``critic`` itself.
+
+    Args:
+        critic: any module called as ``critic(obs, act)``.
+        obs_scales: one input scale per observation element.
+    """
+
+    def __init__(self, critic: nn.Module, obs_scales: Sequence[float]) -> None:
+        super().__init__()
+        self.critic = critic
+        self.obs_scales = tuple(float(s) for s in obs_scales)
+
+    def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
+        """``critic(scaled obs, act)``.
+
+        Args:
+            obs: a batched observation, in the environment's units.
+            act: actions ``(B, act_dim)``.
+        """
+        return self.critic(_scaled(obs, self.obs_scales), act)
+
+
+def _wire_lidar(model: nn.Module, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int],
+                activation: Callable[[], nn.Module]) -> None:
+    """Give an MLP actor-critic with a ``ModuleList`` of critics (``.qs``) the lidar scaling: its
+    actor becomes a :class:`LidarActor` of the same sizes (same parameter names: the workers'
+    policy loads its weights), each critic reads scaled observations."""
+    scales = lidar_obs_scales(observation_space)
+    model.actor = LidarActor(observation_space, action_space, hidden_sizes, activation, obs_scales=scales)
+    model.qs = nn.ModuleList(ScaledCritic(q, scales) for q in model.qs)  # type: ignore[union-attr]
+
+
+class LidarDroQActorCritic(DroQMLPActorCritic):
+    """DroQ's actor-critic (:class:`~tmrl.algorithms.droq.DroQMLPActorCritic`) for lidar
+    observations: :class:`LidarActor` and dropout critics on inputs scaled by
+    :func:`lidar_obs_scales`. Arguments as :class:`~tmrl.algorithms.droq.DroQMLPActorCritic`'s.
+    """
+
+    def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
+                 activation: Callable[[], nn.Module] = nn.ReLU, n: int = 2, dropout_rate: float = 0.01) -> None:
+        super().__init__(observation_space, action_space, hidden_sizes, activation, n=n, dropout_rate=dropout_rate)
+        _wire_lidar(self, observation_space, action_space, hidden_sizes, activation)
+
+
+class LidarTQCActorCritic(TQCActorCritic):
+    """TQC's actor-critic (:class:`~tmrl.algorithms.tqc.TQCActorCritic`) for lidar observations:
+    :class:`LidarActor` and quantile critics on inputs scaled by :func:`lidar_obs_scales`.
+    Arguments as :class:`~tmrl.algorithms.tqc.TQCActorCritic`'s.
+    """
+
+    def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
+                 activation: Callable[[], nn.Module] = nn.ReLU, n: int = 5, n_quantiles: int = 25,
+                 critic_hidden_sizes: Sequence[int] = (512, 512, 512)) -> None:
+        super().__init__(observation_space, action_space, hidden_sizes, activation, n=n, n_quantiles=n_quantiles,
+                         critic_hidden_sizes=critic_hidden_sizes)
+        _wire_lidar(self, observation_space, action_space, hidden_sizes, activation)
+
+
+class LidarCrossQActorCritic(CrossQActorCritic):
+    """CrossQ's actor-critic (:class:`~tmrl.algorithms.crossq.CrossQActorCritic`) for lidar
+    observations: :class:`LidarActor` and batch-normalised critics on inputs scaled by
+    :func:`lidar_obs_scales`. Arguments as :class:`~tmrl.algorithms.crossq.CrossQActorCritic`'s.
+    """
+
+    def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
+                 activation: Callable[[], nn.Module] = nn.ReLU, n: int = 2,
+                 critic_hidden_sizes: Sequence[int] = (1024, 1024), bn_momentum: float = 0.01,
+                 renorm_warmup_steps: int = 100_000) -> None:
+        super().__init__(observation_space, action_space, hidden_sizes, activation, n=n,
+                         critic_hidden_sizes=critic_hidden_sizes, bn_momentum=bn_momentum,
+                         renorm_warmup_steps=renorm_warmup_steps)
+        _wire_lidar(self, observation_space, action_space, hidden_sizes, activation)
+
+
+LIDAR_MODELS: dict[str, type] = {
+    "SAC": LidarActorCritic,
+    "REDQSAC": LidarActorCritic,
+    "DROQ": LidarDroQActorCritic,
+    "TQC": LidarTQCActorCritic,
+    "CROSSQ": LidarCrossQActorCritic,
+}
+"""The actor-critic each ``ALG.ALGORITHM`` trains on the lidar interfaces (``SIMLIDAR``,
+``SIMLIDARPROGRESS``, ``TM20LIDAR``, ``TM20LIDARPROGRESS``); the actor of each is a
+:class:`LidarActor`, the policy the workers run. The agent passes its own model arguments (REDQ's
+``n``, DroQ's ``dropout_rate``, TQC's ``n`` and ``n_quantiles``, CrossQ's critic sizes)."""
+
+
+def lidar_model_cls(algorithm: str) -> type:
+    """The lidar actor-critic of an algorithm (:data:`LIDAR_MODELS`).
+
+    Args:
+        algorithm: an ``ALG.ALGORITHM`` value; case, ``-`` and ``_`` are ignored (``"redq-sac"``).
+
+    Raises:
+        UserError: unknown algorithm.
+    """
+    key = str(algorithm).upper().replace("-", "").replace("_", "")
+    if key not in LIDAR_MODELS:
+        raise UserError(f"no lidar model for algorithm {algorithm!r}: use one of {', '.join(LIDAR_MODELS)}")
+    return LIDAR_MODELS[key]
