@@ -8,7 +8,8 @@ allows (nothing is registered unless this package is imported)::
     env = gymnasium.make("tmrl.sim:tmrl/SimLidar-v0")          # or SimLidarProgress-v0, SimFull-v0
     env = gymnasium.make("tmrl.sim:tmrl/SimLidar-v0", track="technical", img_hist_len=1)
 
-The submodules: :mod:`.track`, :mod:`.car`, :mod:`.render`, :mod:`.race`, :mod:`.interfaces`.
+The submodules: :mod:`.track`, :mod:`.car`, :mod:`.render`, :mod:`.race`, :mod:`.interfaces`,
+:mod:`.reference` (each track's physical limit and reference lap time).
 """
 
 from __future__ import annotations
