@@ -162,6 +162,10 @@ def test_shipped_sim_configs_learn_like_the_demo():
         assert (alg["LR_ACTOR"], alg["LR_CRITIC"], alg["GAMMA"], alg["ALPHA"], alg["LEARN_ENTROPY_COEF"]) == \
             (DEMO_SETTINGS["lr"], DEMO_SETTINGS["lr"], DEMO_SETTINGS["gamma"], DEMO_SETTINGS["alpha"], True)
         assert (cfg["BATCH_SIZE"], cfg["MEMORY_SIZE"]) == (DEMO_SETTINGS["batch_size"], DEMO_SETTINGS["memory_size"])
+        assert alg["ALGORITHM"] == DEMO_SETTINGS["algorithm"]
+        # the demo's pace in fast mode, its update-to-data ratio in real time
+        assert (cfg["MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP"], cfg["MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP"]) == \
+            (DEMO_SETTINGS["max_env_steps_per_training_step"], DEMO_SETTINGS["realtime_max_training_steps_per_env_step"])
         assert cfg["LOCALHOST_WORKER"] and cfg["LOCALHOST_TRAINER"]
 
 

@@ -520,3 +520,79 @@ def test_demo_refuses_budgets_that_make_no_sense(tmp_path, monkeypatch, args, ex
         demo.main(args)
     assert str(err.value) == expected
     assert list(tmp_path.iterdir()) == []  # nothing was created
+
+
+@pytest.mark.parametrize("realtime", [False, True])
+@pytest.mark.parametrize("algorithm", ["SAC", "DROQ"])
+def test_demo_trains_the_chosen_agent_and_spends_the_idle_real_time_trainer(tmp_path, algorithm, realtime):
+    import json
+
+    from tmrl.algorithms import agent_class
+    from tmrl.driving.models import lidar_model_cls
+    from tmrl.sim import demo
+
+    saved = dict(demo.DEMO_SETTINGS)
+    try:
+        demo.DEMO_SETTINGS["algorithm"] = algorithm
+        training = demo._training_cls("SIMLIDAR", "oval", tmp_path, realtime)
+    finally:
+        demo.DEMO_SETTINGS.clear()
+        demo.DEMO_SETTINGS.update(saved)
+    ratio = training.keywords["max_training_steps_per_env_step"]
+    # real time: the clock sets the pace and the trainer does several updates per sample
+    assert ratio == (saved["realtime_max_training_steps_per_env_step"] if realtime
+                     else saved["max_training_steps_per_env_step"])
+    assert saved["realtime_max_training_steps_per_env_step"] > saved["max_training_steps_per_env_step"]
+    env = demo._make_env("SIMLIDAR", "oval")
+    agent = training.keywords["training_agent_cls"](env.observation_space, env.action_space, "cpu")
+    assert isinstance(agent, agent_class(algorithm)) and isinstance(agent.model, lidar_model_cls(algorithm))
+    memory = training.keywords["memory_cls"](device="cpu", nb_steps=1, batch_size=8)
+    parts = demo._parts("SIMLIDAR")
+    from tmrl.networking import RolloutWorker
+
+    worker = RolloutWorker(env_cls=lambda: demo._make_env("SIMLIDAR", "oval"), actor_module_cls=parts["actor_cls"],
+                           sample_compressor=parts["sample_compressor"], obs_preprocessor=parts["obs_preprocessor"],
+                           standalone=True, max_samples_per_episode=300, model_path=str(tmp_path / "w.tmod"))
+    worker.collect_train_episode(300)
+    memory.append(worker.buffer)
+    agent.train(memory.sample())
+    assert json.loads((tmp_path / "trainer.json").read_text())["updates"] >= 1
+
+
+def test_demo_refuses_an_agent_without_an_image_model(tmp_path, monkeypatch):
+    from tmrl.sim import demo
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(UserError, match="--algorithm DROQ trains on lidar observations only"):
+        demo.main(["--interface", "SIMFULL", "--algorithm", "droq"])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_demo_roles_stop_on_sigint_even_when_started_with_sigint_ignored(tmp_path):
+    # `nohup python -m tmrl --demo &` starts the demo with SIGINT ignored, which its roles inherit;
+    # the parent stops them with SIGINT, so they must listen to it anyway.
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    from tmrl.sim import demo
+
+    port = demo._free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tmrl.sim.demo", "--role", "server", "--interface", "SIMLIDAR", "--track", "oval",
+         "--workdir", str(tmp_path), "--port", str(port)],
+        env=dict(os.environ, TMRL_DEMO_PASSWORD="x" * 16, TMRL_DATA=str(tmp_path / "data")),
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    try:
+        demo._wait_listening(port, 60.0, proc)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    with socket.socket() as s:  # the port is free again
+        s.bind(("127.0.0.1", port))

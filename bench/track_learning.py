@@ -1,0 +1,416 @@
+"""Learning in environment steps: how many simulator steps each agent needs to complete a lap,
+on the built-in tracks, with the simulator's lidar observations in fast mode (and Pendulum-v1).
+
+    python -m bench track_learning                 # every agent, oval/classic/technical, 5 seeds
+    python -m bench track_learning --quick         # a CI-sized check (one seed, one track, short)
+    python -m bench track_learning --agents SAC,DROQ --tracks classic --seeds 3 --jobs 2
+
+In real time an environment step costs 50 ms of somebody's afternoon whatever the computer, so
+the figure that matters is steps, not updates per second. Each run is a fresh process with one
+torch thread (``--jobs`` of them at once): a plain synchronous loop (one environment step, then
+``UTD`` updates once the memory holds ``--start-steps`` samples), the samples going through a
+standalone :class:`tmrl.networking.RolloutWorker` (the simulator's preprocessor and compressor)
+into the trainer's replay memory every ``--append-every`` steps. Every ``--eval-every`` steps one
+deterministic test episode is driven (not counted as training steps).
+
+Printed per track and agent (median, min and max over the seeds): environment steps to the first
+completed lap (training or test episode; "-" where a seed never lapped: then the median counts it
+as not reached), steps to a lap within 10 % of the best lap any agent reached on that track, the
+best lap time and its ratio to the track's reference lap (:mod:`tmrl.sim.reference`, a driven
+planned lap), and the wall time on this machine. Pendulum (``--pendulum``): steps to a mean test
+return above -200. A PNG of the curves (training episode returns against environment steps,
+median and range over the seeds, one panel per track) goes beside the JSONL record in bench/out/.
+
+Variants (``--agents``): ``SAC-TMRL`` is SAC with tmrl's default ``ALG`` settings (those the
+TrackMania lidar config ships: learning rates 1e-5/5e-5, gamma 0.995, fixed alpha 0.01) at its
+``MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP`` of 4; ``SAC`` is SAC with the demo's settings
+(learning rates 1e-3, learned alpha); ``REDQSAC``, ``DROQ``, ``CROSSQ`` and ``TQC`` use their class
+defaults (their papers'), each with the lidar model of its kind. The update-to-data ratio of each
+variant is in :data:`VARIANTS` (``--utd`` overrides it for all).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+from bench import harness
+
+TRACKS = ("oval", "classic", "technical")
+
+#: label -> (ALG.ALGORITHM, settings source, updates per environment step)
+VARIANTS: dict[str, tuple[str, str, int]] = {
+    "SAC-TMRL": ("SAC", "tmrl", 4),
+    "SAC": ("SAC", "demo", 1),
+    "SAC-UTD4": ("SAC", "demo", 4),
+    "REDQSAC": ("REDQSAC", "class", 4),
+    "DROQ": ("DROQ", "class", 4),
+    "CROSSQ": ("CROSSQ", "class", 1),
+    "TQC": ("TQC", "class", 1),
+}
+
+#: Budgets (environment steps per run) by profile.
+PROFILES: dict[str, dict[str, Any]] = {
+    "full": {"steps": {"oval": 12_000, "classic": 20_000, "technical": 20_000, "pendulum": 6_000},
+             "seeds": 5, "eval_every": 1_000, "settle": 5_000},
+    "quick": {"steps": {"oval": 1_500, "classic": 1_500, "technical": 1_500, "pendulum": 1_000},
+              "seeds": 1, "eval_every": 500, "settle": None},
+}
+
+
+# --- one run (child process) ----------------------------------------------------------------------
+
+
+def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
+    """The agent of variant ``label`` on ``env_name``'s spaces, ``utd`` updates per environment
+    step. REDQ-SAC and DroQ update their policy once per environment step, as in their papers
+    (their ``q_updates_per_policy_update`` is the update-to-data ratio)."""
+    from tmrl.algorithms import agent_class
+    from tmrl.config.schema import AGENT_CLASSES, arguments, defaults
+
+    alg, source, _ = VARIANTS[label]
+    cls = agent_class(alg)
+    kwargs: dict[str, Any] = {}
+    if env_name != "pendulum":
+        kwargs["model_cls"] = _lidar_model(alg)
+    if source == "tmrl":  # tmrl's shipped ALG defaults (the TrackMania lidar config's)
+        kwargs.update(arguments(defaults(), AGENT_CLASSES[alg]))
+    elif source == "demo":
+        from tmrl.sim.demo import DEMO_SETTINGS as S
+
+        kwargs.update(lr_actor=S["lr"], lr_critic=S["lr"], lr_entropy=S["lr"], gamma=S["gamma"],
+                      polyak=S["polyak"], alpha=S["alpha"], learn_entropy_coef=True)
+    if alg in ("REDQSAC", "DROQ"):
+        kwargs["q_updates_per_policy_update"] = utd
+    return cls(*spaces, "cpu", **kwargs)
+
+
+def _lidar_model(alg: str) -> Any:
+    """The lidar actor-critic of agent ``alg`` (:data:`tmrl.driving.models.LIDAR_MODELS`)."""
+    from tmrl.driving.models import lidar_model_cls
+
+    return lidar_model_cls(alg)
+
+
+class _UniformActor:
+    def __init__(self, action_space: Any) -> None:
+        self.action_space = action_space
+
+    def act_(self, obs: Any, test: bool = False) -> Any:
+        return self.action_space.sample()
+
+
+def _parts(env_name: str, batch_size: int) -> dict[str, Any]:
+    from tmrl.util import partial
+
+    if env_name == "pendulum":
+        from tmrl.envs import GenericGymEnv
+        from tmrl.memory import GenericTorchMemory
+        from tmrl.models import SquashedGaussianMLPActor
+
+        return {"env_cls": partial(GenericGymEnv, id="Pendulum-v1"), "actor_cls": SquashedGaussianMLPActor,
+                "memory": GenericTorchMemory(device="cpu", nb_steps=1, memory_size=200_000, batch_size=batch_size),
+                "worker": {}, "max_samples": 200}
+    from tmrl.sim.demo import DEMO_SETTINGS, _demo_config
+    from tmrl.sim.interfaces import fast_env, pipeline_parts
+
+    parts = pipeline_parts("SIMLIDAR")
+    cfg = _demo_config("SIMLIDAR", env_name)
+    memory = parts["memory_cls"](hist_len=DEMO_SETTINGS["img_hist_len"], act_buf_len=DEMO_SETTINGS["act_buf_len"],
+                                 device="cpu", nb_steps=1, memory_size=200_000, batch_size=batch_size)
+    return {"env_cls": partial(fast_env, cfg), "actor_cls": parts["actor_cls"], "memory": memory,
+            "worker": {"obs_preprocessor": parts["obs_preprocessor"], "sample_compressor": parts["sample_compressor"]},
+            "max_samples": DEMO_SETTINGS["ep_max_length"]}
+
+
+def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps: int, eval_every: int,
+        batch_size: int, append_every: int, settle: int | None = None) -> dict[str, Any]:
+    """One learning run: its training episodes (end step, return, lap time or None), its test
+    episodes, and timings. With ``settle``, the run ends that many steps after its first lap
+    (or at ``steps``)."""
+    import numpy as np
+    import torch
+
+    from tmrl.networking import Buffer, RolloutWorker
+
+    torch.set_num_threads(1)
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    p = _parts(env_name, batch_size)
+    memory = p["memory"]
+    worker_kwargs = dict(env_cls=p["env_cls"], actor_module_cls=p["actor_cls"], standalone=True, model_history=0,
+                         max_samples_per_episode=p["max_samples"], model_path=os.devnull + "_none", **p["worker"])
+    worker, tester = RolloutWorker(**worker_kwargs), RolloutWorker(**worker_kwargs)
+    agent = _agent(label, (worker.env.observation_space, worker.env.action_space), env_name, utd)
+    worker.env.action_space.seed(seed)
+    worker.actor, tester.actor = _UniformActor(worker.env.action_space), agent.get_actor()
+    episodes: list[tuple[int, float, float | None]] = []
+    tests: list[tuple[int, float, float | None]] = []
+    updates, t_update = 0, 0.0
+    start = time.perf_counter()
+    obs, _ = worker.reset(collect_samples=True)
+    ep_step, ep_ret = 0, 0.0
+    end = steps
+    for step in range(1, steps + 1):
+        if step > end:
+            break
+        if step == start_steps + 1:
+            worker.actor = agent.get_actor()
+        ep_step += 1
+        obs, rew, terminated, truncated, info = worker.step(obs, test=False, collect_samples=True,
+                                                            last_step=ep_step == p["max_samples"])
+        ep_ret += float(rew)
+        if terminated or truncated:
+            lap = info.get("lap_time") if info.get("lap_completed") else None
+            episodes.append((step, ep_ret, lap))
+            if lap is not None and settle is not None:
+                end = min(end, step + settle)
+            obs, _ = worker.reset(collect_samples=True)
+            ep_step, ep_ret = 0, 0.0
+        if len(worker.buffer) >= append_every:
+            memory.append(worker.buffer)
+            worker.buffer = Buffer()
+        if step > start_steps and len(memory) >= batch_size:
+            t0 = time.perf_counter()
+            for _ in range(utd):
+                agent.train(memory.sample())
+            t_update += time.perf_counter() - t0
+            updates += utd
+        if step % eval_every == 0:
+            tests.append((step, *_test_episode(tester, p["max_samples"])))
+            lap = tests[-1][2]
+            if lap is not None and settle is not None:
+                end = min(end, step + settle)
+            print(f"    [{env_name} {label} seed {seed}] step {step:6d} test return {tests[-1][1]:8.1f}"
+                  f"{'' if lap is None else f' lap {lap:.2f} s'} ({time.perf_counter() - start:.0f} s)",
+                  file=sys.stderr, flush=True)
+    return {"episodes": episodes, "tests": tests, "wall_s": time.perf_counter() - start, "updates": updates,
+            "steps": min(end, steps),
+            "updates_per_s": updates / max(t_update, 1e-9)}
+
+
+def _test_episode(tester: Any, max_samples: int) -> tuple[float, float | None]:
+    """One deterministic episode: (return, lap time or None)."""
+    obs, _ = tester.reset(collect_samples=False)
+    ret = 0.0
+    for i in range(max_samples):
+        obs, rew, terminated, truncated, info = tester.step(obs, test=True, collect_samples=False,
+                                                            last_step=i == max_samples - 1)
+        ret += float(rew)
+        if terminated or truncated:
+            return ret, (info.get("lap_time") if info.get("lap_completed") else None)
+    return ret, None
+
+
+def child_main(argv: list[str]) -> None:
+    """``--run JSON``: one run with those keyword arguments; prints its result as JSON."""
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--run", required=True)
+    harness.print_json(run(**json.loads(ap.parse_args(argv).run)))
+
+
+# --- figures of a run -----------------------------------------------------------------------------
+
+
+def laps(res: dict[str, Any]) -> list[tuple[int, float]]:
+    """Every completed lap of a run, training and test episodes: (environment step, lap time)."""
+    return sorted((s, lap) for s, _, lap in res["episodes"] + res["tests"] if lap is not None)
+
+
+def first_step(res: dict[str, Any], within: float | None = None) -> int | None:
+    """Environment step of the run's first lap (no slower than ``within`` seconds when given)."""
+    return next((s for s, lap in laps(res) if within is None or lap <= within), None)
+
+
+def best_lap(res: dict[str, Any]) -> float | None:
+    times = [lap for _, lap in laps(res)]
+    return min(times) if times else None
+
+
+def steps_to_return(res: dict[str, Any], threshold: float) -> int | None:
+    return next((s for s, ret, _ in res["tests"] if ret > threshold), None)
+
+
+def median_or_none(values: list[int | None]) -> float | None:
+    """Median where a missing value (not reached) counts as larger than every reached one;
+    None when the median itself was not reached."""
+    ordered = sorted(values, key=lambda v: (v is None, v or 0))
+    mid = ordered[(len(ordered) - 1) // 2] if len(ordered) % 2 else None
+    if len(ordered) % 2 == 0:
+        a, b = ordered[len(ordered) // 2 - 1], ordered[len(ordered) // 2]
+        mid = None if a is None or b is None else (a + b) / 2
+    return mid
+
+
+# --- driver ---------------------------------------------------------------------------------------
+
+
+def _reference(track: str) -> float | None:
+    try:
+        from tmrl.sim.reference import reference_lap_time
+    except ImportError:
+        return None
+    return reference_lap_time(track)
+
+
+def _plot(path: Path, results: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str], labels: list[str],
+          budgets: dict[str, int]) -> bool:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        import numpy as np
+    except ImportError:
+        return False
+    fig, axes = plt.subplots(1, len(envs), figsize=(5.5 * len(envs), 4.2), squeeze=False)
+    for ax, env in zip(axes[0], envs):
+        grid = np.linspace(0, budgets[env], 60)
+        for label in labels:
+            runs = results.get((env, label), [])
+            curves = []
+            for res in runs:
+                pts = res["tests"] if env == "pendulum" else res["episodes"]
+                if not pts:
+                    continue
+                xs, ys = np.array([p[0] for p in pts]), np.array([p[1] for p in pts])
+                if env != "pendulum":  # mean of the last 5 episodes (fewer at the start)
+                    ys = np.array([ys[max(0, i - 4): i + 1].mean() for i in range(len(ys))])
+                curves.append(np.interp(grid, xs, ys, left=np.nan, right=np.nan))
+            if not curves:
+                continue
+            arr = np.array(curves)  # drawn while every seed still runs (a run may end after its first lap)
+            line = ax.plot(grid, np.median(arr, axis=0), label=f"{label} ({len(curves)} seeds)")[0]
+            if len(curves) > 1:
+                ax.fill_between(grid, arr.min(axis=0), arr.max(axis=0), color=line.get_color(), alpha=0.15)
+        ax.set_title(env if env == "pendulum" else f"track {env} (SIMLIDAR, fast mode)")
+        ax.set_xlabel("environment steps (50 ms each in real time)")
+        ax.set_ylabel("test return" if env == "pendulum" else "training episode return (mean of 5)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m bench track_learning", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="CI-sized: 1 seed, classic only, short budgets")
+    ap.add_argument("--agents", default=",".join(VARIANTS), help="comma-separated among " + ", ".join(VARIANTS))
+    ap.add_argument("--tracks", default=None, help="comma-separated among " + ", ".join(TRACKS))
+    ap.add_argument("--pendulum", action="store_true", help="also Pendulum-v1 (steps to a test return above -200)")
+    ap.add_argument("--seeds", type=int, default=None)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds are FIRST_SEED, FIRST_SEED + 1, ...")
+    ap.add_argument("--steps", type=int, default=None, help="environment steps per run (default: the profile's per track)")
+    ap.add_argument("--utd", type=int, default=None, help="updates per environment step for every agent "
+                    "(default: each variant's own)")
+    ap.add_argument("--start-steps", type=int, default=1_000, help="uniformly random actions first")
+    ap.add_argument("--eval-every", type=int, default=None)
+    ap.add_argument("--batch-size", type=int, default=256)
+    ap.add_argument("--append-every", type=int, default=10)
+    ap.add_argument("--jobs", type=int, default=2, help="runs at once (one torch thread each)")
+    ap.add_argument("--settle", type=int, default=None, help="end a run this many steps after its first lap "
+                    "(default: the profile's; 0: run every budget to the end)")
+    args = ap.parse_args(argv)
+    profile = PROFILES["quick" if args.quick else "full"]
+    labels = [a.strip().upper() for a in args.agents.split(",") if a.strip()]
+    if set(labels) - set(VARIANTS):
+        ap.error(f"unknown agent(s) {sorted(set(labels) - set(VARIANTS))}: use {', '.join(VARIANTS)}")
+    tracks = [t for t in (args.tracks or ("classic" if args.quick else ",".join(TRACKS))).split(",") if t]
+    if set(tracks) - set(TRACKS):
+        ap.error(f"unknown track(s) {sorted(set(tracks) - set(TRACKS))}: use {', '.join(TRACKS)}")
+    envs = tracks + (["pendulum"] if args.pendulum else [])
+    seeds = args.seeds or profile["seeds"]
+    eval_every = args.eval_every or profile["eval_every"]
+    budgets = {e: args.steps or profile["steps"][e] for e in envs}
+    utd = {label: args.utd or VARIANTS[label][2] for label in labels}
+    settle = profile["settle"] if args.settle is None else (args.settle or None)
+    settings = {"profile": "quick" if args.quick else "full", "budgets": budgets, "utd": utd,
+                "start_steps": args.start_steps, "eval_every": eval_every, "batch_size": args.batch_size,
+                "append_every": args.append_every, "jobs": args.jobs, "torch_threads_per_run": 1, "settle": settle}
+    rec = harness.Recorder("track_learning", settings)
+    side = harness.ours_side()
+    plan = [(env, args.first_seed + seed, label) for env in envs for seed, label in harness.alternate(labels, seeds)]
+
+    def one(job: tuple[str, int, str]) -> tuple[tuple[str, int, str], dict[str, Any]]:
+        env, seed, label = job
+        kwargs = {"env_name": env, "label": label, "seed": seed, "steps": budgets[env], "utd": utd[label],
+                      "start_steps": min(args.start_steps, budgets[env] // 2), "eval_every": eval_every,
+                      "batch_size": args.batch_size, "append_every": args.append_every, "settle": settle}
+        out = subprocess.run(side.command("track_learning", "--run", json.dumps(kwargs)), env=side.env,
+                             cwd=side.cwd, stdout=subprocess.PIPE, text=True, check=False)
+        if out.returncode != 0:
+            raise SystemExit(f"the {label} run on {env}, seed {seed}, failed (exit code {out.returncode})")
+        return job, json.loads(out.stdout.strip().splitlines()[-1])
+
+    t0 = time.perf_counter()
+    results: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+        for future in as_completed([pool.submit(one, job) for job in plan]):  # recorded as they end
+            (env, seed, label), res = future.result()
+            results.setdefault((env, label), []).append(res)
+            rec.add(env, "wall_s", label, res["wall_s"], round=seed, higher_is_better=False, unit="s")
+            rec.add(env, "updates_per_s_in_train", label, res["updates_per_s"], round=seed, unit="1/s")
+            if env == "pendulum":
+                rec.add(env, "steps_to_-200", label, steps_to_return(res, -200.0), round=seed,
+                        higher_is_better=False, unit="steps", curve=res["tests"])
+            else:
+                rec.add(env, "steps_to_first_lap", label, first_step(res), round=seed, higher_is_better=False,
+                        unit="steps", laps=laps(res), episodes=res["episodes"], tests=res["tests"])
+                rec.add(env, "best_lap_s", label, best_lap(res), round=seed, higher_is_better=False, unit="s")
+    total = time.perf_counter() - t0
+    _print_table(results, envs, labels, budgets, seeds)
+    print(f"\nwhole run: {total / 60:.1f} min with {args.jobs} jobs; load average {harness.load_average():.2f}")
+    png = rec.path.with_suffix(".png")
+    if _plot(png, results, envs, labels, budgets):
+        print(f"curves: {png}")
+    rec.close()
+
+
+def _span(values: list[Any], fmt: str = "{:.0f}") -> str:
+    got = [v for v in values if v is not None]
+    med = median_or_none(values)
+    if not got:
+        return "not reached"
+    text = "-" if med is None else fmt.format(med)
+    return f"{text} [{fmt.format(min(got))}..{fmt.format(max(got))}] {len(got)}/{len(values)}"
+
+
+def _print_table(results: dict[tuple[str, str], list[dict[str, Any]]], envs: list[str], labels: list[str],
+                 budgets: dict[str, int], seeds: int) -> None:
+    print(f"\nmedian [min..max] reached/seeds over {seeds} seed(s); budgets in environment steps: {budgets}")
+    for env in envs:
+        print(f"\n{env}")
+        if env == "pendulum":
+            print(f"  {'agent':9s} {'steps to -200':>30s} {'wall s':>8s}")
+            for label in labels:
+                runs = results.get((env, label), [])
+                print(f"  {label:9s} {_span([steps_to_return(r, -200.0) for r in runs]):>30s} "
+                      f"{statistics.median(r['wall_s'] for r in runs):8.0f}")
+            continue
+        ref = _reference(env)
+        bests = [b for runs in (results.get((env, lab), []) for lab in labels) for b in map(best_lap, runs) if b]
+        overall = min(bests) if bests else None
+        within = overall * 1.1 if overall else None
+        print(f"  reference lap {'-' if ref is None else f'{ref:.2f} s'}; best lap of any agent "
+              f"{'-' if overall is None else f'{overall:.2f} s'}")
+        print(f"  {'agent':9s} {'steps to first lap':>30s} {'steps to lap <= best+10%':>30s} "
+              f"{'best lap s':>26s} {'best/ref':>9s} {'wall s':>8s}")
+        for label in labels:
+            runs = results.get((env, label), [])
+            firsts = [first_step(r) for r in runs]
+            near = [first_step(r, within) if within else None for r in runs]
+            best = [best_lap(r) for r in runs]
+            med_best = median_or_none(best)
+            ratio = "-" if ref is None or med_best is None else f"{med_best / ref:.2f}"
+            print(f"  {label:9s} {_span(firsts):>30s} {_span(near):>30s} {_span(best, '{:.2f}'):>26s} {ratio:>9s} "
+                  f"{statistics.median(r['wall_s'] for r in runs):8.0f}")
