@@ -329,6 +329,50 @@ def test_the_stream_discards_the_oldest_batches_beyond_its_bound_and_the_trainer
     assert trainer.dropped == 7
 
 
+def _rss_bytes() -> int:
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmRSS:"))
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the process's memory from /proc")
+def test_eight_fast_workers_against_an_absent_trainer_stay_within_the_configured_bounds(tmp_path, made):
+    # 8 workers send 64x the stream's byte bound while the trainer reads nothing: the stream stays
+    # within its bound (oldest discarded, counted), no worker blocks or drops, and this process
+    # (8 workers' windows) does not keep what it sent.
+    bound, batch, per_worker = 4 * 2**20, os.urandom(64 * 2**10), 512  # incompressible
+    store = tmp_path / "js"
+    relay = _relay(made, store_dir=store, max_bytes=bound)
+    first = _trainer(made, relay.port, max_bytes=bound)
+    assert first.wait_connected(30)
+    first.close()  # the durable consumer stays; nobody consumes while the workers send
+    workers = [_worker(made, relay.port, max_bytes=bound) for _ in range(8)]
+    assert all(w.wait_connected(30) for w in workers)
+    rss_before = _rss_bytes()
+
+    def send(w: Any) -> None:
+        for _ in range(per_worker):
+            w.send_samples(batch)
+
+    threads = [threading.Thread(target=send, args=(w,)) for w in workers]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert not any(t.is_alive() for t in threads), "a worker blocked on the bounded stream"
+    _wait_for(lambda: all(w.published == per_worker for w in workers), 60.0, what="every batch stored")
+    sent = 8 * per_worker * len(batch)
+    assert sent >= 64 * bound
+    assert all(w.dropped == 0 for w in workers)
+    on_disk = sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
+    assert on_disk <= bound + 2 * 2**20, f"the store holds {on_disk} bytes, the bound is {bound}"
+    assert _rss_bytes() - rss_before < sent // 2, "the workers kept what they had sent"
+    trainer = _trainer(made, relay.port, max_bytes=bound)
+    got = _receive(trainer, 1)
+    _wait_for(lambda: got.extend(trainer.receive_samples()) or trainer.dropped + len(got) >= 8 * per_worker,
+              60.0, what="the rest counted")
+    assert len(got) * len(batch) <= bound and trainer.dropped + len(got) == 8 * per_worker
+
+
 # ------------------------------------------------------------------------------------------------
 # credentials and TLS
 
