@@ -51,8 +51,9 @@ class _UniformActor:
         return self.action_space.sample()
 
 
-def _parts(env_name: str, batch_size: int, memory_size: int) -> dict[str, Any]:
-    """Environment factory, memory, agent class and worker extras of ``env_name``."""
+def _parts(env_name: str, batch_size: int, memory_size: int, track: str = "classic") -> dict[str, Any]:
+    """Environment factory, memory, agent class and worker extras of ``env_name`` (``"simlidar"``:
+    on ``track``)."""
     from tmrl.memory import GenericTorchMemory
     from tmrl.models import MLPActorCritic, SquashedGaussianMLPActor
     from tmrl.util import partial
@@ -68,7 +69,7 @@ def _parts(env_name: str, batch_size: int, memory_size: int) -> dict[str, Any]:
     from tmrl.sim.interfaces import fast_env, pipeline_parts
 
     parts = pipeline_parts("SIMLIDAR")
-    cfg = _demo_config("SIMLIDAR", "classic")
+    cfg = _demo_config("SIMLIDAR", track)
     memory = parts["memory_cls"](hist_len=DEMO_SETTINGS["img_hist_len"], act_buf_len=DEMO_SETTINGS["act_buf_len"],
                                  device="cpu", nb_steps=1, memory_size=memory_size, batch_size=batch_size)
     return {"env_cls": partial(fast_env, cfg), "model_cls": parts["model_cls"], "actor_cls": parts["actor_cls"],

@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from bench import harness
+from bench.pendulum_learning import _parts, _UniformActor
 
 TRACKS = ("oval", "classic", "technical")
 
@@ -100,37 +101,6 @@ def _lidar_model(alg: str) -> Any:
     return lidar_model_cls(alg)
 
 
-class _UniformActor:
-    def __init__(self, action_space: Any) -> None:
-        self.action_space = action_space
-
-    def act_(self, obs: Any, test: bool = False) -> Any:
-        return self.action_space.sample()
-
-
-def _parts(env_name: str, batch_size: int) -> dict[str, Any]:
-    from tmrl.util import partial
-
-    if env_name == "pendulum":
-        from tmrl.envs import GenericGymEnv
-        from tmrl.memory import GenericTorchMemory
-        from tmrl.models import SquashedGaussianMLPActor
-
-        return {"env_cls": partial(GenericGymEnv, id="Pendulum-v1"), "actor_cls": SquashedGaussianMLPActor,
-                "memory": GenericTorchMemory(device="cpu", nb_steps=1, memory_size=200_000, batch_size=batch_size),
-                "worker": {}, "max_samples": 200}
-    from tmrl.sim.demo import DEMO_SETTINGS, _demo_config
-    from tmrl.sim.interfaces import fast_env, pipeline_parts
-
-    parts = pipeline_parts("SIMLIDAR")
-    cfg = _demo_config("SIMLIDAR", env_name)
-    memory = parts["memory_cls"](hist_len=DEMO_SETTINGS["img_hist_len"], act_buf_len=DEMO_SETTINGS["act_buf_len"],
-                                 device="cpu", nb_steps=1, memory_size=200_000, batch_size=batch_size)
-    return {"env_cls": partial(fast_env, cfg), "actor_cls": parts["actor_cls"], "memory": memory,
-            "worker": {"obs_preprocessor": parts["obs_preprocessor"], "sample_compressor": parts["sample_compressor"]},
-            "max_samples": DEMO_SETTINGS["ep_max_length"]}
-
-
 def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps: int, eval_every: int,
         batch_size: int, append_every: int, settle: int | None = None) -> dict[str, Any]:
     """One learning run: its training episodes (end step, return, lap time or None), its test
@@ -144,7 +114,7 @@ def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps:
     torch.set_num_threads(1)
     torch.manual_seed(seed)
     np.random.seed(seed)
-    p = _parts(env_name, batch_size)
+    p = _parts("pendulum" if env_name == "pendulum" else "simlidar", batch_size, 200_000, track=env_name)
     memory = p["memory"]
     worker_kwargs = dict(env_cls=p["env_cls"], actor_module_cls=p["actor_cls"], standalone=True, model_history=0,
                          max_samples_per_episode=p["max_samples"], model_path=os.devnull + "_none", **p["worker"])

@@ -198,6 +198,19 @@ class NetProcess:
 LOCAL_HOSTS = ("localhost", "127.0.0.1", "::1")
 
 
+def check_server_address(server_ip: Any, server_port: Any) -> None:
+    """Refuse, in one line, a server address that is not a non-empty string or a port outside
+    1..65535 (every backend's links check the same config keys).
+
+    Raises:
+        UserError: naming the config key (SERVER_IP or PORT).
+    """
+    if not isinstance(server_ip, str) or not server_ip:
+        raise UserError(f"the server address must be a non-empty string, not {server_ip!r} (config key SERVER_IP)")
+    if type(server_port) is not int or not 1 <= server_port <= 65535:
+        raise UserError(f"the server port must be an integer from 1 to 65535, not {server_port!r} (config key PORT)")
+
+
 def check_common(
     *,
     password: Any,

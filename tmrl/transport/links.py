@@ -12,7 +12,7 @@ from typing import Any
 from tmrl import wire
 from tmrl.errors import UserError
 from tmrl.transport import _pipe
-from tmrl.transport._process import LOCAL_HOSTS, NetProcess, check_common
+from tmrl.transport._process import LOCAL_HOSTS, NetProcess, check_common, check_server_address
 from tmrl.transport.credentials import CERT_FILE, DEFAULT_HOSTNAME
 from tmrl.transport.relay import DEFAULT_MAX_FRAME_BYTES, DEFAULT_MAX_OBJECT_BYTES
 
@@ -58,14 +58,7 @@ class _Link:
             max_frame_bytes=max_frame_bytes,
             needs_key=False,
         )
-        if not isinstance(server_ip, str) or not server_ip:
-            raise UserError(
-                f"the server address must be a non-empty string, not {server_ip!r} (config key SERVER_IP)"
-            )
-        if type(server_port) is not int or not 1 <= server_port <= 65535:
-            raise UserError(
-                f"the server port must be an integer from 1 to 65535, not {server_port!r} (config key PORT)"
-            )
+        check_server_address(server_ip, server_port)
         if security is None:
             if server_ip not in LOCAL_HOSTS and not allow_plain_tcp:
                 raise UserError(

@@ -52,7 +52,7 @@ from tmrl.transport._nats_server import (
     users_block,
     write_credentials,
 )
-from tmrl.transport._process import LOCAL_HOSTS
+from tmrl.transport._process import LOCAL_HOSTS, check_server_address
 from tmrl.transport.credentials import CERT_FILE, DEFAULT_HOSTNAME, KEY_FILE
 
 logger = logging.getLogger("tmrl.transport.nats")
@@ -153,10 +153,7 @@ def _urls(server_ip: str, server_port: int, urls: Any) -> list[str]:
                 )
         if items:
             return items
-    if not isinstance(server_ip, str) or not server_ip:
-        raise UserError(f"the server address must be a non-empty string, not {server_ip!r} (config key SERVER_IP)")
-    if type(server_port) is not int or not 1 <= server_port <= 65535:
-        raise UserError(f"the server port must be an integer from 1 to 65535, not {server_port!r} (config key PORT)")
+    check_server_address(server_ip, server_port)
     host = f"[{server_ip}]" if ":" in server_ip else server_ip
     return [f"nats://{host}:{server_port}"]
 
