@@ -1,9 +1,9 @@
 """Learning in environment steps: how many simulator steps each agent needs to complete a lap,
 on the built-in tracks, with the simulator's lidar observations in fast mode (and Pendulum-v1).
 
-    python -m bench track_learning                 # every agent, oval/classic/technical, 5 seeds
-    python -m bench track_learning --quick         # a CI-sized check (one seed, one track, short)
-    python -m bench track_learning --agents SAC,DROQ --tracks classic --seeds 3 --jobs 2
+    python -m bench track_learning                 # the default agents, oval/classic/technical, 5 seeds
+    python -m bench track_learning --quick         # a CI-sized check (one seed, classic, 1,000 steps)
+    python -m bench track_learning --agents SAC,SAC-UTD2,SAC-UTD4 --tracks classic --seeds 5 --jobs 2
 
 In real time an environment step costs 50 ms of somebody's afternoon whatever the computer, so
 the figure that matters is steps, not updates per second. Each run is a fresh process with one
@@ -24,9 +24,13 @@ median and range over the seeds, one panel per track) goes beside the JSONL reco
 Variants (``--agents``): ``SAC-TMRL`` is SAC with tmrl's default ``ALG`` settings (those the
 TrackMania lidar config ships: learning rates 1e-5/5e-5, gamma 0.995, fixed alpha 0.01) at its
 ``MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP`` of 4; ``SAC`` is SAC with the demo's settings
-(learning rates 1e-3, learned alpha); ``REDQSAC``, ``DROQ``, ``CROSSQ`` and ``TQC`` use their class
-defaults (their papers'), each with the lidar model of its kind. The update-to-data ratio of each
-variant is in :data:`VARIANTS` (``--utd`` overrides it for all).
+(learning rates 1e-3, learned alpha) at 1 update per step, ``SAC-UTD2`` and ``SAC-UTD4`` the same
+at 2 and 4, ``SAC-UTD4-LR3`` at 4 with learning rates 3e-4; ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
+``TQC`` use their class defaults (their papers'), each with the lidar model of its kind. The
+update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
+compares :data:`DEFAULT_AGENTS` unless ``--agents`` names others. Budgets per track are in
+:data:`PROFILES`: on ``classic`` every run drives its whole budget, so that best laps compare at an
+equal number of steps; on ``oval`` and ``technical`` a run ends 500 steps after its first lap.
 """
 
 from __future__ import annotations
@@ -51,19 +55,30 @@ TRACKS = ("oval", "classic", "technical")
 VARIANTS: dict[str, tuple[str, str, int]] = {
     "SAC-TMRL": ("SAC", "tmrl", 4),
     "SAC": ("SAC", "demo", 1),
+    "SAC-UTD2": ("SAC", "demo", 2),
     "SAC-UTD4": ("SAC", "demo", 4),
+    "SAC-UTD4-LR3": ("SAC", "demo", 4),
     "REDQSAC": ("REDQSAC", "class", 4),
     "DROQ": ("DROQ", "class", 4),
     "CROSSQ": ("CROSSQ", "class", 1),
     "TQC": ("TQC", "class", 1),
 }
 
+#: The agents a run compares unless ``--agents`` says otherwise: tmrl's SAC, the demo's real-time
+#: setting and the papers' agents (the other variants are the ratio and learning-rate study).
+DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4", "REDQSAC", "DROQ", "CROSSQ", "TQC")
+
+#: Learning rate of a variant where it is not its settings source's (actor, critics and entropy).
+LEARNING_RATES: dict[str, float] = {"SAC-UTD4-LR3": 3e-4}
+
 #: Budgets (environment steps per run) by profile.
 PROFILES: dict[str, dict[str, Any]] = {
-    "full": {"steps": {"oval": 12_000, "classic": 20_000, "technical": 20_000, "pendulum": 6_000},
-             "seeds": 5, "eval_every": 1_000, "settle": 5_000},
-    "quick": {"steps": {"oval": 1_500, "classic": 1_500, "technical": 1_500, "pendulum": 1_000},
-              "seeds": 1, "eval_every": 500, "settle": None},
+    # classic runs its whole budget (best laps compared at an equal number of steps); on oval and
+    # technical a run ends 500 steps after its first lap (the question there is whether it laps)
+    "full": {"steps": {"oval": 10_000, "classic": 10_000, "technical": 20_000, "pendulum": 6_000},
+             "seeds": 5, "eval_every": 500, "settle": {"oval": 500, "technical": 500}},
+    "quick": {"steps": {"oval": 1_000, "classic": 1_000, "technical": 1_000, "pendulum": 1_000},
+              "seeds": 1, "eval_every": 500, "settle": {}},
 }
 
 
@@ -87,7 +102,8 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
     elif source == "demo":
         from tmrl.sim.demo import DEMO_SETTINGS as S
 
-        kwargs.update(lr_actor=S["lr"], lr_critic=S["lr"], lr_entropy=S["lr"], gamma=S["gamma"],
+        lr = LEARNING_RATES.get(label, S["lr"])
+        kwargs.update(lr_actor=lr, lr_critic=lr, lr_entropy=lr, gamma=S["gamma"],
                       polyak=S["polyak"], alpha=S["alpha"], learn_entropy_coef=True)
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = utd
@@ -220,6 +236,14 @@ def median_or_none(values: list[int | None]) -> float | None:
     return mid
 
 
+def settle_per_env(profile: dict[str, Any], envs: list[str], override: int | None) -> dict[str, int | None]:
+    """Steps each run goes on after its first lap, per track (None: to the end of its budget):
+    the profile's, or ``override`` on every track (0: none ends early)."""
+    if override is None:
+        return {e: profile["settle"].get(e) for e in envs}
+    return {e: override or None for e in envs}
+
+
 # --- driver ---------------------------------------------------------------------------------------
 
 
@@ -275,7 +299,8 @@ def _plot(path: Path, results: dict[tuple[str, str], list[dict[str, Any]]], envs
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m bench track_learning", description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="CI-sized: 1 seed, classic only, short budgets")
-    ap.add_argument("--agents", default=",".join(VARIANTS), help="comma-separated among " + ", ".join(VARIANTS))
+    ap.add_argument("--agents", default=",".join(DEFAULT_AGENTS),
+                    help="comma-separated among " + ", ".join(VARIANTS) + " (default: " + ",".join(DEFAULT_AGENTS) + ")")
     ap.add_argument("--tracks", default=None, help="comma-separated among " + ", ".join(TRACKS))
     ap.add_argument("--pendulum", action="store_true", help="also Pendulum-v1 (steps to a test return above -200)")
     ap.add_argument("--seeds", type=int, default=None)
@@ -288,9 +313,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--batch-size", type=int, default=256)
     ap.add_argument("--append-every", type=int, default=10)
     ap.add_argument("--jobs", type=int, default=2, help="runs at once (one torch thread each)")
-    ap.add_argument("--settle", type=int, default=None, help="end a run this many steps after its first lap "
-                    "(default: the profile's; 0: run every budget to the end)")
+    ap.add_argument("--settle", type=int, default=None, help="end a run this many steps after its first lap, "
+                    "on every track (default: the profile's, per track; 0: run every budget to the end)")
+    ap.add_argument("--merge", nargs="+", type=Path, metavar="JSONL",
+                    help="run nothing: one table and one PNG of the runs recorded in these files")
     args = ap.parse_args(argv)
+    if args.merge:
+        merge_main(args.merge)
+        return
     profile = PROFILES["quick" if args.quick else "full"]
     labels = [a.strip().upper() for a in args.agents.split(",") if a.strip()]
     if set(labels) - set(VARIANTS):
@@ -303,7 +333,7 @@ def main(argv: list[str] | None = None) -> None:
     eval_every = args.eval_every or profile["eval_every"]
     budgets = {e: args.steps or profile["steps"][e] for e in envs}
     utd = {label: args.utd or VARIANTS[label][2] for label in labels}
-    settle = profile["settle"] if args.settle is None else (args.settle or None)
+    settle = settle_per_env(profile, envs, args.settle)
     settings = {"profile": "quick" if args.quick else "full", "budgets": budgets, "utd": utd,
                 "start_steps": args.start_steps, "eval_every": eval_every, "batch_size": args.batch_size,
                 "append_every": args.append_every, "jobs": args.jobs, "torch_threads_per_run": 1, "settle": settle}
@@ -315,7 +345,7 @@ def main(argv: list[str] | None = None) -> None:
         env, seed, label = job
         kwargs = {"env_name": env, "label": label, "seed": seed, "steps": budgets[env], "utd": utd[label],
                       "start_steps": min(args.start_steps, budgets[env] // 2), "eval_every": eval_every,
-                      "batch_size": args.batch_size, "append_every": args.append_every, "settle": settle}
+                      "batch_size": args.batch_size, "append_every": args.append_every, "settle": settle[env]}
         out = subprocess.run(side.command("track_learning", "--run", json.dumps(kwargs)), env=side.env,
                              cwd=side.cwd, stdout=subprocess.PIPE, text=True, check=False)
         if out.returncode != 0:
@@ -346,6 +376,56 @@ def main(argv: list[str] | None = None) -> None:
     rec.close()
 
 
+def load_results(paths: list[Path]) -> tuple[dict[tuple[str, str], list[dict[str, Any]]], dict[str, int], int]:
+    """The runs recorded in track_learning JSONL files (several commands, sessions or machines):
+    ``{(track, agent): [run, ...]}`` with each run's episodes, tests, wall time and updates per
+    second, the largest budget per track, and the most seeds of any agent. A run recorded twice (the
+    same track, agent and seed) counts once, the later record winning."""
+    runs: dict[tuple[str, str, int], dict[str, Any]] = {}
+    budgets: dict[str, int] = {}
+    for path in paths:
+        for line in Path(path).read_text(encoding="utf-8").splitlines():
+            if not line.strip():
+                continue
+            rec = json.loads(line)
+            if rec.get("kind") == "run":
+                if rec.get("bench") != "track_learning":
+                    raise SystemExit(f"{path}: not a track_learning record (bench {rec.get('bench')!r})")
+                for env, steps in rec["settings"]["budgets"].items():
+                    budgets[env] = max(budgets.get(env, 0), int(steps))
+                continue
+            if rec.get("kind") != "measure":
+                continue
+            run = runs.setdefault((rec["case"], rec["side"], int(rec["round"])), {})
+            if rec["metric"] == "wall_s":
+                run["wall_s"] = rec["value"]
+            elif rec["metric"] == "updates_per_s_in_train":
+                run["updates_per_s"] = rec["value"]
+            elif rec["metric"] in ("steps_to_first_lap", "steps_to_-200"):
+                run["episodes"] = [tuple(e) for e in rec.get("episodes", [])]
+                run["tests"] = [tuple(t) for t in rec.get("tests", rec.get("curve", []))]
+    results: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for (env, label, _), run in sorted(runs.items()):
+        if "episodes" in run and "wall_s" in run:
+            results.setdefault((env, label), []).append(run)
+    seeds = max((len(v) for v in results.values()), default=0)
+    return results, budgets, seeds
+
+
+def merge_main(paths: list[Path]) -> None:
+    """``--merge FILE...``: one table and one PNG of the runs of several JSONL records."""
+    results, budgets, seeds = load_results(paths)
+    if not results:
+        raise SystemExit("no track_learning runs in " + ", ".join(map(str, paths)))
+    envs = [e for e in (*TRACKS, "pendulum") if any(env == e for env, _ in results)]
+    labels = [lab for lab in VARIANTS if any(label == lab for _, label in results)]
+    _print_table(results, envs, labels, budgets, seeds)
+    png = harness.OUT / f"track_learning-merged-{time.strftime('%Y%m%d-%H%M%S')}.png"
+    png.parent.mkdir(parents=True, exist_ok=True)
+    if _plot(png, results, envs, labels, budgets):
+        print(f"curves: {png}")
+
+
 def _span(values: list[Any], fmt: str = "{:.0f}") -> str:
     got = [v for v in values if v is not None]
     med = median_or_none(values)
@@ -373,7 +453,7 @@ def _print_table(results: dict[tuple[str, str], list[dict[str, Any]]], envs: lis
         within = overall * 1.1 if overall else None
         print(f"  reference lap {'-' if ref is None else f'{ref:.2f} s'}; best lap of any agent "
               f"{'-' if overall is None else f'{overall:.2f} s'}")
-        print(f"  {'agent':9s} {'steps to first lap':>30s} {'steps to lap <= best+10%':>30s} "
+        print(f"  {'agent':12s} {'steps to first lap':>30s} {'steps to lap <= best+10%':>30s} "
               f"{'best lap s':>26s} {'best/ref':>9s} {'wall s':>8s}")
         for label in labels:
             runs = results.get((env, label), [])
@@ -382,5 +462,5 @@ def _print_table(results: dict[tuple[str, str], list[dict[str, Any]]], envs: lis
             best = [best_lap(r) for r in runs]
             med_best = median_or_none(best)
             ratio = "-" if ref is None or med_best is None else f"{med_best / ref:.2f}"
-            print(f"  {label:9s} {_span(firsts):>30s} {_span(near):>30s} {_span(best, '{:.2f}'):>26s} {ratio:>9s} "
+            print(f"  {label:12s} {_span(firsts):>30s} {_span(near):>30s} {_span(best, '{:.2f}'):>26s} {ratio:>9s} "
                   f"{statistics.median(r['wall_s'] for r in runs):8.0f}")

@@ -52,6 +52,7 @@ def test_median_counts_a_run_that_never_got_there_as_the_slowest(values, median)
 def test_every_variant_has_a_lidar_model_and_an_agent():
     from tmrl.algorithms import agent_class
 
+    assert set(tl.DEFAULT_AGENTS) <= set(tl.VARIANTS)
     for label, (alg, source, utd) in tl.VARIANTS.items():
         assert source in ("tmrl", "demo", "class") and utd >= 1, label
         agent_class(alg)
@@ -65,3 +66,64 @@ def test_a_short_run_drives_the_simulator_and_trains(capsys):
     assert len(res["tests"]) == 1 and res["tests"][0][0] == 300
     assert all(step <= 300 for step, _, _ in res["episodes"])
     assert "[oval SAC seed 0] step    300" in capsys.readouterr().err
+
+
+def test_the_full_profile_ends_oval_and_technical_after_a_lap_and_runs_classic_to_the_end():
+    full, quick = tl.PROFILES["full"], tl.PROFILES["quick"]
+    envs = ["oval", "classic", "technical", "pendulum"]
+    assert tl.settle_per_env(full, envs, None) == {"oval": 500, "classic": None, "technical": 500, "pendulum": None}
+    assert tl.settle_per_env(full, envs, 0) == dict.fromkeys(envs)  # --settle 0: every budget to its end
+    assert tl.settle_per_env(quick, ["classic"], 300) == {"classic": 300}
+    assert tl.settle_per_env(quick, ["classic"], None) == {"classic": None}
+
+
+def test_variants_take_their_settings_source_and_learning_rate():
+    import gymnasium
+
+    env = gymnasium.make("Pendulum-v1")
+    spaces = (env.observation_space, env.action_space)
+    tmrl_sac, demo_sac, slow_sac = (tl._agent(label, spaces, "pendulum", 4) for label in ("SAC-TMRL", "SAC-UTD4", "SAC-UTD4-LR3"))
+    assert (tmrl_sac.lr_actor, tmrl_sac.lr_critic) == (1e-5, 5e-5)  # tmrl's shipped ALG settings
+    assert (demo_sac.lr_actor, demo_sac.lr_critic, demo_sac.lr_entropy) == (1e-3, 1e-3, 1e-3)
+    assert (slow_sac.lr_actor, slow_sac.lr_critic, slow_sac.lr_entropy) == (3e-4, 3e-4, 3e-4)
+    assert tl.VARIANTS["SAC-UTD2"][2] == 2 and tl.VARIANTS["SAC-UTD4-LR3"][2] == 4
+
+
+def _record(path, budgets, runs):
+    """A track_learning JSONL file as the Recorder writes it: a run line, then per run its measures."""
+    import json
+
+    lines = [{"kind": "run", "bench": "track_learning", "settings": {"budgets": budgets}}]
+    for (case, side, seed), res in runs.items():
+        lines += [
+            {"kind": "measure", "case": case, "metric": "wall_s", "side": side, "value": res["wall_s"], "round": seed},
+            {"kind": "measure", "case": case, "metric": "updates_per_s_in_train", "side": side, "value": 50.0,
+             "round": seed},
+            {"kind": "measure", "case": case, "metric": "steps_to_first_lap", "side": side,
+             "value": tl.first_step(res), "round": seed, "episodes": res["episodes"], "tests": res["tests"]},
+        ]
+    path.write_text("\n".join(json.dumps(line) for line in lines) + "\n")
+
+
+def test_merge_joins_the_runs_of_several_records_into_one_table(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(tl.harness, "OUT", tmp_path / "out")
+    fast = {"episodes": [(2000, 161.7, 27.0)], "tests": [], "wall_s": 10.0}
+    slow = {"episodes": [(6000, 161.7, 26.0)], "tests": [(5000, 1.0, None)], "wall_s": 30.0}
+    _record(tmp_path / "a.jsonl", {"classic": 10000}, {("classic", "SAC-TMRL", 0): slow, ("classic", "SAC-UTD4", 0): fast})
+    _record(tmp_path / "b.jsonl", {"classic": 8000}, {("classic", "SAC-UTD4", 1): {**fast, "episodes": [(3000, 161.7, 28.0)]},
+                                                       ("classic", "SAC-TMRL", 0): {**slow, "wall_s": 99.0}})
+    results, budgets, seeds = tl.load_results([tmp_path / "a.jsonl", tmp_path / "b.jsonl"])
+    assert budgets == {"classic": 10000} and seeds == 2
+    assert sorted(tl.first_step(r) for r in results[("classic", "SAC-UTD4")]) == [2000, 3000]
+    assert [r["wall_s"] for r in results[("classic", "SAC-TMRL")]] == [99.0]  # the same seed twice: the later record
+    assert results[("classic", "SAC-TMRL")][0]["tests"] == [(5000, 1.0, None)]
+    tl.main(["--merge", str(tmp_path / "a.jsonl"), str(tmp_path / "b.jsonl")])
+    out = capsys.readouterr().out
+    assert "SAC-UTD4" in out and "2500 [2000..3000] 2/2" in out and "6000 [6000..6000] 1/1" in out
+    assert len(list((tmp_path / "out").glob("track_learning-merged-*.png"))) == 1
+
+
+def test_merge_refuses_another_benchmark_s_record(tmp_path):
+    (tmp_path / "x.jsonl").write_text('{"kind": "run", "bench": "trainer_speed", "settings": {}}\n')
+    with pytest.raises(SystemExit, match="not a track_learning record"):
+        tl.load_results([tmp_path / "x.jsonl"])
