@@ -25,7 +25,8 @@ Variants (``--agents``): ``SAC-TMRL`` is SAC with tmrl's default ``ALG`` setting
 TrackMania lidar config ships: learning rates 1e-5/5e-5, gamma 0.995, fixed alpha 0.01) at its
 ``MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP`` of 4; ``SAC`` is SAC with the demo's settings
 (learning rates 1e-3, learned alpha) at 1 update per step, ``SAC-UTD2`` and ``SAC-UTD4`` the same
-at 2 and 4, ``SAC-UTD4-LR3`` at 4 with learning rates 3e-4; ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
+at 2 and 4, ``SAC-UTD4-LR3`` at 4 with learning rates 3e-4, ``SAC-UTD4-FA`` at 4 with a fixed
+entropy coefficient of 0.01 (tmrl's); ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
 ``TQC`` use their class defaults (their papers'), each with the lidar model of its kind. The
 update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
 compares :data:`DEFAULT_AGENTS` unless ``--agents`` names others. Budgets per track are in
@@ -58,6 +59,7 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "SAC-UTD2": ("SAC", "demo", 2),
     "SAC-UTD4": ("SAC", "demo", 4),
     "SAC-UTD4-LR3": ("SAC", "demo", 4),
+    "SAC-UTD4-FA": ("SAC", "demo", 4),
     "REDQSAC": ("REDQSAC", "class", 4),
     "DROQ": ("DROQ", "class", 4),
     "CROSSQ": ("CROSSQ", "class", 1),
@@ -70,6 +72,9 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4", "REDQSAC", "DROQ", "C
 
 #: Learning rate of a variant where it is not its settings source's (actor, critics and entropy).
 LEARNING_RATES: dict[str, float] = {"SAC-UTD4-LR3": 3e-4}
+
+#: Fixed entropy coefficient of a variant that does not learn it (tmrl's 0.01).
+FIXED_ALPHAS: dict[str, float] = {"SAC-UTD4-FA": 0.01}
 
 #: Budgets (environment steps per run) by profile.
 PROFILES: dict[str, dict[str, Any]] = {
@@ -103,8 +108,8 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
         from tmrl.sim.demo import DEMO_SETTINGS as S
 
         lr = LEARNING_RATES.get(label, S["lr"])
-        kwargs.update(lr_actor=lr, lr_critic=lr, lr_entropy=lr, gamma=S["gamma"],
-                      polyak=S["polyak"], alpha=S["alpha"], learn_entropy_coef=True)
+        kwargs.update(lr_actor=lr, lr_critic=lr, lr_entropy=lr, gamma=S["gamma"], polyak=S["polyak"],
+                      alpha=FIXED_ALPHAS.get(label, S["alpha"]), learn_entropy_coef=label not in FIXED_ALPHAS)
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = utd
     return cls(*spaces, "cpu", **kwargs)

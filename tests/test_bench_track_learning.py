@@ -82,11 +82,14 @@ def test_variants_take_their_settings_source_and_learning_rate():
 
     env = gymnasium.make("Pendulum-v1")
     spaces = (env.observation_space, env.action_space)
-    tmrl_sac, demo_sac, slow_sac = (tl._agent(label, spaces, "pendulum", 4) for label in ("SAC-TMRL", "SAC-UTD4", "SAC-UTD4-LR3"))
+    tmrl_sac, demo_sac, slow_sac, fixed_sac = (tl._agent(label, spaces, "pendulum", 4)
+                                               for label in ("SAC-TMRL", "SAC-UTD4", "SAC-UTD4-LR3", "SAC-UTD4-FA"))
     assert (tmrl_sac.lr_actor, tmrl_sac.lr_critic) == (1e-5, 5e-5)  # tmrl's shipped ALG settings
     assert (demo_sac.lr_actor, demo_sac.lr_critic, demo_sac.lr_entropy) == (1e-3, 1e-3, 1e-3)
     assert (slow_sac.lr_actor, slow_sac.lr_critic, slow_sac.lr_entropy) == (3e-4, 3e-4, 3e-4)
     assert tl.VARIANTS["SAC-UTD2"][2] == 2 and tl.VARIANTS["SAC-UTD4-LR3"][2] == 4
+    assert demo_sac.learn_entropy_coef and not fixed_sac.learn_entropy_coef
+    assert fixed_sac.lr_actor == 1e-3 and float(fixed_sac.alpha) == 0.01 and float(demo_sac.alpha) == 0.2
 
 
 def _record(path, budgets, runs):
