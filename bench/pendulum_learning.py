@@ -93,6 +93,24 @@ def _agent(name: str, order: str, env_name: str, spaces: tuple[Any, Any], model_
     return agent_class(name)(*spaces, "cpu")
 
 
+def _feed_and_train(worker: Any, memory: Any, agent: Any, append_every: int, n_updates: int,
+                    batch_size: int) -> tuple[int, float]:
+    """One step's bookkeeping of a synchronous learning loop: the worker's buffer goes into the
+    memory once it holds ``append_every`` samples, then ``n_updates`` updates once the memory holds
+    a batch. Returns (updates done, seconds spent in them)."""
+    from tmrl.networking import Buffer
+
+    if len(worker.buffer) >= append_every:
+        memory.append(worker.buffer)
+        worker.buffer = Buffer()
+    if n_updates <= 0 or len(memory) < batch_size:
+        return 0, 0.0
+    t0 = time.perf_counter()
+    for _ in range(n_updates):
+        agent.train(memory.sample())
+    return n_updates, time.perf_counter() - t0
+
+
 def run(env_name: str, order: str, seed: int, steps: int, start_steps: int, eval_every: int, eval_episodes: int,
         batch_size: int, append_every: int, threads: int, agent_name: str = "SAC",
         updates_per_step: int = 1) -> dict[str, Any]:
@@ -100,7 +118,7 @@ def run(env_name: str, order: str, seed: int, steps: int, start_steps: int, eval
     import numpy as np
     import torch
 
-    from tmrl.networking import Buffer, RolloutWorker
+    from tmrl.networking import RolloutWorker
 
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
@@ -128,15 +146,9 @@ def run(env_name: str, order: str, seed: int, steps: int, start_steps: int, eval
         if terminated or truncated:
             obs, _ = worker.reset(collect_samples=True)
             episode_step = 0
-        if len(worker.buffer) >= append_every:
-            memory.append(worker.buffer)
-            worker.buffer = Buffer()
-        if step > start_steps and len(memory) >= batch_size:
-            t0 = time.perf_counter()
-            for _ in range(updates_per_step):
-                agent.train(memory.sample())
-            t_update += time.perf_counter() - t0
-            updates += updates_per_step
+        done, seconds = _feed_and_train(worker, memory, agent, append_every,
+                                        updates_per_step if step > start_steps else 0, batch_size)
+        updates, t_update = updates + done, t_update + seconds
         if step % eval_every == 0:
             ret = float(np.mean([tester.run_episode() for _ in range(eval_episodes)]))
             curve.append((step, ret))

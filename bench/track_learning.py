@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from bench import harness
-from bench.pendulum_learning import _parts, _UniformActor
+from bench.pendulum_learning import _feed_and_train, _parts, _UniformActor
 
 TRACKS = ("oval", "classic", "technical")
 
@@ -130,7 +130,7 @@ def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps:
     import numpy as np
     import torch
 
-    from tmrl.networking import Buffer, RolloutWorker
+    from tmrl.networking import RolloutWorker
 
     torch.set_num_threads(1)
     torch.manual_seed(seed)
@@ -166,15 +166,9 @@ def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps:
                 end = min(end, step + settle)
             obs, _ = worker.reset(collect_samples=True)
             ep_step, ep_ret = 0, 0.0
-        if len(worker.buffer) >= append_every:
-            memory.append(worker.buffer)
-            worker.buffer = Buffer()
-        if step > start_steps and len(memory) >= batch_size:
-            t0 = time.perf_counter()
-            for _ in range(utd):
-                agent.train(memory.sample())
-            t_update += time.perf_counter() - t0
-            updates += utd
+        done, seconds = _feed_and_train(worker, memory, agent, append_every, utd if step > start_steps else 0,
+                                        batch_size)
+        updates, t_update = updates + done, t_update + seconds
         if step % eval_every == 0:
             tests.append((step, *_test_episode(tester, p["max_samples"])))
             lap = tests[-1][2]
