@@ -23,10 +23,12 @@ median and range over the seeds, one panel per track) goes beside the JSONL reco
 
 Variants (``--agents``): ``SAC-TMRL`` is SAC with tmrl's default ``ALG`` settings (those the
 TrackMania lidar config ships: learning rates 1e-5/5e-5, gamma 0.995, fixed alpha 0.01) at its
-``MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP`` of 4; ``SAC`` is SAC with the demo's settings
-(learning rates 1e-3, learned alpha) at 1 update per step, ``SAC-UTD2`` and ``SAC-UTD4`` the same
-at 2 and 4, ``SAC-UTD4-LR3`` at 4 with learning rates 3e-4, ``SAC-UTD4-FA`` at 4 with a fixed
-entropy coefficient of 0.01 (tmrl's); ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
+``MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP`` of 4; ``SAC`` is SAC at the demo's learning rates
+(1e-3, gamma 0.99) with a learned alpha from 0.2 at 1 update per step, ``SAC-UTD2`` and
+``SAC-UTD4`` the same at 2 and 4, ``SAC-UTD4-LR3`` at 4 with learning rates 3e-4, ``SAC-UTD4-TE6``
+at 4 with a target entropy of -6 instead of -3; ``SAC-UTD4-FA`` is the demo's setting in real time
+(since 2026-11-26): 4 updates per step with tmrl's fixed entropy coefficient 0.01 (``SAC-UTD8-FA``
+the same at 8); ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
 ``TQC`` use their class defaults (their papers'), each with the lidar model of its kind. The
 update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
 compares :data:`DEFAULT_AGENTS` unless ``--agents`` names others. Budgets per track are in
@@ -60,6 +62,8 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "SAC-UTD4": ("SAC", "demo", 4),
     "SAC-UTD4-LR3": ("SAC", "demo", 4),
     "SAC-UTD4-FA": ("SAC", "demo", 4),
+    "SAC-UTD8-FA": ("SAC", "demo", 8),
+    "SAC-UTD4-TE6": ("SAC", "demo", 4),
     "REDQSAC": ("REDQSAC", "class", 4),
     "DROQ": ("DROQ", "class", 4),
     "CROSSQ": ("CROSSQ", "class", 1),
@@ -67,14 +71,22 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
 }
 
 #: The agents a run compares unless ``--agents`` says otherwise: tmrl's SAC, the demo's real-time
-#: setting and the papers' agents (the other variants are the ratio and learning-rate study).
-DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4", "REDQSAC", "DROQ", "CROSSQ", "TQC")
+#: setting and the papers' agents (the other variants are the ratio, learning-rate and entropy study).
+DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ", "CROSSQ", "TQC")
 
 #: Learning rate of a variant where it is not its settings source's (actor, critics and entropy).
 LEARNING_RATES: dict[str, float] = {"SAC-UTD4-LR3": 3e-4}
 
+#: Initial entropy coefficient of the ``demo`` variants that learn it (SAC's usual 0.2: the demo's in
+#: fast mode, and in real time until 2026-11-26, when it took ``SAC-UTD4-FA``'s fixed coefficient).
+LEARNED_ALPHA_START = 0.2
+
 #: Fixed entropy coefficient of a variant that does not learn it (tmrl's 0.01).
-FIXED_ALPHAS: dict[str, float] = {"SAC-UTD4-FA": 0.01}
+FIXED_ALPHAS: dict[str, float] = {"SAC-UTD4-FA": 0.01, "SAC-UTD8-FA": 0.01}
+
+#: Target entropy of a variant that learns its entropy coefficient toward another target than
+#: SAC's ``-act_dim`` (-3 here).
+TARGET_ENTROPIES: dict[str, float] = {"SAC-UTD4-TE6": -6.0}
 
 #: Budgets (environment steps per run) by profile.
 PROFILES: dict[str, dict[str, Any]] = {
@@ -109,7 +121,8 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
 
         lr = LEARNING_RATES.get(label, S["lr"])
         kwargs.update(lr_actor=lr, lr_critic=lr, lr_entropy=lr, gamma=S["gamma"], polyak=S["polyak"],
-                      alpha=FIXED_ALPHAS.get(label, S["alpha"]), learn_entropy_coef=label not in FIXED_ALPHAS)
+                      alpha=FIXED_ALPHAS.get(label, LEARNED_ALPHA_START), learn_entropy_coef=label not in FIXED_ALPHAS,
+                      target_entropy=TARGET_ENTROPIES.get(label))
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = utd
     return cls(*spaces, "cpu", **kwargs)

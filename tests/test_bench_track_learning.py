@@ -90,6 +90,23 @@ def test_variants_take_their_settings_source_and_learning_rate():
     assert tl.VARIANTS["SAC-UTD2"][2] == 2 and tl.VARIANTS["SAC-UTD4-LR3"][2] == 4
     assert demo_sac.learn_entropy_coef and not fixed_sac.learn_entropy_coef
     assert fixed_sac.lr_actor == 1e-3 and float(fixed_sac.alpha) == 0.01 and float(demo_sac.alpha) == 0.2
+    te6 = tl._agent("SAC-UTD4-TE6", spaces, "pendulum", 4)
+    assert te6.learn_entropy_coef and te6.target_entropy == -6.0 and demo_sac.target_entropy == -1.0  # -act_dim
+
+
+def test_the_demos_real_time_setting_is_a_default_agent_of_the_benchmark():
+    """What ``--demo --realtime`` trains is what a plain benchmark run measures as ``SAC-UTD4-FA``."""
+    import gymnasium
+
+    from tmrl.sim.demo import DEMO_SETTINGS as S
+
+    env = gymnasium.make("Pendulum-v1")
+    agent = tl._agent("SAC-UTD4-FA", (env.observation_space, env.action_space), "pendulum", 4)
+    assert "SAC-UTD4-FA" in tl.DEFAULT_AGENTS
+    assert (S["algorithm"], S["realtime_max_training_steps_per_env_step"]) == (tl.VARIANTS["SAC-UTD4-FA"][0],
+                                                                               tl.VARIANTS["SAC-UTD4-FA"][2])
+    assert (agent.lr_actor, agent.lr_critic, agent.gamma, float(agent.alpha), agent.learn_entropy_coef) == \
+        (S["lr"], S["lr"], S["gamma"], S["realtime_alpha"], S["realtime_learn_entropy_coef"])
 
 
 def _record(path, budgets, runs):

@@ -546,6 +546,10 @@ def test_demo_trains_the_chosen_agent_and_spends_the_idle_real_time_trainer(tmp_
     env = demo._make_env("SIMLIDAR", "oval")
     agent = training.keywords["training_agent_cls"](env.observation_space, env.action_space, "cpu")
     assert isinstance(agent, agent_class(algorithm)) and isinstance(agent.model, lidar_model_cls(algorithm))
+    # real time: tmrl's fixed entropy coefficient (a learned one falls back at 4 updates per sample)
+    mode = "realtime_" if realtime else ""
+    assert (float(agent.alpha), agent.learn_entropy_coef) == (saved[mode + "alpha"], saved[mode + "learn_entropy_coef"])
+    assert saved["realtime_learn_entropy_coef"] is False and saved["learn_entropy_coef"] is True
     memory = training.keywords["memory_cls"](device="cpu", nb_steps=1, batch_size=8)
     parts = demo._parts("SIMLIDAR")
     from tmrl.networking import RolloutWorker

@@ -989,7 +989,8 @@ _SIM_TRAINING: dict[str, Any] = {
     "MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP": 3.0,
     # In real time (SIM_FAST_MODE false) the clock sets the pace and the trainer, otherwise idle, does
     # up to 4 updates per sample: SAC laps in fewer environment steps so (bench/track_learning.py).
-    # In fast mode the line above binds first and this one changes nothing.
+    # In fast mode the line above binds first and this one changes nothing. (In real time, set ALG's
+    # ALPHA 0.01 and LEARN_ENTROPY_COEF false too, as the demo does: docs/simulator.md.)
     "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 4.0,
 }
 _SIM_RTGYM: dict[str, Any] = {

@@ -43,17 +43,21 @@ __all__ = ["DEMO_SETTINGS", "main"]
 #: Training settings of the demo (SAC with a small replay memory, a fast update rhythm).
 DEMO_SETTINGS: dict[str, Any] = dict(
     img_hist_len=4, act_buf_len=2, ep_max_length=1000, batch_size=256, memory_size=200_000,
-    algorithm="SAC", lr=1e-3, gamma=0.99, polyak=0.995, alpha=0.2, steps_per_round=200, rounds=10,
+    algorithm="SAC", lr=1e-3, gamma=0.99, polyak=0.995, alpha=0.2, learn_entropy_coef=True,
+    steps_per_round=200, rounds=10,
     update_model_interval=20, update_buffer_interval=20, max_training_steps_per_env_step=1.0,
-    realtime_max_training_steps_per_env_step=4.0,
+    realtime_max_training_steps_per_env_step=4.0, realtime_alpha=0.01, realtime_learn_entropy_coef=False,
     start_training=1000, max_env_steps_per_training_step=3.0,
 )
 # Fast mode: the worker keeps pace with the trainer (MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP, carried
 # with the weights): at most 3 samples per update, at most one update per sample; the simulator
 # costs nothing, so wall time is what counts there. Real time: the clock sets the pace (20 samples/s)
 # and environment steps are what count; the trainer, otherwise idle, does up to 4 updates per sample
-# (bench/track_learning.py: SAC laps `classic` in fewer steps at 4 updates per step than at 1). A
-# model every 20 updates keeps the worker moving smoothly.
+# (bench/track_learning.py: SAC laps `classic` in fewer steps at 4 updates per step than at 1), with
+# tmrl's fixed entropy coefficient 0.01: at that ratio a learned one laps sooner but falls back after
+# ~7,000 steps and drives a slower best lap (the benchmark's SAC-UTD4-FA against SAC-UTD4). In fast
+# mode (at most one update per sample) the learned coefficient lapped sooner in wall time and steps.
+# A model every 20 updates keeps the worker moving smoothly.
 
 _INTERFACES = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
 
@@ -174,7 +178,7 @@ def _stats_env(interface: str, track: str, workdir: Path, realtime: bool = False
     return Stats(env)
 
 
-def _agent_cls(interface: str, algorithm: str) -> Any:
+def _agent_cls(interface: str, algorithm: str, realtime: bool = False) -> Any:
     """The demo's training agent: ``algorithm`` (an ``ALG.ALGORITHM`` value) with the model it
     trains on ``interface``'s observations, counting its updates for the status line."""
     from tmrl.algorithms import agent_class
@@ -207,9 +211,10 @@ def _agent_cls(interface: str, algorithm: str) -> Any:
             return out
 
     Counting.__name__ = Counting.__qualname__ = f"Counting{base.__name__}"
-    return partial(Counting, model_cls=model_cls, gamma=s["gamma"], polyak=s["polyak"], alpha=s["alpha"],
-                   lr_actor=s["lr"], lr_critic=s["lr"], lr_entropy=s["lr"], learn_entropy_coef=True,
-                   target_entropy=None)
+    mode = "realtime_" if realtime else ""
+    return partial(Counting, model_cls=model_cls, gamma=s["gamma"], polyak=s["polyak"], alpha=s[mode + "alpha"],
+                   lr_actor=s["lr"], lr_critic=s["lr"], lr_entropy=s["lr"],
+                   learn_entropy_coef=s[mode + "learn_entropy_coef"], target_entropy=None)
 
 
 def _training_cls(interface: str, track: str, workdir: Path, realtime: bool = False) -> Any:
@@ -217,7 +222,7 @@ def _training_cls(interface: str, track: str, workdir: Path, realtime: bool = Fa
     from tmrl.util import partial
 
     s = DEMO_SETTINGS
-    agent = _agent_cls(interface, s["algorithm"])
+    agent = _agent_cls(interface, s["algorithm"], realtime)
     agent.func.workdir = workdir
     parts = _parts(interface)
     env = _make_env(interface, track)  # only its spaces and settings are used
