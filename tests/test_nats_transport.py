@@ -616,7 +616,9 @@ def test_a_three_node_cluster_keeps_samples_and_weights_flowing_when_a_node_is_k
         _wait_for(lambda: all(listening(p) for p in client), 20.0, what="the three nodes listening")
         urls = [f"nats://127.0.0.1:{p}" for p in client]
         t0 = time.monotonic()
-        trainer = _trainer(made, 0, urls=urls, replicas=3)
+        # a batch in flight to the trainer when its node dies is delivered again after ack_wait:
+        # short here, so that the wait for every batch below outlasts it
+        trainer = _trainer(made, 0, urls=urls, replicas=3, ack_wait=5.0)
         assert trainer.wait_connected(30), "the trainer could not create the replicated stream"
         worker = _worker(made, 0, urls=list(reversed(urls)))
         assert worker.wait_connected(30)
