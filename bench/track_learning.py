@@ -74,19 +74,15 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
 #: setting and the papers' agents (the other variants are the ratio, learning-rate and entropy study).
 DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ", "CROSSQ", "TQC")
 
-#: Learning rate of a variant where it is not its settings source's (actor, critics and entropy).
-LEARNING_RATES: dict[str, float] = {"SAC-UTD4-LR3": 3e-4}
-
-#: Initial entropy coefficient of the ``demo`` variants that learn it (SAC's usual 0.2: the demo's in
-#: fast mode, and in real time until 2026-11-26, when it took ``SAC-UTD4-FA``'s fixed coefficient).
-LEARNED_ALPHA_START = 0.2
-
-#: Fixed entropy coefficient of a variant that does not learn it (tmrl's 0.01).
-FIXED_ALPHAS: dict[str, float] = {"SAC-UTD4-FA": 0.01, "SAC-UTD8-FA": 0.01}
-
-#: Target entropy of a variant that learns its entropy coefficient toward another target than
-#: SAC's ``-act_dim`` (-3 here).
-TARGET_ENTROPIES: dict[str, float] = {"SAC-UTD4-TE6": -6.0}
+#: How a ``demo`` variant departs from its base: SAC at the demo's learning rates, gamma and polyak
+#: with an entropy coefficient learned from 0.2 toward SAC's ``-act_dim`` (the demo's in fast mode,
+#: and in real time until 2026-11-26, when it took ``SAC-UTD4-FA``'s fixed coefficient, tmrl's 0.01).
+DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
+    "SAC-UTD4-LR3": {"lr": 3e-4},
+    "SAC-UTD4-FA": {"alpha": 0.01, "learn_entropy_coef": False},
+    "SAC-UTD8-FA": {"alpha": 0.01, "learn_entropy_coef": False},
+    "SAC-UTD4-TE6": {"target_entropy": -6.0},
+}
 
 #: Budgets (environment steps per run) by profile.
 PROFILES: dict[str, dict[str, Any]] = {
@@ -119,10 +115,10 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
     elif source == "demo":
         from tmrl.sim.demo import DEMO_SETTINGS as S
 
-        lr = LEARNING_RATES.get(label, S["lr"])
-        kwargs.update(lr_actor=lr, lr_critic=lr, lr_entropy=lr, gamma=S["gamma"], polyak=S["polyak"],
-                      alpha=FIXED_ALPHAS.get(label, LEARNED_ALPHA_START), learn_entropy_coef=label not in FIXED_ALPHAS,
-                      target_entropy=TARGET_ENTROPIES.get(label))
+        v = {"lr": S["lr"], "alpha": 0.2, "learn_entropy_coef": True, "target_entropy": None,
+             **DEMO_OVERRIDES.get(label, {})}
+        kwargs.update(lr_actor=v["lr"], lr_critic=v["lr"], lr_entropy=v["lr"], gamma=S["gamma"], polyak=S["polyak"],
+                      alpha=v["alpha"], learn_entropy_coef=v["learn_entropy_coef"], target_entropy=v["target_entropy"])
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = utd
     return cls(*spaces, "cpu", **kwargs)
