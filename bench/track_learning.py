@@ -64,6 +64,11 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "SAC-UTD4-FA": ("SAC", "demo", 4),
     "SAC-UTD8-FA": ("SAC", "demo", 8),
     "SAC-UTD4-TE6": ("SAC", "demo", 4),
+    "SAC-UTD4-A003": ("SAC", "demo", 4),
+    "SAC-UTD4-A005": ("SAC", "demo", 4),
+    "SAC-UTD8-R250": ("SAC", "demo", 8),
+    "SAC-UTD8-CAP": ("SAC", "demo", 8),
+    "SAC-UTD4-CAP": ("SAC", "demo", 4),
     "REDQSAC": ("REDQSAC", "class", 4),
     "DROQ": ("DROQ", "class", 4),
     "CROSSQ": ("CROSSQ", "class", 1),
@@ -82,7 +87,21 @@ DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD4-FA": {"alpha": 0.01, "learn_entropy_coef": False},
     "SAC-UTD8-FA": {"alpha": 0.01, "learn_entropy_coef": False},
     "SAC-UTD4-TE6": {"target_entropy": -6.0},
+    "SAC-UTD4-A003": {"alpha": 0.003, "learn_entropy_coef": False},
+    "SAC-UTD4-A005": {"alpha": 0.005, "learn_entropy_coef": False},
+    "SAC-UTD8-R250": {"start_steps": 250},
+    "SAC-UTD8-CAP": {"start_steps": 250, "alpha_max": 0.01},
+    "SAC-UTD4-CAP": {"start_steps": 250, "alpha_max": 0.01},
 }
+
+#: Uniformly random environment steps before training (tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING),
+#: for every variant whose :data:`DEMO_OVERRIDES` entry does not name its own ``start_steps``.
+START_STEPS = 1_000
+
+
+def start_steps_of(label: str) -> int:
+    """The random steps variant ``label`` takes before training."""
+    return int(DEMO_OVERRIDES.get(label, {}).get("start_steps", START_STEPS))
 
 #: Budgets (environment steps per run) by profile.
 PROFILES: dict[str, dict[str, Any]] = {
@@ -115,10 +134,11 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
     elif source == "demo":
         from tmrl.sim.demo import DEMO_SETTINGS as S
 
-        v = {"lr": S["lr"], "alpha": 0.2, "learn_entropy_coef": True, "target_entropy": None,
+        v = {"lr": S["lr"], "alpha": 0.2, "learn_entropy_coef": True, "target_entropy": None, "alpha_max": None,
              **DEMO_OVERRIDES.get(label, {})}
         kwargs.update(lr_actor=v["lr"], lr_critic=v["lr"], lr_entropy=v["lr"], gamma=S["gamma"], polyak=S["polyak"],
-                      alpha=v["alpha"], learn_entropy_coef=v["learn_entropy_coef"], target_entropy=v["target_entropy"])
+                      alpha=v["alpha"], learn_entropy_coef=v["learn_entropy_coef"], target_entropy=v["target_entropy"],
+                      alpha_max=v["alpha_max"])
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = utd
     return cls(*spaces, "cpu", **kwargs)
@@ -316,7 +336,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--steps", type=int, default=None, help="environment steps per run (default: the profile's per track)")
     ap.add_argument("--utd", type=int, default=None, help="updates per environment step for every agent "
                     "(default: each variant's own)")
-    ap.add_argument("--start-steps", type=int, default=1_000, help="uniformly random actions first")
+    ap.add_argument("--start-steps", type=int, default=None, help="uniformly random actions first, for every "
+                    f"agent (default: each variant's own, {START_STEPS} unless it says otherwise)")
     ap.add_argument("--eval-every", type=int, default=None)
     ap.add_argument("--batch-size", type=int, default=256)
     ap.add_argument("--append-every", type=int, default=10)
@@ -341,9 +362,10 @@ def main(argv: list[str] | None = None) -> None:
     eval_every = args.eval_every or profile["eval_every"]
     budgets = {e: args.steps or profile["steps"][e] for e in envs}
     utd = {label: args.utd or VARIANTS[label][2] for label in labels}
+    start = {label: start_steps_of(label) if args.start_steps is None else args.start_steps for label in labels}
     settle = settle_per_env(profile, envs, args.settle)
     settings = {"profile": "quick" if args.quick else "full", "budgets": budgets, "utd": utd,
-                "start_steps": args.start_steps, "eval_every": eval_every, "batch_size": args.batch_size,
+                "start_steps": start, "eval_every": eval_every, "batch_size": args.batch_size,
                 "append_every": args.append_every, "jobs": args.jobs, "torch_threads_per_run": 1, "settle": settle}
     rec = harness.Recorder("track_learning", settings)
     side = harness.ours_side()
@@ -352,7 +374,7 @@ def main(argv: list[str] | None = None) -> None:
     def one(job: tuple[str, int, str]) -> tuple[tuple[str, int, str], dict[str, Any]]:
         env, seed, label = job
         kwargs = {"env_name": env, "label": label, "seed": seed, "steps": budgets[env], "utd": utd[label],
-                      "start_steps": min(args.start_steps, budgets[env] // 2), "eval_every": eval_every,
+                      "start_steps": min(start[label], budgets[env] // 2), "eval_every": eval_every,
                       "batch_size": args.batch_size, "append_every": args.append_every, "settle": settle[env]}
         out = subprocess.run(side.command("track_learning", "--run", json.dumps(kwargs)), env=side.env,
                              cwd=side.cwd, stdout=subprocess.PIPE, text=True, check=False)

@@ -3,6 +3,8 @@ from a run's episodes, and one short real run of its loop on the simulator."""
 
 from __future__ import annotations
 
+import functools
+import json
 import sys
 from pathlib import Path
 
@@ -92,6 +94,35 @@ def test_variants_take_their_settings_source_and_learning_rate():
     assert fixed_sac.lr_actor == 1e-3 and float(fixed_sac.alpha) == 0.01 and float(demo_sac.alpha) == 0.2
     te6 = tl._agent("SAC-UTD4-TE6", spaces, "pendulum", 4)
     assert te6.learn_entropy_coef and te6.target_entropy == -6.0 and demo_sac.target_entropy == -1.0  # -act_dim
+
+
+def test_variants_take_tmrls_random_start_unless_they_name_their_own(tmp_path, monkeypatch):
+    assert tl.START_STEPS == 1000  # tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING
+    assert tl.start_steps_of("SAC-TMRL") == 1000 and tl.start_steps_of("DROQ") == 1000
+    assert tl.start_steps_of("SAC-UTD8-R250") == 250
+    seen = []
+
+    class Done:
+        returncode = 0
+        stdout = json.dumps({"episodes": [], "tests": [], "wall_s": 1.0, "updates": 0, "steps": 4, "updates_per_s": 0.0})
+
+    real_run = tl.subprocess.run
+
+    def fake_run(cmd, **kwargs):  # the child runs only; anything else (git, for the record) really runs
+        if "--run" not in cmd:
+            return real_run(cmd, **kwargs)
+        seen.append(json.loads(cmd[cmd.index("--run") + 1]))
+        return Done()
+
+    monkeypatch.setattr(tl.harness, "Recorder", functools.partial(tl.harness.Recorder, out_dir=tmp_path))
+    monkeypatch.setattr(tl.subprocess, "run", fake_run)
+    tl.main(["--agents", "SAC-TMRL,SAC-UTD8-R250", "--tracks", "classic", "--seeds", "1", "--steps", "4000",
+             "--jobs", "1"])
+    assert sorted((k["label"], k["start_steps"]) for k in seen) == [("SAC-TMRL", 1000), ("SAC-UTD8-R250", 250)]
+    seen.clear()
+    tl.main(["--agents", "SAC-TMRL,SAC-UTD8-R250", "--tracks", "classic", "--seeds", "1", "--steps", "4000",
+             "--jobs", "1", "--start-steps", "100"])  # one value for every agent
+    assert sorted((k["label"], k["start_steps"]) for k in seen) == [("SAC-TMRL", 100), ("SAC-UTD8-R250", 100)]
 
 
 def test_the_demos_real_time_setting_is_a_default_agent_of_the_benchmark():
