@@ -178,3 +178,37 @@ def test_merge_refuses_another_benchmark_s_record(tmp_path):
     (tmp_path / "x.jsonl").write_text('{"kind": "run", "bench": "trainer_speed", "settings": {}}\n')
     with pytest.raises(SystemExit, match="not a track_learning record"):
         tl.load_results([tmp_path / "x.jsonl"])
+
+
+def test_the_cap_screens_hold_a_fallen_entropy_coefficient_under_their_ceiling():
+    """``SAC-UTD*-CAP``: once the learned coefficient has fallen to 0.01 it stays at or under it;
+    above it (its start, 0.2) it moves freely; the uncapped variant's rises above it."""
+    import math
+
+    import gymnasium
+    import torch
+
+    env = gymnasium.make("Pendulum-v1")
+    spaces = (env.observation_space, env.action_space)
+    gen = torch.Generator().manual_seed(0)
+
+    def batch(size=32):
+        o, o2 = torch.rand(size, 3, generator=gen), torch.rand(size, 3, generator=gen)
+        return (o,), torch.rand(size, 1, generator=gen), torch.randn(size, generator=gen), (o2,), \
+            torch.zeros(size), torch.zeros(size)
+
+    def drive(agent, target, n):
+        agent.target_entropy = target  # far below the policy's entropy: alpha falls; far above: it rises
+        alphas = []
+        for _ in range(n):
+            agent.train(batch())
+            alphas.append(math.exp(float(agent.log_alpha.detach())))
+        return alphas
+
+    for label, capped in (("SAC-UTD4-CAP", True), ("SAC-UTD4", False)):
+        agent = tl._agent(label, spaces, "pendulum", 4)
+        agent.alpha_optimizer.param_groups[0]["lr"] = 0.3  # big steps on log(alpha)
+        falling = drive(agent, -100.0, 12)
+        assert 0.01 < falling[0] < 0.2 and falling[-1] < 0.01
+        rising = max(drive(agent, 100.0, 40))
+        assert (rising <= 0.01 * (1 + 1e-5)) if capped else rising > 0.02, label

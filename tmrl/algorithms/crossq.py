@@ -311,7 +311,6 @@ class CrossQAgent(SACAgent):
         critic_width: int = 1024,
         bn_momentum: float = 0.01,
         renorm_warmup_steps: int = 100_000,
-        alpha_max: float | None = None,
     ) -> None:
         self.policy_delay = int(policy_delay)
         self.critic_width = int(critic_width)
@@ -350,7 +349,6 @@ class CrossQAgent(SACAgent):
             betas_critic=paper_betas(betas_critic, optimizer_critic),
             l2_actor=l2_actor,
             l2_critic=l2_critic,
-            alpha_max=alpha_max,
             update_order="sequential",  # the actor loss reads the critics after their step
             fused=False,
         )
@@ -498,10 +496,8 @@ class CrossQAgent(SACAgent):
         params = list(self.actor.parameters()) + ([self.log_alpha] if self.log_alpha is not None else [])
         if not self.guard.update_ok(loss, params):
             return False
-        under = self._under_alpha_max() if loss_alpha is not None else None
         for opt in optimizers:
             opt.step()  # type: ignore[union-attr]
-        self._hold_alpha_max(under)
         return True
 
     # --- checkpointing ------------------------------------------------------------------------

@@ -181,7 +181,6 @@ class DroQAgent(SACAgent):
         l2_critic: float | None = None,
         dropout_rate: float = 0.01,
         q_updates_per_policy_update: int = 20,
-        alpha_max: float | None = None,
     ) -> None:
         self.dropout_rate = float(dropout_rate)
         self.q_updates_per_policy_update = int(q_updates_per_policy_update)
@@ -212,7 +211,6 @@ class DroQAgent(SACAgent):
             betas_critic=betas_critic,
             l2_actor=l2_actor,
             l2_critic=l2_critic,
-            alpha_max=alpha_max,
             update_order="simultaneous",
             fused=False,
         )

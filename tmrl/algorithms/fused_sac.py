@@ -345,9 +345,7 @@ class FusedSACUpdate:
             return agent.guard.skipped_metrics()
         cg.step()
         if self.alpha_grads is not None:
-            under = agent._under_alpha_max()
             self.alpha_grads.step()
-            agent._hold_alpha_max(under)
         ag.step()
         agent._update_targets()
         metrics: dict[str, Any] = {

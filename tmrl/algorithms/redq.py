@@ -62,7 +62,6 @@ class REDQSACAgent(SACAgent):
         n: int = 10,
         m: int = 2,
         q_updates_per_policy_update: int = 1,
-        alpha_max: float | None = None,
     ) -> None:
         self.n = int(n)
         self.m = int(m)
@@ -95,7 +94,6 @@ class REDQSACAgent(SACAgent):
             betas_critic=betas_critic,
             l2_actor=l2_actor,
             l2_critic=l2_critic,
-            alpha_max=alpha_max,
         )
         if len(self.critics) != self.n:
             raise UserError(

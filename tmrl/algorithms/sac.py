@@ -234,11 +234,6 @@ class SACAgent(TrainingAgent):
         lr_entropy: learning rate of ``log_alpha`` (SAC v2), optimised with Adam.
         learn_entropy_coef: learn alpha toward ``target_entropy`` (SAC v2).
         target_entropy: target policy entropy; None means ``-act_dim``.
-        alpha_max: ceiling of a learned coefficient, sticky: once alpha has fallen to it, it
-            never rises above it again (it may start above it, as from 0.2 toward 0.01). None:
-            no ceiling. The learned coefficient falls fast while the policy is more random than
-            the target, then climbs again once it is less random; the ceiling keeps the first
-            phase and bounds the second.
         optimizer_actor: ``"adam"``, ``"adamw"`` or ``"sgd"``.
         optimizer_critic: ``"adam"``, ``"adamw"`` or ``"sgd"``.
         betas_actor: Adam/AdamW betas of the actor optimizer (None: PyTorch's default).
@@ -285,7 +280,6 @@ class SACAgent(TrainingAgent):
         l2_actor: float | None = None,
         l2_critic: float | None = None,
         update_order: str = "simultaneous",
-        alpha_max: float | None = None,
         fused: bool = True,
     ) -> None:
         if update_order not in UPDATE_ORDERS:
@@ -314,9 +308,6 @@ class SACAgent(TrainingAgent):
             raise UserError(f"polyak={polyak} must lie in [0, 1] (ALG.POLYAK), typically 0.995")
         if self.alpha <= 0.0 and self.learn_entropy_coef:
             raise UserError(f"alpha={alpha} must be > 0 when the entropy coefficient is learned (ALG.ALPHA)")
-        if alpha_max is not None and not float(alpha_max) > 0.0:
-            raise UserError(f"alpha_max={alpha_max} must be > 0, or null for no ceiling (ALG.ALPHA_MAX)")
-        self.alpha_max = None if alpha_max is None else float(alpha_max)
 
         self.model = self._make_model().to(device)
         self.model_target = no_grad(copy.deepcopy(self.model))
@@ -363,21 +354,6 @@ class SACAgent(TrainingAgent):
             self.log_alpha = torch.tensor(math.log(self.alpha), device=device, requires_grad=True)
             self.alpha_optimizer = make_optimizer("adam", [self.log_alpha], lr_entropy, what="lr_entropy")
         self.alpha_t = torch.tensor(self.alpha, device=device)
-
-    @torch.no_grad()
-    def _under_alpha_max(self) -> torch.Tensor | None:
-        """Before a step of a learned coefficient with a ceiling: whether it is at or under the
-        ceiling already (then the step may not lift it above); None without a ceiling."""
-        if self.alpha_max is None or self.log_alpha is None:
-            return None
-        return self.log_alpha <= math.log(self.alpha_max)
-
-    @torch.no_grad()
-    def _hold_alpha_max(self, under: torch.Tensor | None) -> None:
-        """After that step: back to the ceiling where it was under it before (no device sync)."""
-        if under is not None:
-            log_alpha = cast(torch.Tensor, self.log_alpha)
-            log_alpha.copy_(torch.where(under, log_alpha.clamp(max=math.log(cast(float, self.alpha_max))), log_alpha))
 
     @property
     def skipped_updates(self) -> int:
@@ -550,10 +526,8 @@ class SACAgent(TrainingAgent):
         loss.backward()
         if not self.guard.update_ok(loss, self._guarded):
             return False
-        under = self._under_alpha_max() if loss_alpha is not None else None
         for opt in optimizers:
             opt.step()
-        self._hold_alpha_max(under)
         return True
 
     def _actor_step_after_critics(

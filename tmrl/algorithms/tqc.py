@@ -203,7 +203,6 @@ class TQCAgent(SACAgent):
         n: int = 5,
         n_quantiles: int = 25,
         drop_per_critic: int = 2,
-        alpha_max: float | None = None,
     ) -> None:
         self.n = int(n)
         self.n_quantiles = int(n_quantiles)
@@ -239,7 +238,6 @@ class TQCAgent(SACAgent):
             betas_critic=betas_critic,
             l2_actor=l2_actor,
             l2_critic=l2_critic,
-            alpha_max=alpha_max,
             update_order="simultaneous",
             fused=False,
         )
