@@ -8,7 +8,8 @@ on the built-in tracks, with the simulator's lidar observations in fast mode (an
 In real time an environment step costs 50 ms of somebody's afternoon whatever the computer, so
 the figure that matters is steps, not updates per second. Each run is a fresh process with one
 torch thread (``--jobs`` of them at once): a plain synchronous loop (one environment step, then
-``UTD`` updates once the memory holds ``--start-steps`` samples), the samples going through a
+``UTD`` updates after the variant's uniformly random start, :data:`START_STEPS` unless it names
+its own; ``--start-steps`` sets one for all), the samples going through a
 standalone :class:`tmrl.networking.RolloutWorker` (the simulator's preprocessor and compressor)
 into the trainer's replay memory every ``--append-every`` steps. Every ``--eval-every`` steps one
 deterministic test episode is driven (not counted as training steps).
@@ -28,7 +29,11 @@ TrackMania lidar config ships: learning rates 1e-5/5e-5, gamma 0.995, fixed alph
 ``SAC-UTD4`` the same at 2 and 4, ``SAC-UTD4-LR3`` at 4 with learning rates 3e-4, ``SAC-UTD4-TE6``
 at 4 with a target entropy of -6 instead of -3; ``SAC-UTD4-FA`` is the demo's setting in real time
 (since 2026-11-26): 4 updates per step with tmrl's fixed entropy coefficient 0.01 (``SAC-UTD8-FA``
-the same at 8); ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
+the same at 8, ``SAC-UTD4-A003`` and ``-A005`` at 0.003 and 0.005, ``SAC-UTD4-FA-R250`` with 250
+random steps first instead of 1,000); ``SAC-UTD8-R250`` is the learned alpha at 8 updates per step
+after 250 random steps, ``SAC-UTD8-CAP`` and ``SAC-UTD4-CAP`` the same at 8 and 4 with the
+coefficient held at or under 0.01 once it has fallen there (screens: :func:`_hold_alpha_under`);
+``REDQSAC``, ``DROQ``, ``CROSSQ`` and
 ``TQC`` use their class defaults (their papers'), each with the lidar model of its kind. The
 update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
 compares :data:`DEFAULT_AGENTS` unless ``--agents`` names others. Budgets per track are in
