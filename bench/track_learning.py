@@ -87,7 +87,9 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ",
 
 #: How a ``demo`` variant departs from its base: SAC at the demo's learning rates, gamma and polyak
 #: with an entropy coefficient learned from 0.2 toward SAC's ``-act_dim`` (the demo's in fast mode,
-#: and in real time until 2026-11-26, when it took ``SAC-UTD4-FA``'s fixed coefficient, tmrl's 0.01).
+#: and in real time until 2026-11-26, when it took ``SAC-UTD4-FA``'s fixed coefficient, tmrl's 0.01),
+#: and :data:`START_STEPS` random steps. Keys: ``lr``, ``alpha``, ``learn_entropy_coef``,
+#: ``target_entropy``, ``alpha_max`` (the screens' ceiling, :func:`_hold_alpha_under`), ``start_steps``.
 DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD4-LR3": {"lr": 3e-4},
     "SAC-UTD4-FA": {"alpha": 0.01, "learn_entropy_coef": False},
@@ -134,6 +136,7 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
     alg, source, _ = VARIANTS[label]
     cls = agent_class(alg)
     kwargs: dict[str, Any] = {}
+    alpha_cap = None
     if env_name != "pendulum":
         kwargs["model_cls"] = _lidar_model(alg)
     if source == "tmrl":  # tmrl's shipped ALG defaults (the TrackMania lidar config's)
@@ -145,11 +148,12 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
              **DEMO_OVERRIDES.get(label, {})}
         kwargs.update(lr_actor=v["lr"], lr_critic=v["lr"], lr_entropy=v["lr"], gamma=S["gamma"], polyak=S["polyak"],
                       alpha=v["alpha"], learn_entropy_coef=v["learn_entropy_coef"], target_entropy=v["target_entropy"])
+        alpha_cap = v["alpha_max"]
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = utd
     agent = cls(*spaces, "cpu", **kwargs)
-    if source == "demo" and v["alpha_max"] is not None:
-        _hold_alpha_under(agent, v["alpha_max"])
+    if alpha_cap is not None:
+        _hold_alpha_under(agent, alpha_cap)
     return agent
 
 
