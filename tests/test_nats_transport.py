@@ -329,6 +329,36 @@ def test_the_stream_discards_the_oldest_batches_beyond_its_bound_and_the_trainer
     assert trainer.dropped == 7
 
 
+def test_a_batch_lost_in_flight_comes_again_and_is_not_counted_as_discarded(made):
+    # The network seam: one fetched batch never reaches the trainer (as when its connection drops
+    # with the batch on the wire). The stream still holds it, unacknowledged: it comes again after
+    # ack_wait, and the skipped sequence is not a discard.
+    relay = _relay(made)
+    trainer = _trainer(made, relay.port, ack_wait=2.0)
+    worker = _worker(made, relay.port)
+    assert trainer.wait_connected(30) and worker.wait_connected(30)
+    worker.send_samples("b0")
+    assert _receive(trainer, 1) == ["b0"]  # the trainer has a sequence to compare with
+    real_fetch, lost, calls = trainer._psub.fetch, [], []
+
+    async def fetch_losing_one(*args: Any, **kwargs: Any) -> list:
+        calls.append(1)
+        msgs = await real_fetch(*args, **kwargs)
+        if not lost and msgs:
+            lost.append(msgs[0].metadata.sequence.stream)
+            return msgs[1:]
+        return msgs
+
+    trainer._psub.fetch = fetch_losing_one
+    _wait_for(lambda: bool(calls), 30.0, what="the trainer fetching through the lossy seam")
+    worker.send_samples("b1")
+    _wait_for(lambda: bool(lost), 30.0, what="a batch lost in flight")
+    worker.send_samples("b2")
+    got = _receive(trainer, 2, timeout=30.0)
+    assert sorted(got) == ["b1", "b2"] and got[0] == "b2"  # b1 came again, after b2
+    assert trainer.dropped == 0
+
+
 def _rss_bytes() -> int:
     with open("/proc/self/status") as f:
         return next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmRSS:"))

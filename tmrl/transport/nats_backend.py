@@ -814,9 +814,11 @@ class NatsTrainerLink(_NatsLink):
         self._stalled = False
         self._fresh = True
         self._psub: Any = None
+        self._js: Any = None
         self._last_seq: int | None = None
         self.dropped = 0
-        """Batches the stream discarded (its bounds) before this trainer got them."""
+        """Batches the stream discarded (its bounds) before this trainer got them (not those in
+        flight when a connection dropped: the stream still holds them and delivers them again)."""
         self.acked = 0
         """Batches acknowledged (and confirmed by the server)."""
         self.broadcasts = 0
@@ -862,7 +864,7 @@ class NatsTrainerLink(_NatsLink):
         import nats.js.errors as jse
         from nats.js import api
 
-        js = self._nc.jetstream(timeout=5)
+        js = self._js = self._nc.jetstream(timeout=5)
         await _ensure_layout(js, self._stream, self._bucket, self._max_bytes, self._max_msgs, self._replicas)
         config = api.ConsumerConfig(
             durable_name=CONSUMER,
@@ -936,14 +938,27 @@ class NatsTrainerLink(_NatsLink):
                     logger.debug("trainer link: ignored a message that is not from the stream (%s)", e)
                     continue
                 if self._last_seq is not None and seq > self._last_seq + 1 and m.metadata.num_delivered == 1:
-                    gap = seq - self._last_seq - 1
-                    self.dropped += gap
-                    self._drop_log("trainer link: the samples stream discarded %d batches (its bounds); "
-                                   "%d so far", gap, self.dropped)
+                    gap = await self._discarded(self._last_seq + 1, seq - 1)
+                    if gap:
+                        self.dropped += gap
+                        self._drop_log("trainer link: the samples stream discarded %d batches (its bounds); "
+                                       "%d so far", gap, self.dropped)
                 self._last_seq = max(self._last_seq or 0, seq)
                 kept.append(m)
             with self._inbox_lock:
                 self._inbox.extend(kept)
+
+    async def _discarded(self, first: int, last: int) -> int:
+        """How many of the stream's batches ``first..last``, skipped by a delivery, the stream no
+        longer holds. It discards the oldest, so those are the ones below its first sequence; the
+        others were in flight when a connection dropped and come again after ``ack_wait``. The
+        whole span when the stream cannot be asked."""
+        try:
+            held_from = (await self._js.stream_info(self._stream)).state.first_seq
+        except Exception as e:  # noqa: BLE001 (disconnected again: count the span, as before)
+            logger.debug("trainer link: stream state unknown (%s): the skipped batches count as discarded", e)
+            return last - first + 1
+        return max(0, min(last, held_from - 1) - first + 1)
 
     async def _keep_alive(self) -> None:
         """Tell the server the batches waiting in this process are being worked on, so that it
