@@ -4,9 +4,17 @@ the developer's ~/TmrlData."""
 from __future__ import annotations
 
 import os
+import signal
 import socket
 
 import pytest
+
+# Tests stop their subprocesses as Ctrl-C does (SIGINT). A shell that starts the test run in the
+# background (`nohup ... &`) passes SIGINT on as ignored, and an ignored signal stays ignored in
+# every program started below: the server of a compatibility script then never stops. Listening to
+# it here again gives the children the default (a handler, unlike SIG_IGN, does not survive exec).
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # In CI a skipped test is a failure, except the few listed in tests/ci_skips.py.
 pytest_plugins = ["ci_skips"]
