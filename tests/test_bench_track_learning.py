@@ -187,21 +187,17 @@ def test_the_cap_screens_hold_a_fallen_entropy_coefficient_under_their_ceiling()
 
     import gymnasium
     import torch
+    from test_algorithms import random_batch
 
     env = gymnasium.make("Pendulum-v1")
     spaces = (env.observation_space, env.action_space)
     gen = torch.Generator().manual_seed(0)
 
-    def batch(size=32):
-        o, o2 = torch.rand(size, 3, generator=gen), torch.rand(size, 3, generator=gen)
-        return (o,), torch.rand(size, 1, generator=gen), torch.randn(size, generator=gen), (o2,), \
-            torch.zeros(size), torch.zeros(size)
-
     def drive(agent, target, n):
         agent.target_entropy = target  # far below the policy's entropy: alpha falls; far above: it rises
         alphas = []
         for _ in range(n):
-            agent.train(batch())
+            agent.train(random_batch(gen, 32, obs_space=(env.observation_space,), act_dim=1))
             alphas.append(math.exp(float(agent.log_alpha.detach())))
         return alphas
 
