@@ -4,6 +4,7 @@ on the built-in tracks, with the simulator's lidar observations in fast mode (an
     python -m bench track_learning                 # the default agents, oval/classic/technical, 5 seeds
     python -m bench track_learning --quick         # a CI-sized check (one seed, classic, 1,000 steps)
     python -m bench track_learning --agents SAC,SAC-UTD2,SAC-UTD4 --tracks classic --seeds 5 --jobs 2
+    python -m bench track_learning --floor         # the least time the full run can take on this machine
 
 In real time an environment step costs 50 ms of somebody's afternoon whatever the computer, so
 the figure that matters is steps, not updates per second. Each run is a fresh process with one
@@ -18,7 +19,10 @@ Printed per track and agent (median, min and max over the seeds): environment st
 completed lap (training or test episode; "-" where a seed never lapped: then the median counts it
 as not reached), steps to a lap within 10 % of the best lap any agent reached on that track, the
 best lap time and its ratio to the track's reference lap (:mod:`tmrl.sim.reference`, a driven
-planned lap), and the wall time on this machine. Pendulum (``--pendulum``): steps to a mean test
+planned lap), and the wall time on this machine. ``--floor`` runs nothing to the end: it counts the
+matrix products of each variant's update (:func:`update_gflop_per_step`) and prints the time the
+runs' updates need at this core's best matrix-product rate (:func:`matmul_gflops`), the floor
+under the whole benchmark's wall time. Pendulum (``--pendulum``): steps to a mean test
 return above -200. A PNG of the curves (training episode returns against environment steps,
 median and range over the seeds, one panel per track) goes beside the JSONL record in bench/out/.
 
@@ -50,6 +54,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
@@ -186,10 +191,12 @@ def _lidar_model(alg: str) -> Any:
 
 
 def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps: int, eval_every: int,
-        batch_size: int, append_every: int, settle: int | None = None) -> dict[str, Any]:
+        batch_size: int, append_every: int, settle: int | None = None,
+        on_agent: Callable[[Any], None] | None = None) -> dict[str, Any]:
     """One learning run: its training episodes (end step, return, lap time or None), its test
     episodes, and timings. With ``settle``, the run ends that many steps after its first lap
-    (or at ``steps``)."""
+    (or at ``steps``). ``on_agent`` is called with the agent once it is built (the floor's FLOP
+    count wraps its update there)."""
     import numpy as np
     import torch
 
@@ -204,6 +211,8 @@ def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps:
                          max_samples_per_episode=p["max_samples"], model_path=os.devnull + "_none", **p["worker"])
     worker, tester = RolloutWorker(**worker_kwargs), RolloutWorker(**worker_kwargs)
     agent = _agent(label, (worker.env.observation_space, worker.env.action_space), env_name, utd)
+    if on_agent is not None:
+        on_agent(agent)
     worker.env.action_space.seed(seed)
     worker.actor, tester.actor = _UniformActor(worker.env.action_space), agent.get_actor()
     episodes: list[tuple[int, float, float | None]] = []
@@ -266,6 +275,112 @@ def child_main(argv: list[str]) -> None:
 
 
 # --- figures of a run -----------------------------------------------------------------------------
+
+
+# --- the floor: the matrix products of a whole run ------------------------------------------------
+
+#: Training steps over which :func:`update_gflop_per_step` counts a variant's updates (a multiple of
+#: CrossQ's policy delay of 3, so that its policy updates count in their share).
+FLOOR_COUNT_STEPS = 60
+
+
+def update_gflop_per_step(label: str, start_steps: int | None = None, batch_size: int = 256,
+                          count_steps: int = FLOOR_COUNT_STEPS) -> float:
+    """The matrix products of variant ``label``'s updates, in GFLOP per environment step of
+    training: every update of ``count_steps`` training steps on ``classic``, counted forward and
+    backward by ``torch.utils.flop_counter`` in a real :func:`run`, divided by ``count_steps``.
+    They depend on the shapes only (not on the machine, nor on when training starts: by default
+    after ``batch_size + 10`` random steps, the least that fills a batch)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    total = [0]
+
+    def count(agent: Any) -> None:
+        train = agent.train
+
+        def counted(batch: Any) -> Any:
+            with FlopCounterMode(display=False) as counter:
+                out = train(batch)
+            total[0] += counter.get_total_flops()
+            return out
+
+        agent.train = counted
+
+    start = batch_size + 10 if start_steps is None else int(start_steps)
+    run("classic", label, 0, start + count_steps, VARIANTS[label][2], start, 10**9, batch_size, 1, on_agent=count)
+    return total[0] / count_steps / 1e9
+
+
+def matmul_gflops(seconds: float = 1.0, sizes: tuple[int, ...] = (256, 512, 1024, 2048)) -> float:
+    """This core's best rate of matrix products, GFLOP/s on one torch thread: square float32
+    products ``(n, n) @ (n, n)`` into a preallocated output, the median time of each size over
+    about ``seconds``, the fastest size's rate (larger than any update's own products reach)."""
+    import torch
+
+    torch.set_num_threads(1)
+    best = 0.0
+    for n in sizes:
+        a, b, out = torch.randn(n, n), torch.randn(n, n), torch.empty(n, n)
+        for _ in range(3):
+            torch.mm(a, b, out=out)
+        times: list[float] = []
+        start = time.perf_counter()
+        while time.perf_counter() - start < seconds or len(times) < 5:
+            t0 = time.perf_counter()
+            torch.mm(a, b, out=out)
+            times.append(time.perf_counter() - t0)
+        best = max(best, 2 * n**3 / statistics.median(times) / 1e9)
+    return best
+
+
+def floor_seconds(gflop_per_step: float, budget: int, start_steps: int, gflops: float) -> float:
+    """Seconds of matrix products of one run that trains from ``start_steps`` to ``budget`` steps,
+    at ``gflops``: the least time the run's updates can take on one core at that rate."""
+    return max(0, int(budget) - int(start_steps)) * float(gflop_per_step) / float(gflops)
+
+
+def floor_main(labels: list[str], budgets: dict[str, int], settle: dict[str, int | None], start: dict[str, int],
+               seeds: int, jobs: int, batch_size: int, rec: Any) -> None:
+    """``--floor``: the matrix products of the runs a command would start (``budgets`` per track,
+    ``settle`` None where a run drives its whole budget, ``start`` random steps per variant) at
+    this core's best rate, per variant and in all, against the 90 minutes the full run is asked to
+    fit in."""
+    tracks = list(budgets)
+    gflops = matmul_gflops()
+    print(f"matrix products on one torch thread: at best {gflops:.1f} GFLOP/s (square float32 products, "
+          f"load average {harness.load_average():.2f}, {os.cpu_count()} CPUs)")
+    rec.add("floor", "matmul_gflops", "ours", gflops, unit="GFLOP/s", echo=False)
+    per_track = {t: 0.0 for t in tracks}
+    print(f"\n{'agent':<16} {'updates/step':>12} {'GFLOP/step':>10} " + " ".join(f"{t + ' s':>12}" for t in tracks))
+    for label in labels:
+        g = update_gflop_per_step(label, batch_size=batch_size)
+        rec.add("floor", "gflop_per_step", label, g, unit="GFLOP", echo=False)
+        cells = []
+        for t in tracks:
+            budget = budgets[t]
+            sec = floor_seconds(g, budget, min(start[label], budget // 2), gflops)  # the runs' own start
+            per_track[t] += sec * seeds
+            cells.append(f"{sec:12.0f}")
+        print(f"{label:<16} {VARIANTS[label][2]:>12} {g:10.2f} " + " ".join(cells))
+    whole = sum(per_track.values())
+    ends_early = [t for t in tracks if settle.get(t) is not None]
+    drives = [t for t in tracks if t not in ends_early]
+    least = sum(per_track[t] for t in drives)
+    spans = ", ".join(f"{t} {budgets[t]:,}" for t in tracks)
+    print(f"\nper run: seconds of matrix products of one run to its budget ({spans} steps, training after "
+          "each variant's random start)")
+    if ends_early and drives:
+        span = (f"between {least / jobs / 60:.0f} min (the {', '.join(drives)} runs alone: they drive their whole "
+                f"budget) and {whole / jobs / 60:.0f} min (every run to its budget; {', '.join(ends_early)} runs end "
+                "after their first lap)")
+    else:
+        span = f"{whole / jobs / 60:.0f} min (every run to its budget)"
+    print(f"floor of these runs ({seeds} seed{'s' if seeds != 1 else ''}, {jobs} at once, each on a core of its own): {span}; "
+          "the full run is asked to fit in 90 min")
+    rec.add("floor", "floor_min_all_budgets", "ours", whole / jobs / 60, unit="min", higher_is_better=False, echo=False)
+    if ends_early and drives:
+        rec.add("floor", "floor_min_whole_budget_tracks", "ours", least / jobs / 60, unit="min",
+                higher_is_better=False, echo=False)
 
 
 def laps(res: dict[str, Any]) -> list[tuple[int, float]]:
@@ -378,6 +493,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--jobs", type=int, default=2, help="runs at once (one torch thread each)")
     ap.add_argument("--settle", type=int, default=None, help="end a run this many steps after its first lap, "
                     "on every track (default: the profile's, per track; 0: run every budget to the end)")
+    ap.add_argument("--floor", action="store_true", help="run nothing to the end: the matrix products of the "
+                    "profile's runs at this core's best rate (the least time the benchmark can take here)")
     ap.add_argument("--merge", nargs="+", type=Path, metavar="JSONL",
                     help="run nothing: one table and one PNG of the runs recorded in these files")
     args = ap.parse_args(argv)
@@ -402,6 +519,10 @@ def main(argv: list[str] | None = None) -> None:
                 "start_steps": start, "eval_every": eval_every, "batch_size": args.batch_size,
                 "append_every": args.append_every, "jobs": args.jobs, "torch_threads_per_run": 1, "settle": settle}
     rec = harness.Recorder("track_learning", settings)
+    if args.floor:
+        floor_main(labels, {t: budgets[t] for t in tracks}, settle, start, seeds, args.jobs, args.batch_size, rec)
+        rec.close()
+        return
     side = harness.ours_side()
     plan = [(env, args.first_seed + seed, label) for env in envs for seed, label in harness.alternate(labels, seeds)]
 

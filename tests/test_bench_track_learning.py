@@ -208,3 +208,38 @@ def test_the_cap_screens_hold_a_fallen_entropy_coefficient_under_their_ceiling()
         assert 0.01 < falling[0] < 0.2 and falling[-1] < 0.01
         rising = max(drive(agent, 100.0, 40))
         assert (rising <= 0.01 * (1 + 1e-5)) if capped else rising > 0.02, label
+
+
+def test_the_floor_counts_an_update_as_its_matrix_products_forward_and_backward():
+    """The FLOP count of a real SAC run's updates matches the matrix products of SAC's update
+    written out by hand (bench/trainer_speed.py's floor), four updates per step."""
+    from bench.trainer_speed import update_products
+
+    counted = tl.update_gflop_per_step("SAC-TMRL", batch_size=32, count_steps=3)
+    by_hand = sum(2 * c * m * k * n for c, m, k, n in update_products(obs_dim=83, act_dim=3, hidden=256, batch=32,
+                                                                      n_critics=2, n_targets=2)) / 1e9
+    assert counted == pytest.approx(4 * by_hand, rel=0.01)
+    # CrossQ: one update per step, but critics 1024 wide on twice the batch
+    assert tl.update_gflop_per_step("CROSSQ", batch_size=32, count_steps=3) > 2 * counted
+
+
+def test_the_floor_of_a_run_is_its_training_steps_at_the_cores_rate():
+    assert tl.floor_seconds(2.0, 10_000, 1_000, 100.0) == 180.0  # 9,000 steps x 2 GFLOP at 100 GFLOP/s
+    assert tl.floor_seconds(2.0, 500, 1_000, 100.0) == 0.0  # no training step in the budget
+
+
+def test_floor_prints_the_least_time_of_the_runs_a_command_would_start(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(tl.harness, "Recorder", functools.partial(tl.harness.Recorder, out_dir=tmp_path))
+    monkeypatch.setattr(tl, "matmul_gflops", lambda: 50.0)  # the rate is the machine's; the sums are the test's
+    monkeypatch.setattr(tl, "update_gflop_per_step", lambda label, batch_size: {"SAC": 1.0, "DROQ": 2.0}[label])
+    tl.main(["--floor", "--agents", "SAC,DROQ", "--tracks", "oval,classic", "--seeds", "3", "--steps", "6000",
+             "--jobs", "2"])
+    out = capsys.readouterr().out
+    # per run (5,000 training steps): SAC 100 s, DroQ 200 s; 3 seeds, 2 at once: classic alone
+    # (3 x 300 / 2 = 450 s = 7.5 min, printed 8) and every run to its budget (15 min)
+    assert "SAC" in out and "DROQ" in out and "between 8 min (the classic runs alone" in out
+    assert "and 15 min (every run to its budget; oval runs end after their first lap)" in out
+    records = [json.loads(line) for line in next(tmp_path.glob("track_learning-*.jsonl")).read_text().splitlines()]
+    floors = {r["metric"]: r["value"] for r in records if r.get("case") == "floor" and r.get("side") == "ours"}
+    assert floors["floor_min_all_budgets"] == 15.0 and floors["floor_min_whole_budget_tracks"] == 7.5
+    assert not any(r.get("metric") == "steps_to_first_lap" for r in records)  # nothing was run
