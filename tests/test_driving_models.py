@@ -208,8 +208,9 @@ def test_lidar_models_scale_like_the_lidar_actor_critic_and_share_the_workers_ac
     space = lidar_space()
     model = lidar_model_cls(algo)(space, ACT, hidden_sizes=(32, 32), **SMALL_MODELS[algo])
     assert type(model.actor) is LidarActor
+    plain_extra = {"critic_input_norm": False} if algo == "CROSSQ" else {}  # the lidar model's (below)
     plain = {"DROQ": DroQMLPActorCritic, "TQC": TQCActorCritic, "CROSSQ": CrossQActorCritic}[algo](
-        space, ACT, hidden_sizes=(32, 32), **SMALL_MODELS[algo])
+        space, ACT, hidden_sizes=(32, 32), **SMALL_MODELS[algo], **plain_extra)
     # the same weights without the scaling, fed pre-scaled inputs: same actions and Q values
     plain.load_state_dict({k.replace(".critic.", "."): v for k, v in model.state_dict().items()})
     model.eval()  # no dropout, running statistics: deterministic critics
@@ -226,6 +227,24 @@ def test_lidar_models_scale_like_the_lidar_actor_critic_and_share_the_workers_ac
     assert torch.allclose(worker_actor(obs, test=True)[0], a)
     with pytest.raises(UserError, match="no lidar model"):
         lidar_model_cls("PPO")
+
+
+def test_the_lidar_crossq_critics_have_no_input_normalisation_layer():
+    """The lidar scaling already puts CrossQ's critic inputs on a common scale; a normalisation
+    layer there would standardise each of the 76 lidar features and leave the action 3 of 83
+    inputs of equal weight. The generic critic keeps the paper's input layer. (The layer's effect
+    on learning is measured in docs/benchmarks.md, not here.)"""
+    from tmrl.algorithms.crossq import BatchRenorm1d, CrossQActorCritic
+    from tmrl.driving.models import LidarCrossQActorCritic
+
+    space = lidar_space()
+    lidar = LidarCrossQActorCritic(space, ACT, hidden_sizes=(32, 32), critic_hidden_sizes=(32, 32))
+    generic = CrossQActorCritic(space, ACT, hidden_sizes=(32, 32), critic_hidden_sizes=(32, 32))
+    for q in lidar.qs:
+        assert isinstance(q.critic.net[0], torch.nn.Identity)
+        assert sum(isinstance(m, BatchRenorm1d) for m in q.modules()) == 2  # after each hidden layer
+    for q in generic.qs:
+        assert isinstance(q.net[0], BatchRenorm1d) and sum(isinstance(m, BatchRenorm1d) for m in q.modules()) == 3
 
 
 def _lidar_alg_settings(algo: str) -> dict:

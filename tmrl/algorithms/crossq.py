@@ -52,6 +52,11 @@ the code), normalisation momentum 0.01 in PyTorch's convention (0.99 in the JAX 
   project's (shared) machine, 125 ms with 1024, 46 ms with 512, against 10-12 ms for SAC; the
   critics see ``2B`` rows per pass. stable-baselines3-contrib's port makes the same choice. On a
   GPU, set 2048 for the paper's network;
+- the lidar model (:class:`~tmrl.driving.models.LidarCrossQActorCritic`) has no normalisation
+  layer on the critics' input (``input_norm`` of :class:`CrossQQFunction`; the generic
+  :class:`CrossQActorCritic` keeps it): the lidar scaling already gives the inputs a common
+  scale, and standardising each of the 76 redundant lidar features left the action's 3 too little
+  weight for the car to start moving on some seeds (docs/benchmarks.md);
 - the actor is SAC's :class:`~tmrl.models.SquashedGaussianMLPActor` without normalisation layers
   (the reference code puts them in the actor too): the workers run that policy class (or
   :class:`~tmrl.driving.models.LidarActor` on lidar observations) and must load the trained
@@ -174,6 +179,10 @@ class CrossQQFunction(nn.Module):
         bn_momentum: momentum of the normalisation layers (PyTorch's convention).
         renorm_warmup_steps: training passes of plain batch normalisation before renormalisation.
         bn_eps: epsilon of the normalisation layers.
+        input_norm: normalise the input (the paper's code). False: no layer there (an identity,
+            so that the layers keep their indices), for inputs already on a common scale, where
+            standardising each of many redundant observation features would drown the action's
+            few (the lidar model's choice: :class:`~tmrl.driving.models.LidarCrossQActorCritic`).
     """
 
     def __init__(
@@ -185,11 +194,12 @@ class CrossQQFunction(nn.Module):
         bn_momentum: float = 0.01,
         renorm_warmup_steps: int = 100_000,
         bn_eps: float = 1e-3,
+        input_norm: bool = True,
     ) -> None:
         super().__init__()
         norm = partial(BatchRenorm1d, momentum=bn_momentum, eps=bn_eps, warmup_steps=renorm_warmup_steps)
         width = space_dim(observation_space) + int(torch.Size(action_space.shape).numel())
-        layers: list[nn.Module] = [norm(width)]
+        layers: list[nn.Module] = [norm(width) if input_norm else nn.Identity()]
         for size in hidden_sizes:
             layers += [nn.Linear(width, int(size)), activation(), norm(int(size))]
             width = int(size)
@@ -221,6 +231,8 @@ class CrossQActorCritic(nn.Module):
             module's notes for the default).
         bn_momentum: momentum of the critics' normalisation layers.
         renorm_warmup_steps: critic updates of plain batch normalisation before renormalisation.
+        critic_input_norm: a normalisation layer on each critic's input (the paper's code; see
+            :class:`CrossQQFunction`).
     """
 
     def __init__(
@@ -233,12 +245,13 @@ class CrossQActorCritic(nn.Module):
         critic_hidden_sizes: Sequence[int] = (1024, 1024),
         bn_momentum: float = 0.01,
         renorm_warmup_steps: int = 100_000,
+        critic_input_norm: bool = True,
     ) -> None:
         super().__init__()
         self.actor = SquashedGaussianMLPActor(observation_space, action_space, hidden_sizes, activation)
         self.qs = nn.ModuleList(
             CrossQQFunction(observation_space, action_space, critic_hidden_sizes, activation, bn_momentum,
-                            renorm_warmup_steps)
+                            renorm_warmup_steps, input_norm=critic_input_norm)
             for _ in range(int(n))
         )
 

@@ -620,16 +620,21 @@ class LidarTQCActorCritic(TQCActorCritic):
 class LidarCrossQActorCritic(CrossQActorCritic):
     """CrossQ's actor-critic (:class:`~tmrl.algorithms.crossq.CrossQActorCritic`) for lidar
     observations: :class:`LidarActor` and batch-normalised critics on inputs scaled by
-    :func:`lidar_obs_scales`. Arguments as :class:`~tmrl.algorithms.crossq.CrossQActorCritic`'s.
+    :func:`lidar_obs_scales`, with no normalisation layer on the input by default
+    (``critic_input_norm=False``): the scaling already puts the inputs on a common scale, and
+    standardising each of the 76 redundant lidar features drowned the 3 action features (the
+    critics barely told full gas from full brake, and the car never moved on 2 of 5 seeds of
+    ``oval``; docs/benchmarks.md). Other arguments as
+    :class:`~tmrl.algorithms.crossq.CrossQActorCritic`'s.
     """
 
     def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
                  activation: Callable[[], nn.Module] = nn.ReLU, n: int = 2,
                  critic_hidden_sizes: Sequence[int] = (1024, 1024), bn_momentum: float = 0.01,
-                 renorm_warmup_steps: int = 100_000) -> None:
+                 renorm_warmup_steps: int = 100_000, critic_input_norm: bool = False) -> None:
         super().__init__(observation_space, action_space, hidden_sizes, activation, n=n,
                          critic_hidden_sizes=critic_hidden_sizes, bn_momentum=bn_momentum,
-                         renorm_warmup_steps=renorm_warmup_steps)
+                         renorm_warmup_steps=renorm_warmup_steps, critic_input_norm=critic_input_norm)
         _wire_lidar(self, observation_space, action_space, hidden_sizes, activation)
 
 
