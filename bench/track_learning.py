@@ -274,9 +274,6 @@ def child_main(argv: list[str]) -> None:
     harness.print_json(run(**json.loads(ap.parse_args(argv).run)))
 
 
-# --- figures of a run -----------------------------------------------------------------------------
-
-
 # --- the floor: the matrix products of a whole run ------------------------------------------------
 
 #: Training steps over which :func:`update_gflop_per_step` counts a variant's updates (a multiple of
@@ -381,6 +378,9 @@ def floor_main(labels: list[str], budgets: dict[str, int], settle: dict[str, int
     if ends_early and drives:
         rec.add("floor", "floor_min_whole_budget_tracks", "ours", least / jobs / 60, unit="min",
                 higher_is_better=False, echo=False)
+
+
+# --- figures of a run -----------------------------------------------------------------------------
 
 
 def laps(res: dict[str, Any]) -> list[tuple[int, float]]:
@@ -494,7 +494,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--settle", type=int, default=None, help="end a run this many steps after its first lap, "
                     "on every track (default: the profile's, per track; 0: run every budget to the end)")
     ap.add_argument("--floor", action="store_true", help="run nothing to the end: the matrix products of the "
-                    "profile's runs at this core's best rate (the least time the benchmark can take here)")
+                    "runs this command would start, at this core's best rate (the least time they can take here)")
     ap.add_argument("--merge", nargs="+", type=Path, metavar="JSONL",
                     help="run nothing: one table and one PNG of the runs recorded in these files")
     args = ap.parse_args(argv)
