@@ -569,6 +569,8 @@ def load_results(paths: list[Path]) -> tuple[dict[tuple[str, str], list[dict[str
     runs: dict[tuple[str, str, int], dict[str, Any]] = {}
     budgets: dict[str, int] = {}
     for path in paths:
+        if not Path(path).is_file():
+            raise SystemExit(f"{path}: no such record (the JSONL files are in bench/out/)")
         for line in Path(path).read_text(encoding="utf-8").splitlines():
             if not line.strip():
                 continue

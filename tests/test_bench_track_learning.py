@@ -174,6 +174,11 @@ def test_merge_joins_the_runs_of_several_records_into_one_table(tmp_path, capsys
     assert len(list((tmp_path / "out").glob("track_learning-merged-*.png"))) == 1
 
 
+def test_merge_names_a_missing_record_in_one_line(tmp_path):
+    with pytest.raises(SystemExit, match="no-such.jsonl: no such record"):
+        tl.main(["--merge", str(tmp_path / "no-such.jsonl")])
+
+
 def test_merge_refuses_another_benchmark_s_record(tmp_path):
     (tmp_path / "x.jsonl").write_text('{"kind": "run", "bench": "trainer_speed", "settings": {}}\n')
     with pytest.raises(SystemExit, match="not a track_learning record"):
