@@ -466,7 +466,8 @@ def _plot(path: Path, results: dict[tuple[str, str], list[dict[str, Any]]], envs
         ax.set_xlabel("environment steps (50 ms each in real time)")
         ax.set_ylabel("test return" if env == "pendulum" else "training episode return (mean of 5)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        if ax.get_legend_handles_labels()[0]:  # a panel with no curve (no episode ended) has no legend
+            ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
