@@ -310,24 +310,15 @@ def update_gflop_per_step(label: str, start_steps: int | None = None, batch_size
 
 def matmul_gflops(seconds: float = 1.0, sizes: tuple[int, ...] = (256, 512, 1024, 2048)) -> float:
     """This core's best rate of matrix products, GFLOP/s on one torch thread: square float32
-    products ``(n, n) @ (n, n)`` into a preallocated output, the median time of each size over
-    about ``seconds``, the fastest size's rate (larger than any update's own products reach)."""
+    products ``(n, n) @ (n, n)`` timed by trainer_speed's floor (:func:`bench.trainer_speed.floor_ms`:
+    into a preallocated output, the median of repeated timings over about ``seconds``), the
+    fastest size's rate (larger than any update's own products reach)."""
     import torch
 
+    from bench.trainer_speed import floor_ms
+
     torch.set_num_threads(1)
-    best = 0.0
-    for n in sizes:
-        a, b, out = torch.randn(n, n), torch.randn(n, n), torch.empty(n, n)
-        for _ in range(3):
-            torch.mm(a, b, out=out)
-        times: list[float] = []
-        start = time.perf_counter()
-        while time.perf_counter() - start < seconds or len(times) < 5:
-            t0 = time.perf_counter()
-            torch.mm(a, b, out=out)
-            times.append(time.perf_counter() - t0)
-        best = max(best, 2 * n**3 / statistics.median(times) / 1e9)
-    return best
+    return max(2 * n**3 / (floor_ms([(1, n, n, n)], seconds) / 1000) / 1e9 for n in sizes)
 
 
 def floor_seconds(gflop_per_step: float, budget: int, start_steps: int, gflops: float) -> float:
