@@ -80,6 +80,9 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "SAC-UTD8-CAP": ("SAC", "demo", 8),
     "SAC-UTD4-CAP": ("SAC", "demo", 4),
     "SAC-UTD4-FA-R250": ("SAC", "demo", 4),
+    "SAC-UTD4-LN-R250": ("DROQ", "demo", 4),
+    "SAC-UTD4-NB-R250": ("SAC", "demo", 4),
+    "SAC-UTD8-NB-R250": ("SAC", "demo", 8),
     "REDQSAC": ("REDQSAC", "class", 4),
     "DROQ": ("DROQ", "class", 4),
     "CROSSQ": ("CROSSQ", "class", 1),
@@ -94,7 +97,11 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ",
 #: with an entropy coefficient learned from 0.2 toward SAC's ``-act_dim`` (the demo's in fast mode,
 #: and in real time until 2026-11-26, when it took ``SAC-UTD4-FA``'s fixed coefficient, tmrl's 0.01),
 #: and :data:`START_STEPS` random steps. Keys: ``lr``, ``alpha``, ``learn_entropy_coef``,
-#: ``target_entropy``, ``alpha_max`` (the screens' ceiling, :func:`_hold_alpha_under`), ``start_steps``.
+#: ``target_entropy``, ``alpha_max`` (the screens' ceiling, :func:`_hold_alpha_under`), ``start_steps``,
+#: and for a ``DROQ`` base (SAC with DroQ's layer-normalised critics: the ``-LN`` screens)
+#: ``dropout_rate`` and ``policy_every`` (critic updates per policy update, DroQ's ``G``);
+#: ``backup_entropy`` False: no entropy term in the critics' target (the ``-NB`` screens,
+#: :func:`_no_entropy_in_backup`).
 DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD4-LR3": {"lr": 3e-4},
     "SAC-UTD4-FA": {"alpha": 0.01, "learn_entropy_coef": False},
@@ -106,6 +113,9 @@ DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD8-CAP": {"start_steps": 250, "alpha_max": 0.01},
     "SAC-UTD4-CAP": {"start_steps": 250, "alpha_max": 0.01},
     "SAC-UTD4-FA-R250": {"alpha": 0.01, "learn_entropy_coef": False, "start_steps": 250},
+    "SAC-UTD4-LN-R250": {"start_steps": 250, "dropout_rate": 0.0, "policy_every": 1},
+    "SAC-UTD4-NB-R250": {"start_steps": 250, "backup_entropy": False},
+    "SAC-UTD8-NB-R250": {"start_steps": 250, "backup_entropy": False},
 }
 
 #: Uniformly random environment steps before training (tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING),
@@ -150,16 +160,36 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
         from tmrl.sim.demo import DEMO_SETTINGS as S
 
         v = {"lr": S["lr"], "alpha": 0.2, "learn_entropy_coef": True, "target_entropy": None, "alpha_max": None,
-             **DEMO_OVERRIDES.get(label, {})}
+             "backup_entropy": True, **DEMO_OVERRIDES.get(label, {})}
         kwargs.update(lr_actor=v["lr"], lr_critic=v["lr"], lr_entropy=v["lr"], gamma=S["gamma"], polyak=S["polyak"],
                       alpha=v["alpha"], learn_entropy_coef=v["learn_entropy_coef"], target_entropy=v["target_entropy"])
         alpha_cap = v["alpha_max"]
+        if alg == "DROQ":
+            kwargs["dropout_rate"] = v["dropout_rate"]
+            utd = v["policy_every"]
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = utd
     agent = cls(*spaces, "cpu", **kwargs)
     if alpha_cap is not None:
         _hold_alpha_under(agent, alpha_cap)
+    if source == "demo" and not v["backup_entropy"]:
+        _no_entropy_in_backup(agent)
     return agent
+
+
+def _no_entropy_in_backup(agent: Any) -> None:
+    """The ``-NB`` screens: the critics' target without SAC's entropy term,
+    ``r + gamma (1 - terminated) Q_targ(o', a')`` with ``a' ~ pi(.|o')``; the actor's and the
+    coefficient's losses keep theirs. A wrapper of the agent's step here (autograd path only)."""
+    import torch
+
+    target_value = agent.target_value
+    agent.fused_update = None  # the fused update computes its own target
+
+    def without_entropy(batch: Any, alpha: Any) -> Any:
+        return target_value(batch, torch.zeros_like(alpha))
+
+    agent.target_value = without_entropy
 
 
 def _hold_alpha_under(agent: Any, cap: float) -> None:

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -94,6 +95,23 @@ def test_variants_take_their_settings_source_and_learning_rate():
     assert fixed_sac.lr_actor == 1e-3 and float(fixed_sac.alpha) == 0.01 and float(demo_sac.alpha) == 0.2
     te6 = tl._agent("SAC-UTD4-TE6", spaces, "pendulum", 4)
     assert te6.learn_entropy_coef and te6.target_entropy == -6.0 and demo_sac.target_entropy == -1.0  # -act_dim
+
+
+def test_the_layer_norm_screen_is_the_learned_alpha_sac_with_layer_normalised_critics():
+    """``SAC-UTD4-LN-R250``: DroQ's critics without dropout, the policy updated with every critic
+    update, the demo's learning rates and learned coefficient: SAC-UTD4 but for the layer norm."""
+    import gymnasium
+
+    env = gymnasium.make("Pendulum-v1")
+    spaces = (env.observation_space, env.action_space)
+    ln, sac = tl._agent("SAC-UTD4-LN-R250", spaces, "pendulum", 4), tl._agent("SAC-UTD4", spaces, "pendulum", 4)
+    assert (ln.q_updates_per_policy_update, ln.dropout_rate) == (1, 0.0)
+    assert tl.start_steps_of("SAC-UTD4-LN-R250") == 250 and tl.VARIANTS["SAC-UTD4-LN-R250"][2] == 4
+    for key in ("lr_actor", "lr_critic", "lr_entropy", "gamma", "polyak", "learn_entropy_coef", "target_entropy"):
+        assert getattr(ln, key) == getattr(sac, key), key
+    assert float(ln.alpha) == float(sac.alpha) == 0.2
+    norms = [m for m in ln.model.qs[0].modules() if isinstance(m, torch.nn.LayerNorm)]
+    assert len(norms) == 2 and not any(isinstance(m, torch.nn.LayerNorm) for m in sac.model.modules())
 
 
 def test_variants_take_tmrls_random_start_unless_they_name_their_own(tmp_path, monkeypatch):
