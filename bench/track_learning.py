@@ -37,6 +37,9 @@ the same at 8, ``SAC-UTD4-A003`` and ``-A005`` at 0.003 and 0.005, ``SAC-UTD4-FA
 random steps first instead of 1,000); ``SAC-UTD8-R250`` is the learned alpha at 8 updates per step
 after 250 random steps, ``SAC-UTD8-CAP`` and ``SAC-UTD4-CAP`` the same at 8 and 4 with the
 coefficient held at or under 0.01 once it has fallen there (screens: :func:`_hold_alpha_under`);
+``SAC-UTD4-NB-R250``, ``-SH-R250`` and ``-CL-R250`` are the learned alpha at 4 after 250 random
+steps with another entropy term in the critics' target: none, one measured from the target
+entropy, one that is only ever a bonus (screens: :func:`_no_entropy_in_backup`);
 ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
 ``TQC`` use their class defaults (their papers'), each with the lidar model of its kind. The
 update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
@@ -80,9 +83,9 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "SAC-UTD8-CAP": ("SAC", "demo", 8),
     "SAC-UTD4-CAP": ("SAC", "demo", 4),
     "SAC-UTD4-FA-R250": ("SAC", "demo", 4),
-    "SAC-UTD4-LN-R250": ("DROQ", "demo", 4),
     "SAC-UTD4-NB-R250": ("SAC", "demo", 4),
-    "SAC-UTD8-NB-R250": ("SAC", "demo", 8),
+    "SAC-UTD4-SH-R250": ("SAC", "demo", 4),
+    "SAC-UTD4-CL-R250": ("SAC", "demo", 4),
     "REDQSAC": ("REDQSAC", "class", 4),
     "DROQ": ("DROQ", "class", 4),
     "CROSSQ": ("CROSSQ", "class", 1),
@@ -98,10 +101,8 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ",
 #: and in real time until 2026-11-26, when it took ``SAC-UTD4-FA``'s fixed coefficient, tmrl's 0.01),
 #: and :data:`START_STEPS` random steps. Keys: ``lr``, ``alpha``, ``learn_entropy_coef``,
 #: ``target_entropy``, ``alpha_max`` (the screens' ceiling, :func:`_hold_alpha_under`), ``start_steps``,
-#: and for a ``DROQ`` base (SAC with DroQ's layer-normalised critics: the ``-LN`` screens)
-#: ``dropout_rate`` and ``policy_every`` (critic updates per policy update, DroQ's ``G``);
-#: ``backup_entropy`` False: no entropy term in the critics' target (the ``-NB`` screens,
-#: :func:`_no_entropy_in_backup`).
+#: ``backup_entropy`` False: no entropy term in the critics' target, ``"shifted"``: the term
+#: measured from the target entropy (the ``-NB`` and ``-SH`` screens, :func:`_no_entropy_in_backup`).
 DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD4-LR3": {"lr": 3e-4},
     "SAC-UTD4-FA": {"alpha": 0.01, "learn_entropy_coef": False},
@@ -113,9 +114,9 @@ DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD8-CAP": {"start_steps": 250, "alpha_max": 0.01},
     "SAC-UTD4-CAP": {"start_steps": 250, "alpha_max": 0.01},
     "SAC-UTD4-FA-R250": {"alpha": 0.01, "learn_entropy_coef": False, "start_steps": 250},
-    "SAC-UTD4-LN-R250": {"start_steps": 250, "dropout_rate": 0.0, "policy_every": 1},
     "SAC-UTD4-NB-R250": {"start_steps": 250, "backup_entropy": False},
-    "SAC-UTD8-NB-R250": {"start_steps": 250, "backup_entropy": False},
+    "SAC-UTD4-SH-R250": {"start_steps": 250, "backup_entropy": "shifted"},
+    "SAC-UTD4-CL-R250": {"start_steps": 250, "backup_entropy": "bonus"},
 }
 
 #: Uniformly random environment steps before training (tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING),
@@ -164,29 +165,37 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
         kwargs.update(lr_actor=v["lr"], lr_critic=v["lr"], lr_entropy=v["lr"], gamma=S["gamma"], polyak=S["polyak"],
                       alpha=v["alpha"], learn_entropy_coef=v["learn_entropy_coef"], target_entropy=v["target_entropy"])
         alpha_cap = v["alpha_max"]
-        if alg == "DROQ":
-            kwargs["dropout_rate"] = v["dropout_rate"]
-            utd = v["policy_every"]
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = utd
     agent = cls(*spaces, "cpu", **kwargs)
     if alpha_cap is not None:
         _hold_alpha_under(agent, alpha_cap)
-    if source == "demo" and not v["backup_entropy"]:
-        _no_entropy_in_backup(agent)
+    if source == "demo" and v["backup_entropy"] is not True:
+        _no_entropy_in_backup(agent, v["backup_entropy"])
     return agent
 
 
-def _no_entropy_in_backup(agent: Any) -> None:
+def _no_entropy_in_backup(agent: Any, how: Any = False) -> None:
     """The ``-NB`` screens: the critics' target without SAC's entropy term,
-    ``r + gamma (1 - terminated) Q_targ(o', a')`` with ``a' ~ pi(.|o')``; the actor's and the
-    coefficient's losses keep theirs. A wrapper of the agent's step here (autograd path only)."""
+    ``r + gamma (1 - terminated) Q_targ(o', a')`` with ``a' ~ pi(.|o')``; the ``-SH`` screens:
+    the term measured from the target entropy ``H``,
+    ``r + gamma (1 - terminated) (Q_targ(o', a') - alpha (log pi(a'|o') + H))``, zero on average
+    once the policy's entropy sits at its target; the ``-CL`` screens (``how="bonus"``): the term
+    only where it is a bonus, ``- alpha min(log pi(a'|o'), 0)``, never a cost of going on. The actor's and the coefficient's losses keep
+    theirs. A wrapper of the agent's step here (the autograd path)."""
     import torch
 
     target_value = agent.target_value
     agent.fused_update = None  # the fused update computes its own target
 
     def without_entropy(batch: Any, alpha: Any) -> Any:
+        d = batch.terminated.reshape(-1)
+        if how == "shifted":
+            return target_value(batch, alpha) - agent.gamma * (1.0 - d) * alpha * agent.target_entropy
+        if how == "bonus":
+            a2, logp_a2 = agent.actor(batch.next_obs)
+            q2 = agent.target_q(batch.next_obs, a2)
+            return batch.rew.reshape(-1) + agent.gamma * (1.0 - d) * (q2 - alpha * logp_a2.clamp(max=0.0))
         return target_value(batch, torch.zeros_like(alpha))
 
     agent.target_value = without_entropy

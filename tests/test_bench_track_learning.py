@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 import pytest
-import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -97,21 +96,43 @@ def test_variants_take_their_settings_source_and_learning_rate():
     assert te6.learn_entropy_coef and te6.target_entropy == -6.0 and demo_sac.target_entropy == -1.0  # -act_dim
 
 
-def test_the_layer_norm_screen_is_the_learned_alpha_sac_with_layer_normalised_critics():
-    """``SAC-UTD4-LN-R250``: DroQ's critics without dropout, the policy updated with every critic
-    update, the demo's learning rates and learned coefficient: SAC-UTD4 but for the layer norm."""
+def test_the_entropy_target_screens_change_the_critics_target_only():
+    """``-NB``: no entropy term in the target; ``-SH``: the term measured from the target entropy;
+    ``-CL``: the term where it is a bonus only. Each against the formula, with SAC-UTD4's weights."""
     import gymnasium
+    import torch
+
+    from tmrl.batch import Batch
 
     env = gymnasium.make("Pendulum-v1")
     spaces = (env.observation_space, env.action_space)
-    ln, sac = tl._agent("SAC-UTD4-LN-R250", spaces, "pendulum", 4), tl._agent("SAC-UTD4", spaces, "pendulum", 4)
-    assert (ln.q_updates_per_policy_update, ln.dropout_rate) == (1, 0.0)
-    assert tl.start_steps_of("SAC-UTD4-LN-R250") == 250 and tl.VARIANTS["SAC-UTD4-LN-R250"][2] == 4
-    for key in ("lr_actor", "lr_critic", "lr_entropy", "gamma", "polyak", "learn_entropy_coef", "target_entropy"):
-        assert getattr(ln, key) == getattr(sac, key), key
-    assert float(ln.alpha) == float(sac.alpha) == 0.2
-    norms = [m for m in ln.model.qs[0].modules() if isinstance(m, torch.nn.LayerNorm)]
-    assert len(norms) == 2 and not any(isinstance(m, torch.nn.LayerNorm) for m in sac.model.modules())
+    sac = tl._agent("SAC-UTD4", spaces, "pendulum", 4)
+    g = torch.Generator().manual_seed(3)
+    rows = 64
+    batch = Batch(torch.randn(rows, 3, generator=g), torch.rand(rows, 1, generator=g) * 2 - 1,
+                  torch.randn(rows, generator=g), torch.randn(rows, 3, generator=g),
+                  (torch.rand(rows, generator=g) < 0.3).float(), torch.zeros(rows))
+    alpha = torch.tensor(0.2)
+    with torch.no_grad():  # a narrower policy: log-densities of both signs
+        sac.model.actor.log_std_layer.bias.fill_(-1.5)
+    torch.manual_seed(0)
+    a2, logp = sac.actor(batch.next_obs)
+    q2, r, live = sac.target_q(batch.next_obs, a2).detach(), batch.rew, sac.gamma * (1.0 - batch.terminated)
+    logp = logp.detach()
+    assert (logp > 0).any() and (logp < 0).any()  # both signs, so that the bonus-only clip shows
+    expected = {"SAC-UTD4-NB-R250": r + live * q2,
+                "SAC-UTD4-SH-R250": r + live * (q2 - alpha * (logp + sac.target_entropy)),
+                "SAC-UTD4-CL-R250": r + live * (q2 - alpha * logp.clamp(max=0.0))}
+    for label, want in expected.items():
+        agent = tl._agent(label, spaces, "pendulum", 4)
+        agent.model.load_state_dict(sac.model.state_dict())
+        agent.model_target.load_state_dict(sac.model_target.state_dict())
+        torch.manual_seed(0)
+        got = agent.target_value(batch, alpha)
+        assert torch.allclose(got, want, atol=1e-5), label
+        assert agent.fused_update is None and tl.start_steps_of(label) == 250
+    torch.manual_seed(0)
+    assert not torch.allclose(sac.target_value(batch, alpha), expected["SAC-UTD4-NB-R250"], atol=1e-3)
 
 
 def test_variants_take_tmrls_random_start_unless_they_name_their_own(tmp_path, monkeypatch):
