@@ -101,8 +101,8 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ",
 #: and in real time until 2026-11-26, when it took ``SAC-UTD4-FA``'s fixed coefficient, tmrl's 0.01),
 #: and :data:`START_STEPS` random steps. Keys: ``lr``, ``alpha``, ``learn_entropy_coef``,
 #: ``target_entropy``, ``alpha_max`` (the screens' ceiling, :func:`_hold_alpha_under`), ``start_steps``,
-#: ``backup_entropy`` False: no entropy term in the critics' target, ``"shifted"``: the term
-#: measured from the target entropy (the ``-NB`` and ``-SH`` screens, :func:`_no_entropy_in_backup`).
+#: ``backup_entropy`` (True: SAC's target; False, ``"shifted"``, ``"bonus"``: the ``-NB``, ``-SH``
+#: and ``-CL`` screens, :func:`_no_entropy_in_backup`).
 DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD4-LR3": {"lr": 3e-4},
     "SAC-UTD4-FA": {"alpha": 0.01, "learn_entropy_coef": False},
@@ -175,14 +175,16 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
     return agent
 
 
-def _no_entropy_in_backup(agent: Any, how: Any = False) -> None:
-    """The ``-NB`` screens: the critics' target without SAC's entropy term,
-    ``r + gamma (1 - terminated) Q_targ(o', a')`` with ``a' ~ pi(.|o')``; the ``-SH`` screens:
-    the term measured from the target entropy ``H``,
-    ``r + gamma (1 - terminated) (Q_targ(o', a') - alpha (log pi(a'|o') + H))``, zero on average
-    once the policy's entropy sits at its target; the ``-CL`` screens (``how="bonus"``): the term
-    only where it is a bonus, ``- alpha min(log pi(a'|o'), 0)``, never a cost of going on. The actor's and the coefficient's losses keep
-    theirs. A wrapper of the agent's step here (the autograd path)."""
+def _no_entropy_in_backup(agent: Any, how: bool | str = False) -> None:
+    """The critics' target with another entropy term than SAC's ``- alpha log pi(a'|o')``.
+
+    ``how=False`` (the ``-NB`` screens): none, ``r + gamma (1 - terminated) Q_targ(o', a')`` with
+    ``a' ~ pi(.|o')``; ``"shifted"`` (``-SH``): the term measured from the target entropy ``H``,
+    ``- alpha (log pi(a'|o') + H)``, zero on average once the policy's entropy sits at its target;
+    ``"bonus"`` (``-CL``): ``- alpha min(log pi(a'|o'), 0)``, a bonus that never turns into a cost
+    of going on. The actor's and the coefficient's losses keep theirs. A wrapper of the agent's
+    step (the autograd path), not an agent setting: the screens found that none keeps the laps and
+    each delays the first (docs/benchmarks.md)."""
     import torch
 
     target_value = agent.target_value
