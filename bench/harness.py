@@ -211,8 +211,17 @@ class Recorder:
     def __post_init__(self) -> None:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         stamp = time.strftime("%Y%m%d-%H%M%S")
-        self.path = self.out_dir / f"{self.bench}-{stamp}.jsonl"
-        self._file = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 (closed in close())
+        # Created exclusively: a second command started in the same second gets "-2" (and so on),
+        # not the first one's file (its figure would overwrite the first one's too).
+        for n in range(1, 1000):
+            self.path = self.out_dir / f"{self.bench}-{stamp}{'' if n == 1 else f'-{n}'}.jsonl"
+            try:
+                self._file = open(self.path, "x", encoding="utf-8")  # noqa: SIM115 (closed in close())
+                break
+            except FileExistsError:
+                continue
+        else:
+            raise FileExistsError(f"{self.path}: 999 records of {self.bench} started in one second")
         self._write({
             "kind": "run", "bench": self.bench, "settings": self.settings, "argv": sys.argv[1:],
             "started": time.strftime("%Y-%m-%d %H:%M:%S"), "cpus": os.cpu_count(),

@@ -45,6 +45,17 @@ def test_recorder_summarises_medians_spread_and_writes_json_lines(tmp_path, caps
     assert "ours vs tmrl: 4.00x" in capsys.readouterr().out
 
 
+def test_two_records_started_in_the_same_second_get_two_files(tmp_path, monkeypatch):
+    """Two commands started in the same second (two runs side by side) keep one record each."""
+    monkeypatch.setattr(harness.time, "strftime", lambda fmt, *a: "20261126-141956" if "%H%M%S" in fmt else "x")
+    first, second = (harness.Recorder("unit", {"side": n}, out_dir=tmp_path) for n in (1, 2))
+    first.close()
+    second.close()
+    assert (first.path.name, second.path.name) == ("unit-20261126-141956.jsonl", "unit-20261126-141956-2.jsonl")
+    headers = [json.loads(p.read_text().splitlines()[0])["settings"] for p in (first.path, second.path)]
+    assert headers == [{"side": 1}, {"side": 2}] and len(first.path.read_text().splitlines()) == 1
+
+
 def test_floor_counts_the_products_of_one_update():
     # 256x256x256 products of one SAC update: actor on o and o' (2), two target critics (2),
     # two critics forward and backward on (o, a) (6), forward and input gradient on (o, pi) (4),
