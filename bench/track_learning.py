@@ -39,7 +39,7 @@ after 250 random steps, ``SAC-UTD8-CAP`` and ``SAC-UTD4-CAP`` the same at 8 and 
 coefficient held at or under 0.01 once it has fallen there (screens: :func:`_hold_alpha_under`);
 ``SAC-UTD4-NB-R250``, ``-SH-R250`` and ``-CL-R250`` are the learned alpha at 4 after 250 random
 steps with another entropy term in the critics' target: none, one measured from the target
-entropy, one that is only ever a bonus (screens: :func:`_no_entropy_in_backup`);
+entropy, one that is only ever a bonus (screens: :func:`_entropy_term_in_target`);
 ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
 ``TQC`` use their class defaults (their papers'), each with the lidar model of its kind. The
 update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
@@ -102,7 +102,7 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ",
 #: and :data:`START_STEPS` random steps. Keys: ``lr``, ``alpha``, ``learn_entropy_coef``,
 #: ``target_entropy``, ``alpha_max`` (the screens' ceiling, :func:`_hold_alpha_under`), ``start_steps``,
 #: ``backup_entropy`` (True: SAC's target; False, ``"shifted"``, ``"bonus"``: the ``-NB``, ``-SH``
-#: and ``-CL`` screens, :func:`_no_entropy_in_backup`).
+#: and ``-CL`` screens, :func:`_entropy_term_in_target`).
 DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD4-LR3": {"lr": 3e-4},
     "SAC-UTD4-FA": {"alpha": 0.01, "learn_entropy_coef": False},
@@ -171,11 +171,11 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
     if alpha_cap is not None:
         _hold_alpha_under(agent, alpha_cap)
     if source == "demo" and v["backup_entropy"] is not True:
-        _no_entropy_in_backup(agent, v["backup_entropy"])
+        _entropy_term_in_target(agent, v["backup_entropy"])
     return agent
 
 
-def _no_entropy_in_backup(agent: Any, how: bool | str = False) -> None:
+def _entropy_term_in_target(agent: Any, how: bool | str = False) -> None:
     """The critics' target with another entropy term than SAC's ``- alpha log pi(a'|o')``.
 
     ``how=False`` (the ``-NB`` screens): none, ``r + gamma (1 - terminated) Q_targ(o', a')`` with
@@ -190,7 +190,7 @@ def _no_entropy_in_backup(agent: Any, how: bool | str = False) -> None:
     target_value = agent.target_value
     agent.fused_update = None  # the fused update computes its own target
 
-    def without_entropy(batch: Any, alpha: Any) -> Any:
+    def target_with_term(batch: Any, alpha: Any) -> Any:
         d = batch.terminated.reshape(-1)
         if how == "shifted":
             return target_value(batch, alpha) - agent.gamma * (1.0 - d) * alpha * agent.target_entropy
@@ -200,7 +200,7 @@ def _no_entropy_in_backup(agent: Any, how: bool | str = False) -> None:
             return batch.rew.reshape(-1) + agent.gamma * (1.0 - d) * (q2 - alpha * logp_a2.clamp(max=0.0))
         return target_value(batch, torch.zeros_like(alpha))
 
-    agent.target_value = without_entropy
+    agent.target_value = target_with_term
 
 
 def _hold_alpha_under(agent: Any, cap: float) -> None:
