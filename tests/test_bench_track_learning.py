@@ -135,6 +135,28 @@ def test_the_entropy_target_screens_change_the_critics_target_only():
     assert not torch.allclose(sac.target_value(batch, alpha), expected["SAC-UTD4-NB-R250"], atol=1e-3)
 
 
+def test_the_layer_norm_screens_train_sac_with_layer_normalised_critics():
+    """``-LN``: SAC's update and lidar actor, critics ``Linear -> LayerNorm -> ReLU`` with no
+    dropout; SAC-UTD4's critics have no normalisation."""
+    from torch import nn
+
+    built = {}
+    for label in ("SAC-UTD4", "SAC-UTD4-LN-R250", "SAC-UTD8-LN-R250"):
+        res = tl.run("classic", label, 0, 260, tl.VARIANTS[label][2], 250, 10**9, 32, 10,
+                     on_agent=lambda agent, label=label: built.__setitem__(label, agent))
+        assert res["updates"] > 0, label
+    sac = built["SAC-UTD4"]
+    assert not any(isinstance(m, nn.LayerNorm) for m in sac.model.modules())
+    for label in ("SAC-UTD4-LN-R250", "SAC-UTD8-LN-R250"):
+        agent = built[label]
+        assert type(agent) is type(sac) and type(agent.model.actor) is type(sac.model.actor), label
+        assert agent.learn_entropy_coef and tl.start_steps_of(label) == 250
+        kinds = [type(m) for m in agent.model.modules()]
+        assert kinds.count(nn.LayerNorm) == 4, label  # two hidden layers in each of two critics
+        assert all(m.p == 0.0 for m in agent.model.modules() if isinstance(m, nn.Dropout)), label
+        assert not any(isinstance(m, nn.LayerNorm) for m in agent.model.actor.modules())
+
+
 def test_variants_take_tmrls_random_start_unless_they_name_their_own(tmp_path, monkeypatch):
     assert tl.START_STEPS == 1000  # tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING
     assert tl.start_steps_of("SAC-TMRL") == 1000 and tl.start_steps_of("DROQ") == 1000
