@@ -89,6 +89,7 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "SAC-UTD4-CL-R250": ("SAC", "demo", 4),
     "SAC-UTD4-LN-R250": ("SAC", "demo", 4),
     "SAC-UTD8-LN-R250": ("SAC", "demo", 8),
+    "REDQSAC-UTD4-R250": ("REDQSAC", "demo", 4),
     "REDQSAC": ("REDQSAC", "class", 4),
     "DROQ": ("DROQ", "class", 4),
     "CROSSQ": ("CROSSQ", "class", 1),
@@ -107,7 +108,8 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ",
 #: ``backup_entropy`` (True: SAC's target; False, ``"shifted"``, ``"bonus"``: the ``-NB``, ``-SH``
 #: and ``-CL`` screens, :func:`_entropy_term_in_target`), ``critic_layer_norm`` (the ``-LN`` screens:
 #: critics whose hidden layers are ``Linear -> LayerNorm -> ReLU``, DroQ's lidar critics without
-#: dropout, under SAC's update).
+#: dropout, under SAC's update), ``policy_every`` (critic updates per policy update of a REDQ-SAC
+#: or DroQ base; otherwise the update ratio, the papers' once per environment step).
 DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD4-LR3": {"lr": 3e-4},
     "SAC-UTD4-FA": {"alpha": 0.01, "learn_entropy_coef": False},
@@ -124,6 +126,7 @@ DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD4-CL-R250": {"start_steps": 250, "backup_entropy": "bonus"},
     "SAC-UTD4-LN-R250": {"start_steps": 250, "critic_layer_norm": True},
     "SAC-UTD8-LN-R250": {"start_steps": 250, "critic_layer_norm": True},
+    "REDQSAC-UTD4-R250": {"start_steps": 250, "policy_every": 1},
 }
 
 #: Uniformly random environment steps before training (tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING),
@@ -168,14 +171,15 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
         from tmrl.sim.demo import DEMO_SETTINGS as S
 
         v = {"lr": S["lr"], "alpha": 0.2, "learn_entropy_coef": True, "target_entropy": None, "alpha_max": None,
-             "backup_entropy": True, "critic_layer_norm": False, **DEMO_OVERRIDES.get(label, {})}
+             "backup_entropy": True, "critic_layer_norm": False, "policy_every": utd,
+             **DEMO_OVERRIDES.get(label, {})}
         kwargs.update(lr_actor=v["lr"], lr_critic=v["lr"], lr_entropy=v["lr"], gamma=S["gamma"], polyak=S["polyak"],
                       alpha=v["alpha"], learn_entropy_coef=v["learn_entropy_coef"], target_entropy=v["target_entropy"])
         alpha_cap = v["alpha_max"]
         if v["critic_layer_norm"] and env_name != "pendulum":
             kwargs["model_cls"] = functools.partial(_lidar_model("DROQ"), dropout_rate=0.0)
     if alg in ("REDQSAC", "DROQ"):
-        kwargs["q_updates_per_policy_update"] = utd
+        kwargs["q_updates_per_policy_update"] = v["policy_every"] if source == "demo" else utd
     agent = cls(*spaces, "cpu", **kwargs)
     if alpha_cap is not None:
         _hold_alpha_under(agent, alpha_cap)

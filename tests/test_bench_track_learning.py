@@ -157,6 +157,21 @@ def test_the_layer_norm_screens_train_sac_with_layer_normalised_critics():
         assert not any(isinstance(m, nn.LayerNorm) for m in agent.model.actor.modules())
 
 
+def test_the_redq_screen_updates_its_policy_with_every_critic_update():
+    """``REDQSAC-UTD4-R250``: REDQ-SAC (ten critics, a random pair in the target) at the demo's
+    settings, the policy updated with each of the 4 critic updates per step; ``REDQSAC`` updates
+    it once per step, as in the paper."""
+    import gymnasium
+
+    env = gymnasium.make("Pendulum-v1")
+    spaces = (env.observation_space, env.action_space)
+    screen, paper = tl._agent("REDQSAC-UTD4-R250", spaces, "pendulum", 4), tl._agent("REDQSAC", spaces, "pendulum", 4)
+    assert type(screen) is type(paper) and len(screen.critics) == 10 and screen.m == 2
+    assert screen.q_updates_per_policy_update == 1 and paper.q_updates_per_policy_update == 4
+    assert (screen.lr_actor, screen.gamma, screen.learn_entropy_coef) == (1e-3, 0.99, True)
+    assert tl.start_steps_of("REDQSAC-UTD4-R250") == 250 and tl.VARIANTS["REDQSAC-UTD4-R250"][2] == 4
+
+
 def test_variants_take_tmrls_random_start_unless_they_name_their_own(tmp_path, monkeypatch):
     assert tl.START_STEPS == 1000  # tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING
     assert tl.start_steps_of("SAC-TMRL") == 1000 and tl.start_steps_of("DROQ") == 1000
