@@ -40,7 +40,10 @@ coefficient held at or under 0.01 once it has fallen there (screens: :func:`_hol
 ``SAC-UTD4-NB-R250``, ``-SH-R250`` and ``-CL-R250`` are the learned alpha at 4 after 250 random
 steps with another entropy term in the critics' target: none, one measured from the target
 entropy, one that is only ever a bonus (screens: :func:`_entropy_term_in_target`);
-``REDQSAC``, ``DROQ``, ``CROSSQ`` and
+``SAC-UTD4-LN-R250`` and ``SAC-UTD8-LN-R250`` the learned alpha at 4 and 8 after 250 random steps
+with layer-normalised critics (DroQ's lidar critics without dropout); ``REDQSAC-UTD4-R250`` is
+REDQ-SAC at the demo's settings with the policy updated at each of its 4 critic updates per step,
+after 250 random steps; ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
 ``TQC`` use their class defaults (their papers'), each with the lidar model of its kind. The
 update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
 compares :data:`DEFAULT_AGENTS` unless ``--agents`` names others. Budgets per track are in
