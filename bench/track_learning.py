@@ -158,7 +158,8 @@ PROFILES: dict[str, dict[str, Any]] = {
 def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
     """The agent of variant ``label`` on ``env_name``'s spaces, ``utd`` updates per environment
     step. REDQ-SAC and DroQ update their policy once per environment step, as in their papers
-    (their ``q_updates_per_policy_update`` is the update-to-data ratio)."""
+    (their ``q_updates_per_policy_update`` is the update-to-data ratio), unless the variant's
+    :data:`DEMO_OVERRIDES` entry names its own ``policy_every``."""
     from tmrl.algorithms import agent_class
     from tmrl.config.schema import AGENT_CLASSES, arguments, defaults
 
