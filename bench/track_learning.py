@@ -166,7 +166,7 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
     alg, source, _ = VARIANTS[label]
     cls = agent_class(alg)
     kwargs: dict[str, Any] = {}
-    alpha_cap = None
+    alpha_cap, policy_every = None, utd
     if env_name != "pendulum":
         kwargs["model_cls"] = _lidar_model(alg)
     if source == "tmrl":  # tmrl's shipped ALG defaults (the TrackMania lidar config's)
@@ -179,11 +179,11 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
              **DEMO_OVERRIDES.get(label, {})}
         kwargs.update(lr_actor=v["lr"], lr_critic=v["lr"], lr_entropy=v["lr"], gamma=S["gamma"], polyak=S["polyak"],
                       alpha=v["alpha"], learn_entropy_coef=v["learn_entropy_coef"], target_entropy=v["target_entropy"])
-        alpha_cap = v["alpha_max"]
+        alpha_cap, policy_every = v["alpha_max"], v["policy_every"]
         if v["critic_layer_norm"] and env_name != "pendulum":
             kwargs["model_cls"] = functools.partial(_lidar_model("DROQ"), dropout_rate=0.0)
     if alg in ("REDQSAC", "DROQ"):
-        kwargs["q_updates_per_policy_update"] = v["policy_every"] if source == "demo" else utd
+        kwargs["q_updates_per_policy_update"] = policy_every
     agent = cls(*spaces, "cpu", **kwargs)
     if alpha_cap is not None:
         _hold_alpha_under(agent, alpha_cap)
