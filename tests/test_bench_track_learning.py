@@ -172,6 +172,21 @@ def test_the_redq_screen_updates_its_policy_with_every_critic_update():
     assert tl.start_steps_of("REDQSAC-UTD4-R250") == 250 and tl.VARIANTS["REDQSAC-UTD4-R250"][2] == 4
 
 
+def test_the_five_critic_redq_screen_differs_from_the_ten_critic_one_only_in_its_critics():
+    """``REDQSAC-N5-UTD4-R250``: ``REDQSAC-UTD4-R250`` with five critics (still a random pair in
+    each target), the rest of its settings equal."""
+    import gymnasium
+
+    env = gymnasium.make("Pendulum-v1")
+    spaces = (env.observation_space, env.action_space)
+    five, ten = tl._agent("REDQSAC-N5-UTD4-R250", spaces, "pendulum", 4), tl._agent("REDQSAC-UTD4-R250", spaces, "pendulum", 4)
+    assert (len(five.critics), len(five.critics_target), five.n, five.m) == (5, 5, 5, 2)
+    assert len(ten.critics) == 10
+    same = ("q_updates_per_policy_update", "lr_actor", "lr_critic", "gamma", "polyak", "learn_entropy_coef")
+    assert [getattr(five, k) for k in same] == [getattr(ten, k) for k in same]
+    assert tl.start_steps_of("REDQSAC-N5-UTD4-R250") == 250 and tl.VARIANTS["REDQSAC-N5-UTD4-R250"][2] == 4
+
+
 def test_variants_take_tmrls_random_start_unless_they_name_their_own(tmp_path, monkeypatch):
     assert tl.START_STEPS == 1000  # tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING
     assert tl.start_steps_of("SAC-TMRL") == 1000 and tl.start_steps_of("DROQ") == 1000
