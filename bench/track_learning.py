@@ -44,7 +44,8 @@ entropy, one that is only ever a bonus (screens: :func:`_entropy_term_in_target`
 with layer-normalised critics (DroQ's lidar critics without dropout); ``REDQSAC-UTD4-R250`` is
 REDQ-SAC at the demo's settings with the policy updated at each of its 4 critic updates per step,
 after 250 random steps, and ``REDQSAC-N5-UTD4-R250`` the same with five critics instead of ten
-(about 1.7 times the updates per second on one core); ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
+(about 1.7 times the updates per second on one core), ``REDQSAC-UTD4-CAP-R250`` the ten with the
+coefficient held at or under 0.01 once it has fallen there; ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
 ``TQC`` use their class defaults (their papers'), each with the lidar model of its kind. The
 update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
 compares :data:`DEFAULT_AGENTS` unless ``--agents`` names others. Budgets per track are in
@@ -95,6 +96,7 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "SAC-UTD8-LN-R250": ("SAC", "demo", 8),
     "REDQSAC-UTD4-R250": ("REDQSAC", "demo", 4),
     "REDQSAC-N5-UTD4-R250": ("REDQSAC", "demo", 4),
+    "REDQSAC-UTD4-CAP-R250": ("REDQSAC", "demo", 4),
     "REDQSAC": ("REDQSAC", "class", 4),
     "DROQ": ("DROQ", "class", 4),
     "CROSSQ": ("CROSSQ", "class", 1),
@@ -134,6 +136,7 @@ DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD8-LN-R250": {"start_steps": 250, "critic_layer_norm": True},
     "REDQSAC-UTD4-R250": {"start_steps": 250, "policy_every": 1},
     "REDQSAC-N5-UTD4-R250": {"start_steps": 250, "policy_every": 1, "redq_n": 5},
+    "REDQSAC-UTD4-CAP-R250": {"start_steps": 250, "policy_every": 1, "alpha_max": 0.01},
 }
 
 #: Uniformly random environment steps before training (tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING),

@@ -277,7 +277,7 @@ def test_merge_refuses_another_benchmark_s_record(tmp_path):
 
 
 def test_the_cap_screens_hold_a_fallen_entropy_coefficient_under_their_ceiling():
-    """``SAC-UTD*-CAP``: once the learned coefficient has fallen to 0.01 it stays at or under it;
+    """``SAC-UTD*-CAP`` (and REDQ-SAC's ``-CAP-R250``): once the learned coefficient has fallen to 0.01 it stays at or under it;
     above it (its start, 0.2) it moves freely; the uncapped variant's rises above it."""
     import math
 
@@ -297,7 +297,8 @@ def test_the_cap_screens_hold_a_fallen_entropy_coefficient_under_their_ceiling()
             alphas.append(math.exp(float(agent.log_alpha.detach())))
         return alphas
 
-    for label, capped in (("SAC-UTD4-CAP", True), ("SAC-UTD4", False)):
+    for label, capped in (("SAC-UTD4-CAP", True), ("SAC-UTD4", False), ("REDQSAC-UTD4-CAP-R250", True),
+                          ("REDQSAC-UTD4-R250", False)):
         agent = tl._agent(label, spaces, "pendulum", 4)
         agent.alpha_optimizer.param_groups[0]["lr"] = 0.3  # big steps on log(alpha)
         falling = drive(agent, -100.0, 12)
