@@ -320,6 +320,43 @@ def test_server_killed_and_restarted_keeps_samples_of_live_worker(tmp_path, port
     assert w.update_actor_weights(verbose=False, blocking=True) == 1 and w.actor.bias == 0.25
 
 
+def test_weights_are_broadcast_again_on_a_reconnection_only(tmp_path, port_factory, closing, children):
+    """Weights broadcast before the trainer's first connection reach the server once (the link keeps
+    them until it connects); after a server restart they are sent again. A second copy after the
+    first connection would reach a worker as if it were the next weights (it failed a test over NATS)."""
+    port = port_factory()
+    iface = interface(tmp_path, port)  # no server yet
+    closing.append(iface)
+    sent: list[bytes] = []
+    send = iface._link.broadcast_weights
+
+    def counted(data: bytes) -> None:
+        sent.append(bytes(data))
+        send(data)
+
+    iface._link.broadcast_weights = counted
+    actor = JsonActor(CountingEnv().observation_space, CountingEnv().action_space)
+    actor.bias = 0.5
+    iface.broadcast_model(actor)
+    server = Child(tmp_path, "server", port=port)
+    children.append(server)
+    server.line()
+    w = worker(tmp_path, port, "w")
+    closing.append(w)
+    assert w.update_actor_weights(verbose=False, blocking=True) == 1 and w.actor.bias == 0.5
+    wait_for(lambda: iface.connections == 1, what="the trainer to see its first connection")
+    assert len(sent) == 1
+
+    server.kill()
+    wait_for(lambda: not iface.connected, what="the trainer to see the server gone")
+    restarted = Child(tmp_path, "server", port=port)
+    children.append(restarted)
+    restarted.line()
+    wait_for(lambda: iface.connections == 2, timeout=30, what="the trainer to see its second connection")
+    assert len(sent) == 2 and sent[1] == sent[0]  # the restarted server has no weights: the same again
+    assert w.update_actor_weights(verbose=False, blocking=True) == 1 and w.actor.bias == 0.5
+
+
 def test_trainer_killed_and_restarted_resumes_from_checkpoint_without_losing_samples(
     tmp_path, port_factory, closing, children
 ):

@@ -729,6 +729,9 @@ class TrainerInterface:
         self._foreign_log = RateLimitedLog(logger, logging.INFO, 1.0)
         self._last_weights: bytes | None = None
         self._weights_lock = threading.Lock()
+        self.connections = 0
+        """Connections to the server seen so far (the latest weights are broadcast again on each
+        after the first)."""
         self._closed = threading.Event()
         self._watcher = threading.Thread(
             target=self._rebroadcast_on_reconnect, daemon=True, name="tmrl-trainer-reconnect"
@@ -773,16 +776,20 @@ class TrainerInterface:
     def _rebroadcast_on_reconnect(self) -> None:
         # why: a restarted server has lost the latest weights; workers that (re)connect to it
         # would otherwise wait for the next training step, which may itself wait for their samples.
+        # Only a reconnection: both links deliver what was broadcast before their first connection,
+        # and weights broadcast just after it, before this thread looked, were sent once already
+        # (sent again, a worker could take them for the next ones).
         was_connected = False
         while not self._closed.wait(0.1):
             connected = self._link.connected
             if connected and not was_connected:
                 with self._weights_lock:
-                    if self._last_weights is not None:
+                    if self.connections and self._last_weights is not None:
                         try:
                             self._link.broadcast_weights(self._last_weights)
                         except (ConnectionError, RuntimeError):  # closing: nothing to do
                             return
+                self.connections += 1
             was_connected = connected
 
     def _unpack(self, payload: Any) -> Buffer | None:
