@@ -25,7 +25,6 @@ import threading
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 from test_transport import _wait_for
 
@@ -99,6 +98,7 @@ def _settings(tmp_path: Path, port: int, **nats: Any) -> Any:
 def test_the_sac_stack_trains_over_nats_broadcasts_and_resumes(tmp_path, port_factory, made):
     """The tlspyo test of the real SAC stack (test_networking_e2e.py), with TRANSPORT "nats"."""
     import gymnasium
+    from test_networking_e2e import wait_until_acting_with
 
     from tmrl.algorithms.sac import SACAgent
     from tmrl.envs import GenericGymEnv
@@ -161,15 +161,7 @@ def test_the_sac_stack_trains_over_nats_broadcasts_and_resumes(tmp_path, port_fa
     first = trainer(1)
     first.run()
     assert first.run_instance.epoch == 1 and first.checkpoint_exists()
-    trained = first.run_instance.agent.get_actor().state_dict()
-    loaded = []
-
-    def acts_with_trained() -> bool:  # the epoch broadcasts twice: the earlier one may arrive first
-        loaded.append(w.update_actor_weights(verbose=False))
-        return all(np.array_equal(v.numpy(), trained[k].numpy()) for k, v in w.actor.state_dict().items())
-
-    _wait_for(acts_with_trained, timeout=30, what="the worker to act with the trained weights")
-    assert sum(loaded) >= 1
+    wait_until_acting_with(w, first.run_instance.agent.get_actor().state_dict())  # the epoch broadcast twice
     resumed = trainer(2)
     resumed.run()
     assert resumed.run_instance.epoch == 2

@@ -94,6 +94,19 @@ def worker(tmp_path: Path, port: int, name: str, obs_dim: int = 3, **kwargs: Any
     )
 
 
+def wait_until_acting_with(w: RolloutWorker, trained: dict[str, Any]) -> None:
+    """Load broadcasts until ``w``'s actor has the weights ``trained`` (a trainer's actor's state
+    dict); an epoch that broadcasts more than once may deliver an earlier one first."""
+    loaded = []
+
+    def acts_with_trained() -> bool:
+        loaded.append(w.update_actor_weights(verbose=False))
+        return all(np.array_equal(v.numpy(), trained[k].numpy()) for k, v in w.actor.state_dict().items())
+
+    wait_for(acts_with_trained, timeout=30, what="the worker to act with the trained weights")
+    assert sum(loaded) >= 1
+
+
 def interface(tmp_path: Path, port: int, **kwargs: Any) -> TrainerInterface:
     return TrainerInterface(
         server_ip="127.0.0.1",
@@ -498,15 +511,7 @@ def test_real_sac_stack_trains_broadcasts_safetensors_and_resumes_from_checkpoin
     trainer.run()
     assert trainer.run_instance.epoch == 1 and trainer.checkpoint_exists()
     assert rounds and rounds[-1] == (0, trainer.run_instance.total_updates)
-    trained = trainer.run_instance.agent.get_actor().state_dict()
-    loaded = []
-
-    def acts_with_trained() -> bool:  # the epoch broadcasts twice: the earlier one may arrive first
-        loaded.append(w.update_actor_weights(verbose=False))
-        return all(np.array_equal(v.numpy(), trained[k].numpy()) for k, v in w.actor.state_dict().items())
-
-    wait_for(acts_with_trained, timeout=30, what="the worker to act with the trained weights")
-    assert sum(loaded) >= 1
+    wait_until_acting_with(w, trainer.run_instance.agent.get_actor().state_dict())
     resumed = Trainer(
         training_cls=training(2),
         server_ip="127.0.0.1",
