@@ -45,8 +45,7 @@ with layer-normalised critics (DroQ's lidar critics without dropout); ``REDQSAC-
 REDQ-SAC at the demo's settings with the policy updated at each of its 4 critic updates per step,
 after 250 random steps, and ``REDQSAC-N5-UTD4-R250`` the same with five critics instead of ten
 (about 1.7 times the updates per second on one core), ``REDQSAC-UTD4-CAP-R250`` the ten with the
-coefficient held at or under 0.01 once it has fallen there, and ``REDQSAC-UTD4-CAP2K-R250`` the same
-ceiling acting only from environment step 2,000 on; ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
+coefficient held at or under 0.01 once it has fallen there; ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
 ``TQC`` use their class defaults (their papers'), each with the lidar model of its kind. The
 update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
 compares :data:`DEFAULT_AGENTS` unless ``--agents`` names others. Budgets per track are in
@@ -98,7 +97,6 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "REDQSAC-UTD4-R250": ("REDQSAC", "demo", 4),
     "REDQSAC-N5-UTD4-R250": ("REDQSAC", "demo", 4),
     "REDQSAC-UTD4-CAP-R250": ("REDQSAC", "demo", 4),
-    "REDQSAC-UTD4-CAP2K-R250": ("REDQSAC", "demo", 4),
     "REDQSAC": ("REDQSAC", "class", 4),
     "DROQ": ("DROQ", "class", 4),
     "CROSSQ": ("CROSSQ", "class", 1),
@@ -113,8 +111,7 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ",
 #: with an entropy coefficient learned from 0.2 toward SAC's ``-act_dim`` (the demo's in fast mode,
 #: and in real time until 2026-11-26, when it took ``SAC-UTD4-FA``'s fixed coefficient, tmrl's 0.01),
 #: and :data:`START_STEPS` random steps. Keys: ``lr``, ``alpha``, ``learn_entropy_coef``,
-#: ``target_entropy``, ``alpha_max`` (the screens' ceiling, :func:`_hold_alpha_under`), ``alpha_max_from``
-#: (the environment step from which the ceiling acts; by default from the first update), ``start_steps``,
+#: ``target_entropy``, ``alpha_max`` (the screens' ceiling, :func:`_hold_alpha_under`), ``start_steps``,
 #: ``backup_entropy`` (True: SAC's target; False, ``"shifted"``, ``"bonus"``: the ``-NB``, ``-SH``
 #: and ``-CL`` screens, :func:`_entropy_term_in_target`), ``critic_layer_norm`` (the ``-LN`` screens:
 #: critics whose hidden layers are ``Linear -> LayerNorm -> ReLU``, DroQ's lidar critics without
@@ -140,7 +137,6 @@ DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "REDQSAC-UTD4-R250": {"start_steps": 250, "policy_every": 1},
     "REDQSAC-N5-UTD4-R250": {"start_steps": 250, "policy_every": 1, "redq_n": 5},
     "REDQSAC-UTD4-CAP-R250": {"start_steps": 250, "policy_every": 1, "alpha_max": 0.01},
-    "REDQSAC-UTD4-CAP2K-R250": {"start_steps": 250, "policy_every": 1, "alpha_max": 0.01, "alpha_max_from": 2000},
 }
 
 #: Uniformly random environment steps before training (tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING),
@@ -166,9 +162,9 @@ PROFILES: dict[str, dict[str, Any]] = {
 # --- one run (child process) ----------------------------------------------------------------------
 
 
-def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int, start_steps: int | None = None) -> Any:
+def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
     """The agent of variant ``label`` on ``env_name``'s spaces, ``utd`` updates per environment
-    step after ``start_steps`` random ones (by default the variant's, :func:`start_steps_of`). REDQ-SAC and DroQ update their policy once per environment step, as in their papers
+    step. REDQ-SAC and DroQ update their policy once per environment step, as in their papers
     (their ``q_updates_per_policy_update`` is the update-to-data ratio), unless the variant's
     :data:`DEMO_OVERRIDES` entry names its own ``policy_every``."""
     from tmrl.algorithms import agent_class
@@ -186,7 +182,7 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int, start_s
         from tmrl.sim.demo import DEMO_SETTINGS as S
 
         v = {"lr": S["lr"], "alpha": 0.2, "learn_entropy_coef": True, "target_entropy": None, "alpha_max": None,
-             "alpha_max_from": 0, "backup_entropy": True, "critic_layer_norm": False, "policy_every": utd, "redq_n": None,
+             "backup_entropy": True, "critic_layer_norm": False, "policy_every": utd, "redq_n": None,
              **DEMO_OVERRIDES.get(label, {})}
         kwargs.update(lr_actor=v["lr"], lr_critic=v["lr"], lr_entropy=v["lr"], gamma=S["gamma"], polyak=S["polyak"],
                       alpha=v["alpha"], learn_entropy_coef=v["learn_entropy_coef"], target_entropy=v["target_entropy"])
@@ -199,8 +195,7 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int, start_s
         kwargs["q_updates_per_policy_update"] = policy_every
     agent = cls(*spaces, "cpu", **kwargs)
     if alpha_cap is not None:
-        start = start_steps_of(label) if start_steps is None else start_steps
-        _hold_alpha_under(agent, alpha_cap, after_updates=max(0, v["alpha_max_from"] - start) * utd)
+        _hold_alpha_under(agent, alpha_cap)
     if source == "demo" and v["backup_entropy"] is not True:
         _entropy_term_in_target(agent, v["backup_entropy"])
     return agent
@@ -234,21 +229,18 @@ def _entropy_term_in_target(agent: Any, how: bool | str = False) -> None:
     agent.target_value = target_with_term
 
 
-def _hold_alpha_under(agent: Any, cap: float, after_updates: int = 0) -> None:
+def _hold_alpha_under(agent: Any, cap: float) -> None:
     """The ``-CAP`` screens: a learned entropy coefficient that has fallen to ``cap`` never rises
-    above it again (it starts above it, at 0.2); with ``after_updates``, only from the update that
-    follows that many (before it the coefficient moves freely). A wrapper of ``agent.train`` here,
-    not an agent setting: the screens found that it does not stop the fall-back (docs/benchmarks.md)."""
+    above it again (it starts above it, at 0.2). A wrapper of ``agent.train`` here, not an agent
+    setting: the screens found that it does not stop the fall-back (docs/benchmarks.md)."""
     import math
 
     import torch
 
-    log_cap, train, done = math.log(cap), agent.train, [0]
-    agent.alpha_ceiling = (cap, after_updates)
+    log_cap, train = math.log(cap), agent.train
 
     def train_under_cap(batch: Any) -> Any:
-        under = done[0] >= after_updates and float(agent.log_alpha.detach()) <= log_cap
-        done[0] += 1
+        under = float(agent.log_alpha.detach()) <= log_cap
         out = train(batch)
         if under:
             with torch.no_grad():
@@ -285,7 +277,7 @@ def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps:
     worker_kwargs = dict(env_cls=p["env_cls"], actor_module_cls=p["actor_cls"], standalone=True, model_history=0,
                          max_samples_per_episode=p["max_samples"], model_path=os.devnull + "_none", **p["worker"])
     worker, tester = RolloutWorker(**worker_kwargs), RolloutWorker(**worker_kwargs)
-    agent = _agent(label, (worker.env.observation_space, worker.env.action_space), env_name, utd, start_steps)
+    agent = _agent(label, (worker.env.observation_space, worker.env.action_space), env_name, utd)
     if on_agent is not None:
         on_agent(agent)
     worker.env.action_space.seed(seed)

@@ -307,41 +307,6 @@ def test_the_cap_screens_hold_a_fallen_entropy_coefficient_under_their_ceiling()
         assert (rising <= 0.01 * (1 + 1e-5)) if capped else rising > 0.02, label
 
 
-def test_a_late_ceiling_lets_the_coefficient_move_freely_until_its_step():
-    """``REDQSAC-UTD4-CAP2K-R250``: the ceiling acts from environment step 2,000, i.e. after
-    (2,000 - 250 random steps) x 4 updates; before that the fallen coefficient rises above it, after
-    it one that has fallen again is held."""
-    import math
-
-    import gymnasium
-    import torch
-    from test_algorithms import random_batch
-
-    env = gymnasium.make("Pendulum-v1")
-    spaces = (env.observation_space, env.action_space)
-    assert tl._agent("REDQSAC-UTD4-CAP2K-R250", spaces, "pendulum", 4).alpha_ceiling == (0.01, 7_000)
-    assert tl._agent("REDQSAC-UTD4-CAP2K-R250", spaces, "pendulum", 4, start_steps=1_000).alpha_ceiling == (0.01, 4_000)
-    assert tl._agent("REDQSAC-UTD4-CAP-R250", spaces, "pendulum", 4).alpha_ceiling == (0.01, 0)
-
-    gen = torch.Generator().manual_seed(0)
-    agent = tl._agent("REDQSAC-UTD4-R250", spaces, "pendulum", 4)
-    tl._hold_alpha_under(agent, 0.01, after_updates=32)
-    agent.alpha_optimizer.param_groups[0]["lr"] = 0.3
-
-    def drive(target, n):
-        agent.target_entropy = target
-        alphas = []
-        for _ in range(n):
-            agent.train(random_batch(gen, 32, obs_space=(env.observation_space,), act_dim=1))
-            alphas.append(math.exp(float(agent.log_alpha.detach())))
-        return alphas
-
-    assert drive(-100.0, 12)[-1] < 0.01  # updates 1 to 12: fallen under the ceiling
-    assert max(drive(100.0, 20)) > 0.02  # 13 to 32: the ceiling does not act yet
-    assert drive(-100.0, 40)[-1] < 0.01  # 33 to 72: fallen again
-    assert max(drive(100.0, 40)) <= 0.01 * (1 + 1e-5)  # 73 on: held
-
-
 def test_the_floor_counts_an_update_as_its_matrix_products_forward_and_backward():
     """The FLOP count of a real SAC run's updates matches the matrix products of SAC's update
     written out by hand (bench/trainer_speed.py's floor), four updates per step."""
