@@ -187,6 +187,34 @@ def load_average() -> float:
     return os.getloadavg()[0]
 
 
+#: The packages whose versions a record's header names (the numbers of a learning run depend on them).
+INSTALL_PACKAGES = ("torch", "numpy", "gymnasium", "tmrl")
+
+
+def install() -> dict[str, Any]:
+    """What a record's figures depend on besides the code and the seed: the Python and package
+    versions, the CPU model and when this virtual environment was made. Learning runs are exact on
+    one install, not across installs (docs/benchmarks.md: the same seeds on another install)."""
+    from importlib import metadata
+
+    packages: dict[str, str | None] = {}
+    for name in INSTALL_PACKAGES:
+        try:
+            packages[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            packages[name] = None
+    cpu = None
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), None)
+    except OSError:
+        pass
+    cfg = Path(sys.prefix) / "pyvenv.cfg"
+    made = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(cfg.stat().st_mtime)) if cfg.exists() else None
+    return {"python": platform.python_version(), "packages": packages, "cpu": cpu or platform.processor() or None,
+            "environment": sys.prefix, "environment_made": made}
+
+
 # --- records and the table ------------------------------------------------------------------------
 
 
@@ -226,6 +254,7 @@ class Recorder:
             "kind": "run", "bench": self.bench, "settings": self.settings, "argv": sys.argv[1:],
             "started": time.strftime("%Y-%m-%d %H:%M:%S"), "cpus": os.cpu_count(),
             "machine": platform.processor() or platform.machine(), "load_average": os.getloadavg(),
+            "install": install(),
         })
         print(f"{self.bench}: load average {_loads()} at start; results also go to {self.path}", flush=True)
 

@@ -4,6 +4,7 @@ the floor's products, and the command line. No benchmark is run here."""
 from __future__ import annotations
 
 import json
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -38,6 +39,12 @@ def test_recorder_summarises_medians_spread_and_writes_json_lines(tmp_path, caps
     assert (rows["steps", "ours"]["n"], rows["steps", "ours"]["of"]) == (1, 2)  # a run that never got there
     lines = [json.loads(line) for line in rec.path.read_text().splitlines()]
     assert lines[0]["kind"] == "run" and lines[0]["settings"] == {"batch": 256}
+    # the install the figures came from: runs are exact on one install only
+    from importlib import metadata
+
+    assert lines[0]["install"]["packages"]["torch"] == metadata.version("torch")
+    assert lines[0]["install"]["python"] == platform.python_version()
+    assert lines[0]["install"]["environment"] == sys.prefix
     assert sum(1 for r in lines if r["kind"] == "measure") == 8
     assert all("load1" in r for r in lines if r["kind"] == "measure")
     ratio = next(r for r in lines if r["kind"] == "ratio")
