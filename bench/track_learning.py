@@ -45,7 +45,9 @@ with layer-normalised critics (DroQ's lidar critics without dropout); ``REDQSAC-
 REDQ-SAC at the demo's settings with the policy updated at each of its 4 critic updates per step,
 after 250 random steps, and ``REDQSAC-N5-UTD4-R250`` the same with five critics instead of ten
 (about 1.7 times the updates per second on one core), ``REDQSAC-UTD4-CAP-R250`` the ten with the
-coefficient held at or under 0.01 once it has fallen there; ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
+coefficient held at or under 0.01 once it has fallen there, ``REDQSAC-UTD8-CAP-R250`` the same at
+8 updates per step, ``REDQSAC-UTD4-CAP-NS3-R250`` the same at 4 with three-step returns in the
+critics' target; ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
 ``TQC`` use their class defaults (their papers'), each with the lidar model of its kind. The
 update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
 compares :data:`DEFAULT_AGENTS` unless ``--agents`` names others. Budgets per track are in
@@ -97,6 +99,8 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "REDQSAC-UTD4-R250": ("REDQSAC", "demo", 4),
     "REDQSAC-N5-UTD4-R250": ("REDQSAC", "demo", 4),
     "REDQSAC-UTD4-CAP-R250": ("REDQSAC", "demo", 4),
+    "REDQSAC-UTD8-CAP-R250": ("REDQSAC", "demo", 8),
+    "REDQSAC-UTD4-CAP-NS3-R250": ("REDQSAC", "demo", 4),
     "REDQSAC": ("REDQSAC", "class", 4),
     "DROQ": ("DROQ", "class", 4),
     "CROSSQ": ("CROSSQ", "class", 1),
@@ -117,7 +121,8 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ",
 #: critics whose hidden layers are ``Linear -> LayerNorm -> ReLU``, DroQ's lidar critics without
 #: dropout, under SAC's update), ``policy_every`` (critic updates per policy update of a REDQ-SAC
 #: or DroQ base; otherwise the update ratio, the papers' once per environment step), ``redq_n``
-#: (a REDQ-SAC base's number of critics, ``ALG.REDQ_N``; otherwise the paper's 10).
+#: (a REDQ-SAC base's number of critics, ``ALG.REDQ_N``; otherwise the paper's 10), ``n_step``
+#: (the ``-NS`` screens: critics that regress on ``n``-step returns, :func:`_n_step_targets`).
 DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD4-LR3": {"lr": 3e-4},
     "SAC-UTD4-FA": {"alpha": 0.01, "learn_entropy_coef": False},
@@ -137,6 +142,8 @@ DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "REDQSAC-UTD4-R250": {"start_steps": 250, "policy_every": 1},
     "REDQSAC-N5-UTD4-R250": {"start_steps": 250, "policy_every": 1, "redq_n": 5},
     "REDQSAC-UTD4-CAP-R250": {"start_steps": 250, "policy_every": 1, "alpha_max": 0.01},
+    "REDQSAC-UTD8-CAP-R250": {"start_steps": 250, "policy_every": 1, "alpha_max": 0.01},
+    "REDQSAC-UTD4-CAP-NS3-R250": {"start_steps": 250, "policy_every": 1, "alpha_max": 0.01, "n_step": 3},
 }
 
 #: Uniformly random environment steps before training (tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING),
@@ -250,6 +257,55 @@ def _hold_alpha_under(agent: Any, cap: float) -> None:
     agent.train = train_under_cap
 
 
+def _n_step_targets(agent: Any, memory: Any, n: int) -> None:
+    """The ``-NS`` screens: the critics regress on ``n``-step returns,
+    ``sum_{k<K} gamma^k r_{t+k} + gamma^K (1 - terminated_{t+K-1}) (Q_targ(o_{t+K}, a') - alpha log pi(a'|o_{t+K}))``
+    with ``K = n``, or fewer where the episode ends (terminated or truncated) or the memory's newest
+    sample comes first; the actor's and the coefficient's losses are unchanged. ``memory`` (a
+    :class:`~tmrl.memory.GenericTorchMemory` of one worker that never wraps, as in :func:`run`)
+    draws the batches, the agent's target takes each one's own ``gamma^K``. Wrappers of
+    ``memory.sample`` and ``agent.target_value`` (the autograd path), not settings of either."""
+    import numpy as np
+    import torch
+
+    from tmrl.batch import Batch
+    from tmrl.memory import to_torch
+
+    store, links, gamma = memory._storage, memory._links, float(agent.gamma)
+    discount: dict[str, torch.Tensor] = {}
+
+    def sample(indices: Any = None) -> Batch:
+        if store.total > store.capacity:
+            raise RuntimeError("the n-step screen needs a memory that never wraps")
+        slots = memory.sample_indices() if indices is None else links.check_slots(indices)
+        ends, ret = slots.copy(), store.rew[slots].astype(np.float64)
+        disc = np.full(len(slots), gamma)
+        going = ~(store.terminated[slots] | store.truncated[slots])
+        for _ in range(1, n):
+            # one worker's memory that never wraps: the next slot is the episode's next step
+            nxt = np.minimum(ends + 1, store.total - 1)
+            ok = going & (ends + 1 < store.total)
+            ends = np.where(ok, nxt, ends)
+            ret = ret + np.where(ok, disc * store.rew[nxt], 0.0)
+            disc = np.where(ok, disc * gamma, disc)
+            going = ok & ~(store.terminated[ends] | store.truncated[ends])
+        discount["now"] = torch.as_tensor(disc, dtype=torch.float32)
+        return Batch(to_torch(memory.build_obs(links.prev_slots(slots)), "cpu"), to_torch(store.act[slots], "cpu"),
+                     torch.as_tensor(ret, dtype=torch.float32), to_torch(memory.build_obs(ends), "cpu"),
+                     torch.as_tensor(store.terminated[ends], dtype=torch.float32),
+                     torch.as_tensor(store.truncated[ends], dtype=torch.float32))
+
+    target_value = agent.target_value
+    agent.fused_update = None  # the fused update computes its own target
+
+    def n_step_target(batch: Any, alpha: Any) -> Any:
+        # gamma (1 - d) (Q_targ - alpha log pi) at o_{t+K}, rescaled to gamma^K
+        bootstrap = target_value(batch._replace(rew=torch.zeros_like(batch.rew)), alpha)
+        return batch.rew.reshape(-1) + bootstrap * (discount["now"] / gamma)
+
+    memory.sample, agent.target_value = sample, n_step_target
+
+
 def _lidar_model(alg: str) -> Any:
     """The lidar actor-critic of agent ``alg`` (:data:`tmrl.driving.models.LIDAR_MODELS`)."""
     from tmrl.driving.models import lidar_model_cls
@@ -278,6 +334,9 @@ def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps:
                          max_samples_per_episode=p["max_samples"], model_path=os.devnull + "_none", **p["worker"])
     worker, tester = RolloutWorker(**worker_kwargs), RolloutWorker(**worker_kwargs)
     agent = _agent(label, (worker.env.observation_space, worker.env.action_space), env_name, utd)
+    n_step = int(DEMO_OVERRIDES.get(label, {}).get("n_step", 1))
+    if n_step > 1:
+        _n_step_targets(agent, memory, n_step)
     if on_agent is not None:
         on_agent(agent)
     worker.env.action_space.seed(seed)

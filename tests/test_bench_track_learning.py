@@ -187,6 +187,83 @@ def test_the_five_critic_redq_screen_differs_from_the_ten_critic_one_only_in_its
     assert tl.start_steps_of("REDQSAC-N5-UTD4-R250") == 250 and tl.VARIANTS["REDQSAC-N5-UTD4-R250"][2] == 4
 
 
+def test_the_eight_update_redq_screen_differs_from_the_four_update_one_only_in_its_ratio():
+    """``REDQSAC-UTD8-CAP-R250``: ``REDQSAC-UTD4-CAP-R250`` at 8 critic updates per environment
+    step, each with its policy update, the rest of its settings equal."""
+    import gymnasium
+
+    env = gymnasium.make("Pendulum-v1")
+    spaces = (env.observation_space, env.action_space)
+    eight = tl._agent("REDQSAC-UTD8-CAP-R250", spaces, "pendulum", tl.VARIANTS["REDQSAC-UTD8-CAP-R250"][2])
+    four = tl._agent("REDQSAC-UTD4-CAP-R250", spaces, "pendulum", tl.VARIANTS["REDQSAC-UTD4-CAP-R250"][2])
+    assert (tl.VARIANTS["REDQSAC-UTD8-CAP-R250"][2], tl.VARIANTS["REDQSAC-UTD4-CAP-R250"][2]) == (8, 4)
+    same = ("n", "m", "q_updates_per_policy_update", "lr_actor", "lr_critic", "gamma", "polyak", "learn_entropy_coef")
+    assert [getattr(eight, k) for k in same] == [getattr(four, k) for k in same]
+    assert eight.q_updates_per_policy_update == 1
+    assert tl.start_steps_of("REDQSAC-UTD8-CAP-R250") == tl.start_steps_of("REDQSAC-UTD4-CAP-R250") == 250
+    assert tl.DEMO_OVERRIDES["REDQSAC-UTD8-CAP-R250"] == tl.DEMO_OVERRIDES["REDQSAC-UTD4-CAP-R250"]
+
+
+def test_the_n_step_screen_regresses_on_n_step_returns_cut_at_episode_ends():
+    """``-NS3``: batches carry ``r_t + g r_{t+1} + g^2 r_{t+2}`` and ``o_{t+3}``, fewer terms where
+    the episode ends (terminated: no bootstrap; truncated: bootstrap from its last observation) or
+    the memory's newest sample comes first; the target bootstraps with ``g^K`` of each transition."""
+    import gymnasium
+    import numpy as np
+    import torch
+
+    from tmrl.memory import GenericTorchMemory
+
+    class Buf:
+        def __init__(self, samples):
+            self.memory, self.sources = samples, None
+            self.stat_train_return = self.stat_test_return = 0.0
+            self.stat_train_steps = self.stat_test_steps = 0
+
+        def __len__(self):
+            return len(self.memory)
+
+    def episode(ep, n, rewards, end):  # a reset sample, then n - 1 steps; obs = (ep, t, 0)
+        return [(None if t == 0 else np.array([0.1 * t], dtype=np.float32), np.array([ep, t, 0.0], dtype=np.float32),
+                 0.0 if t == 0 else rewards[t - 1], t == n - 1 and end == "terminated",
+                 t == n - 1 and end == "truncated", {}) for t in range(n)]
+
+    env = gymnasium.make("Pendulum-v1")
+    agent = tl._agent("REDQSAC-UTD4-CAP-NS3-R250", (env.observation_space, env.action_space), "pendulum", 4)
+    g = agent.gamma
+    memory = GenericTorchMemory(device="cpu", nb_steps=1, memory_size=100, batch_size=4)
+    memory.append(Buf(episode(0, 6, [1.0, 2.0, 3.0, 4.0, 5.0], "terminated") + episode(1, 4, [10.0, 20.0, 30.0], "truncated")
+                      + episode(2, 4, [7.0, 8.0, 9.0], None)))  # the third episode goes on (newest sample: its t=3)
+    one_step = memory.sample
+    assert tl.DEMO_OVERRIDES["REDQSAC-UTD4-CAP-NS3-R250"]["n_step"] == 3
+    tl._n_step_targets(agent, memory, 3)
+    slots = {(int(o[0]), int(o[1])): j for j, o in zip(memory.valid_slots(), one_step(memory.valid_slots()).next_obs)}
+    cases = {  # (episode, t of o_{t+1}) -> (return, t of the bootstrap observation, terminated, K)
+        (0, 1): (1 + 2 * g + 3 * g**2, 3, 0.0, 3),
+        (0, 3): (3 + 4 * g + 5 * g**2, 5, 1.0, 3),
+        (0, 4): (4 + 5 * g, 5, 1.0, 2),  # terminated after two steps
+        (0, 5): (5.0, 5, 1.0, 1),
+        (1, 2): (20 + 30 * g, 3, 0.0, 2),  # truncated: bootstrap from its last observation
+        (1, 3): (30.0, 3, 0.0, 1),
+        (2, 2): (8 + 9 * g, 3, 0.0, 2),  # the newest sample comes first
+    }
+    batch = memory.sample(np.array([slots[k] for k in cases]))
+    for i, (k, (ret, t_end, term, K)) in enumerate(cases.items()):
+        assert batch.rew[i].item() == pytest.approx(ret, rel=1e-6), k
+        assert batch.obs[i].tolist() == [k[0], k[1] - 1, 0.0] and batch.next_obs[i].tolist() == [k[0], t_end, 0.0], k
+        assert batch.terminated[i].item() == term, k
+    alpha = torch.tensor(0.3)
+    torch.manual_seed(0)
+    got = agent.target_value(batch, alpha)
+    torch.manual_seed(0)
+    a2, logp = agent.actor(batch.next_obs)
+    q2 = agent.target_q(batch.next_obs, a2)
+    discount = torch.tensor([g ** K for *_, K in cases.values()], dtype=torch.float32)
+    want = batch.rew + discount * (1 - batch.terminated) * (q2 - alpha * logp)
+    assert torch.allclose(got, want, atol=1e-5)
+    assert agent.fused_update is None
+
+
 def test_variants_take_tmrls_random_start_unless_they_name_their_own(tmp_path, monkeypatch):
     assert tl.START_STEPS == 1000  # tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING
     assert tl.start_steps_of("SAC-TMRL") == 1000 and tl.start_steps_of("DROQ") == 1000
@@ -298,7 +375,7 @@ def test_the_cap_screens_hold_a_fallen_entropy_coefficient_under_their_ceiling()
         return alphas
 
     for label, capped in (("SAC-UTD4-CAP", True), ("SAC-UTD4", False), ("REDQSAC-UTD4-CAP-R250", True),
-                          ("REDQSAC-UTD4-R250", False)):
+                          ("REDQSAC-UTD8-CAP-R250", True), ("REDQSAC-UTD4-R250", False)):
         agent = tl._agent(label, spaces, "pendulum", 4)
         agent.alpha_optimizer.param_groups[0]["lr"] = 0.3  # big steps on log(alpha)
         falling = drive(agent, -100.0, 12)
