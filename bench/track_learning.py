@@ -36,7 +36,7 @@ at 4 with a target entropy of -6 instead of -3; ``SAC-UTD4-FA`` is the demo's se
 the same at 8, ``SAC-UTD4-A003`` and ``-A005`` at 0.003 and 0.005, ``SAC-UTD4-FA-R250`` with 250
 random steps first instead of 1,000); ``SAC-UTD8-R250`` is the learned alpha at 8 updates per step
 after 250 random steps, ``SAC-UTD8-CAP`` and ``SAC-UTD4-CAP`` the same at 8 and 4 with the
-coefficient held at or under 0.01 once it has fallen there (screens: :func:`_hold_alpha_under`);
+coefficient held at or under 0.01 once it has fallen there (the agents' ``alpha_max``, ``ALG.ALPHA_MAX``);
 ``SAC-UTD4-NB-R250``, ``-SH-R250`` and ``-CL-R250`` are the learned alpha at 4 after 250 random
 steps with another entropy term in the critics' target: none, one measured from the target
 entropy, one that is only ever a bonus (screens: :func:`_entropy_term_in_target`);
@@ -115,7 +115,7 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ",
 #: with an entropy coefficient learned from 0.2 toward SAC's ``-act_dim`` (the demo's in fast mode,
 #: and in real time until 2026-11-26, when it took ``SAC-UTD4-FA``'s fixed coefficient, tmrl's 0.01),
 #: and :data:`START_STEPS` random steps. Keys: ``lr``, ``alpha``, ``learn_entropy_coef``,
-#: ``target_entropy``, ``alpha_max`` (the screens' ceiling, :func:`_hold_alpha_under`), ``start_steps``,
+#: ``target_entropy``, ``alpha_max`` (the screens' ceiling, the agents' own, ``ALG.ALPHA_MAX``), ``start_steps``,
 #: ``backup_entropy`` (True: SAC's target; False, ``"shifted"``, ``"bonus"``: the ``-NB``, ``-SH``
 #: and ``-CL`` screens, :func:`_entropy_term_in_target`), ``critic_layer_norm`` (the ``-LN`` screens:
 #: critics whose hidden layers are ``Linear -> LayerNorm -> ReLU``, DroQ's lidar critics without
@@ -180,7 +180,7 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
     alg, source, _ = VARIANTS[label]
     cls = agent_class(alg)
     kwargs: dict[str, Any] = {}
-    alpha_cap, policy_every = None, utd
+    policy_every = utd
     if env_name != "pendulum":
         kwargs["model_cls"] = _lidar_model(alg)
     if source == "tmrl":  # tmrl's shipped ALG defaults (the TrackMania lidar config's)
@@ -192,8 +192,9 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
              "backup_entropy": True, "critic_layer_norm": False, "policy_every": utd, "redq_n": None,
              **DEMO_OVERRIDES.get(label, {})}
         kwargs.update(lr_actor=v["lr"], lr_critic=v["lr"], lr_entropy=v["lr"], gamma=S["gamma"], polyak=S["polyak"],
-                      alpha=v["alpha"], learn_entropy_coef=v["learn_entropy_coef"], target_entropy=v["target_entropy"])
-        alpha_cap, policy_every = v["alpha_max"], v["policy_every"]
+                      alpha=v["alpha"], learn_entropy_coef=v["learn_entropy_coef"], target_entropy=v["target_entropy"],
+                      alpha_max=v["alpha_max"])
+        policy_every = v["policy_every"]
         if v["critic_layer_norm"] and env_name != "pendulum":
             kwargs["model_cls"] = functools.partial(_lidar_model("DROQ"), dropout_rate=0.0)
         if v["redq_n"] is not None:
@@ -201,8 +202,6 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = policy_every
     agent = cls(*spaces, "cpu", **kwargs)
-    if alpha_cap is not None:
-        _hold_alpha_under(agent, alpha_cap)
     if source == "demo" and v["backup_entropy"] is not True:
         _entropy_term_in_target(agent, v["backup_entropy"])
     return agent
@@ -234,27 +233,6 @@ def _entropy_term_in_target(agent: Any, how: bool | str = False) -> None:
         return target_value(batch, torch.zeros_like(alpha))
 
     agent.target_value = target_with_term
-
-
-def _hold_alpha_under(agent: Any, cap: float) -> None:
-    """The ``-CAP`` screens: a learned entropy coefficient that has fallen to ``cap`` never rises
-    above it again (it starts above it, at 0.2). A wrapper of ``agent.train`` here, not an agent
-    setting: the screens found that it does not stop the fall-back (docs/benchmarks.md)."""
-    import math
-
-    import torch
-
-    log_cap, train = math.log(cap), agent.train
-
-    def train_under_cap(batch: Any) -> Any:
-        under = float(agent.log_alpha.detach()) <= log_cap
-        out = train(batch)
-        if under:
-            with torch.no_grad():
-                agent.log_alpha.clamp_(max=log_cap)
-        return out
-
-    agent.train = train_under_cap
 
 
 def _n_step_targets(agent: Any, memory: Any, n: int) -> None:

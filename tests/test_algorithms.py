@@ -666,3 +666,48 @@ def test_bfloat16_critics_keep_float32_parameters_and_close_values():
     )
     with pytest.raises(UserError, match="bfloat16"):
         EnsembleQFunction(OBS3, ACT2, compute_dtype="float16")
+
+
+@pytest.mark.parametrize("alg, extra", [("SAC", {}), ("SAC", {"fused": False, "update_order": "sequential"}),
+                                        ("REDQSAC", {}), ("DROQ", {"q_updates_per_policy_update": 1}),
+                                        ("TQC", {}), ("CROSSQ", {"policy_delay": 1, "critic_width": 64})])
+def test_alpha_max_holds_a_learned_coefficient_once_it_has_come_down_to_it(alg, extra):
+    """``alpha_max`` (``ALG.ALPHA_MAX``): the coefficient falls freely from ``alpha`` past the
+    ceiling, then no update lifts it above; without it the same updates lift it well above."""
+    from tmrl.config import loader
+    from tmrl.config.schema import AGENT_CLASSES, arguments
+
+    cfg = loader.validate({"ALG": {"ALGORITHM": alg, "ALPHA_MAX": 0.01}})
+    fed = arguments(cfg, AGENT_CLASSES[alg])["alpha_max"]
+    assert fed == 0.01
+
+    def drive(agent, target, n, gen):
+        agent.target_entropy = target  # far below the policy's entropy: alpha falls; far above: it rises
+        out = []
+        for _ in range(n):
+            agent.train(random_batch(gen))
+            out.append(float(agent.log_alpha.detach().exp()))
+        return out
+
+    peaks = {}
+    for ceiling in (fed, None):
+        torch.manual_seed(0)
+        agent = agent_class(alg)(OBS3, ACT2, "cpu", alpha=0.2, lr_entropy=0.3, alpha_max=ceiling, **extra)
+        if alg == "SAC":
+            assert (agent.fused_update is not None) == extra.get("fused", True)
+        gen = torch.Generator().manual_seed(1)
+        falling = drive(agent, -100.0, 12, gen)
+        assert 0.01 < falling[0] < 0.2 and falling[-1] < 0.01, (ceiling, falling)
+        peaks[ceiling] = max(drive(agent, 100.0, 40, gen))
+    assert peaks[fed] <= 0.01 * (1 + 1e-6) and peaks[None] > 0.02, peaks
+
+
+def test_alpha_max_must_be_positive_or_null():
+    from tmrl.config import loader
+    from tmrl.config.loader import ConfigError
+
+    with pytest.raises(ConfigError, match="ALPHA_MAX"):
+        loader.validate({"ALG": {"ALPHA_MAX": 0}})
+    assert loader.validate({"ALG": {"ALPHA_MAX": None}})["ALG"]["ALPHA_MAX"] is None
+    with pytest.raises(UserError, match="alpha_max"):
+        SACAgent(OBS3, ACT2, "cpu", alpha_max=-1.0)

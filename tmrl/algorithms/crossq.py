@@ -314,6 +314,7 @@ class CrossQAgent(SACAgent):
         lr_entropy: float = 1e-3,
         learn_entropy_coef: bool = True,
         target_entropy: float | None = None,
+        alpha_max: float | None = None,
         optimizer_actor: str = "adam",
         optimizer_critic: str = "adam",
         betas_actor: Sequence[float] | None = None,
@@ -356,6 +357,7 @@ class CrossQAgent(SACAgent):
             lr_entropy=lr_entropy,
             learn_entropy_coef=learn_entropy_coef,
             target_entropy=target_entropy,
+            alpha_max=alpha_max,
             optimizer_actor=optimizer_actor,
             optimizer_critic=optimizer_critic,
             betas_actor=paper_betas(betas_actor, optimizer_actor),
@@ -509,8 +511,10 @@ class CrossQAgent(SACAgent):
         params = list(self.actor.parameters()) + ([self.log_alpha] if self.log_alpha is not None else [])
         if not self.guard.update_ok(loss, params):
             return False
+        held = loss_alpha is not None and self._at_alpha_max()
         for opt in optimizers:
             opt.step()  # type: ignore[union-attr]
+        self._hold_alpha(held)
         return True
 
     # --- checkpointing ------------------------------------------------------------------------

@@ -345,7 +345,9 @@ class FusedSACUpdate:
             return agent.guard.skipped_metrics()
         cg.step()
         if self.alpha_grads is not None:
+            held = agent._at_alpha_max()
             self.alpha_grads.step()
+            agent._hold_alpha(held)
         ag.step()
         agent._update_targets()
         metrics: dict[str, Any] = {

@@ -234,6 +234,10 @@ class SACAgent(TrainingAgent):
         lr_entropy: learning rate of ``log_alpha`` (SAC v2), optimised with Adam.
         learn_entropy_coef: learn alpha toward ``target_entropy`` (SAC v2).
         target_entropy: target policy entropy; None means ``-act_dim``.
+        alpha_max: a ceiling for a learned coefficient, from the first update that finds it at or
+            under ``alpha_max``: from then on each update that moves it above is cut back to it
+            (it starts above when ``alpha > alpha_max``, and falls freely until then). None: no
+            ceiling. Ignored when the coefficient is fixed.
         optimizer_actor: ``"adam"``, ``"adamw"`` or ``"sgd"``.
         optimizer_critic: ``"adam"``, ``"adamw"`` or ``"sgd"``.
         betas_actor: Adam/AdamW betas of the actor optimizer (None: PyTorch's default).
@@ -273,6 +277,7 @@ class SACAgent(TrainingAgent):
         lr_entropy: float = 1e-3,
         learn_entropy_coef: bool = True,
         target_entropy: float | None = None,
+        alpha_max: float | None = None,
         optimizer_actor: str = "adam",
         optimizer_critic: str = "adam",
         betas_actor: Sequence[float] | None = None,
@@ -308,6 +313,9 @@ class SACAgent(TrainingAgent):
             raise UserError(f"polyak={polyak} must lie in [0, 1] (ALG.POLYAK), typically 0.995")
         if self.alpha <= 0.0 and self.learn_entropy_coef:
             raise UserError(f"alpha={alpha} must be > 0 when the entropy coefficient is learned (ALG.ALPHA)")
+        if alpha_max is not None and not alpha_max > 0.0:
+            raise UserError(f"alpha_max={alpha_max} must be > 0, or null for no ceiling (ALG.ALPHA_MAX)")
+        self.alpha_max = None if alpha_max is None else float(alpha_max)
 
         self.model = self._make_model().to(device)
         self.model_target = no_grad(copy.deepcopy(self.model))
@@ -371,6 +379,17 @@ class SACAgent(TrainingAgent):
         if self.log_alpha is not None:
             return self.log_alpha.detach().exp()
         return self.alpha_t
+
+    def _at_alpha_max(self) -> bool:
+        """Whether the learned coefficient is at or under ``alpha_max`` (read before its step)."""
+        return (self.log_alpha is not None and self.alpha_max is not None
+                and float(self.log_alpha.detach()) <= math.log(self.alpha_max))
+
+    @torch.no_grad()
+    def _hold_alpha(self, was_at_max: bool) -> None:
+        """After the coefficient's step: back to ``alpha_max`` if it was at or under it before."""
+        if was_at_max:
+            cast(torch.Tensor, self.log_alpha).clamp_(max=math.log(cast(float, self.alpha_max)))
 
     @torch.no_grad()
     def _update_targets(self) -> None:
@@ -526,8 +545,10 @@ class SACAgent(TrainingAgent):
         loss.backward()
         if not self.guard.update_ok(loss, self._guarded):
             return False
+        held = loss_alpha is not None and self._at_alpha_max()
         for opt in optimizers:
             opt.step()
+        self._hold_alpha(held)
         return True
 
     def _actor_step_after_critics(

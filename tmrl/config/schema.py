@@ -595,6 +595,9 @@ _ALG = Section(
                                  nullable=True, **_agents("target_entropy", None)),
         "ALPHA": Number(0.01, "entropy coefficient (fixed, or initial value when learned)", min=0,
                          **_agents("alpha", 0.2)),
+        "ALPHA_MAX": Number(None, "ceiling of a learned entropy coefficient once it has come down to it (it falls "
+                                  "freely from ALPHA until then; null: no ceiling)", min=0, min_open=True,
+                            nullable=True, **_agents("alpha_max", None)),
         "REDQ_N": Int(10, "number of critics in the REDQ ensemble", min=1, feeds=("REDQSACAgent.n",), class_default=10),
         "REDQ_M": Int(2, "number of critics drawn at random for each REDQ target", min=1, feeds=("REDQSACAgent.m",),
                       class_default=2),
