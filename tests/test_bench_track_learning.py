@@ -417,3 +417,41 @@ def test_floor_prints_the_least_time_of_the_runs_a_command_would_start(tmp_path,
     floors = {r["metric"]: r["value"] for r in records if r.get("case") == "floor" and r.get("side") == "ours"}
     assert floors["floor_min_all_budgets"] == 15.0 and floors["floor_min_whole_budget_tracks"] == 7.5
     assert not any(r.get("metric") == "steps_to_first_lap" for r in records)  # nothing was run
+
+
+def test_the_settings_docs_trackmania_gives_are_the_ones_the_benchmark_measured():
+    """Each ``config.json`` fragment of docs/trackmania.md, laid over the shipped TM20LIDAR file,
+    builds the agent of the benchmark variant it stands for: same ratio, random steps and every
+    hyperparameter (the TrackMania file's own betas and target entropy are tmrl's, not the
+    benchmark's, so a fragment that leaves them out is not what was measured)."""
+    import re
+
+    import gymnasium
+
+    from tmrl.algorithms import agent_class
+    from tmrl.config import loader
+    from tmrl.config.schema import AGENT_CLASSES, arguments
+
+    measured = {"SAC": "SAC-UTD4-FA", "REDQSAC": "REDQSAC-UTD4-R250"}
+    doc = (REPO / "docs" / "trackmania.md").read_text(encoding="utf-8")
+    fragments = [json.loads("{" + b + "}") for b in re.findall(r"```json\n(.*?)```", doc, re.S) if '"ALGORITHM"' in b]
+    assert sorted(f["ALG"]["ALGORITHM"] for f in fragments) == sorted(measured)
+    shipped = json.loads((REPO / "config" / "config_tm20lidar.json").read_text(encoding="utf-8"))
+    env = gymnasium.make("Pendulum-v1")
+    spaces = (env.observation_space, env.action_space)
+
+    def settings(agent):
+        keys = ("lr_actor", "lr_critic", "lr_entropy", "gamma", "polyak", "alpha", "learn_entropy_coef",
+                "target_entropy", "alpha_max", "n", "m", "q_updates_per_policy_update")
+        betas = [g["betas"] for opt in (agent.pi_optimizer, agent.q_optimizer) for g in opt.param_groups]
+        return {k: getattr(agent, k, None) for k in keys} | {"betas": betas, "type": type(agent).__name__}
+
+    for fragment in fragments:
+        alg = fragment["ALG"]["ALGORITHM"]
+        label = measured[alg]
+        cfg = loader.validate({**shipped, **{k: v for k, v in fragment.items() if k != "ALG"},
+                               "ALG": {**shipped["ALG"], **fragment["ALG"]}})
+        assert cfg["MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP"] == tl.VARIANTS[label][2], label
+        assert cfg["ENVIRONMENT_STEPS_BEFORE_TRAINING"] == tl.start_steps_of(label), label
+        built = agent_class(alg)(*spaces, "cpu", **arguments(cfg, AGENT_CLASSES[alg]))
+        assert settings(built) == settings(tl._agent(label, spaces, "pendulum", tl.VARIANTS[label][2])), label
