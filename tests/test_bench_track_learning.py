@@ -434,7 +434,7 @@ def test_the_settings_docs_trackmania_gives_are_the_ones_the_benchmark_measured(
 
     measured = {"SAC": "SAC-UTD4-FA", "REDQSAC": "REDQSAC-UTD4-R250"}
     doc = (REPO / "docs" / "trackmania.md").read_text(encoding="utf-8")
-    fragments = [json.loads("{" + b + "}") for b in re.findall(r"```json\n(.*?)```", doc, re.S) if '"ALGORITHM"' in b]
+    fragments = [json.loads("{" + b + "}") for b in re.findall(r"```json\n(.*?)```", doc, re.DOTALL) if '"ALGORITHM"' in b]
     assert sorted(f["ALG"]["ALGORITHM"] for f in fragments) == sorted(measured)
     shipped = json.loads((REPO / "config" / "config_tm20lidar.json").read_text(encoding="utf-8"))
     env = gymnasium.make("Pendulum-v1")
