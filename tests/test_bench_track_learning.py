@@ -432,7 +432,7 @@ def test_the_settings_docs_trackmania_gives_are_the_ones_the_benchmark_measured(
     from tmrl.config import loader
     from tmrl.config.schema import AGENT_CLASSES, arguments
 
-    measured = {"SAC": "SAC-UTD4-FA", "REDQSAC": "REDQSAC-UTD4-R250"}
+    measured = {"SAC": "SAC-UTD4-FA", "REDQSAC": "REDQSAC-UTD8-CAP-R250"}
     doc = (REPO / "docs" / "trackmania.md").read_text(encoding="utf-8")
     fragments = [json.loads("{" + b + "}") for b in re.findall(r"```json\n(.*?)```", doc, re.DOTALL) if '"ALGORITHM"' in b]
     assert sorted(f["ALG"]["ALGORITHM"] for f in fragments) == sorted(measured)
