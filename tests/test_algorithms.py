@@ -702,6 +702,20 @@ def test_alpha_max_holds_a_learned_coefficient_once_it_has_come_down_to_it(alg, 
     assert peaks[fed] <= 0.01 * (1 + 1e-6) and peaks[None] > 0.02, peaks
 
 
+@pytest.mark.parametrize("ceiling", [0.07, 0.01, 0.03])
+def test_alpha_max_holds_whatever_the_rounding_of_its_logarithm(ceiling):
+    """log(0.07) rounds up in float32: a ceiling compared in float64 would let the coefficient
+    go after its first cut."""
+    agent = SACAgent(OBS3, ACT2, "cpu", alpha=0.2, lr_entropy=0.3, alpha_max=ceiling)
+    gen = torch.Generator().manual_seed(1)
+    seen = []
+    for target in [-100.0] * 12 + [100.0] * 40:
+        agent.target_entropy = target
+        agent.train(random_batch(gen))
+        seen.append(float(agent.log_alpha.detach().exp()))
+    assert min(seen) < ceiling and max(seen[seen.index(min(seen)):]) <= ceiling * (1 + 1e-6), seen
+
+
 def test_alpha_max_must_be_positive_or_null():
     from tmrl.config import loader
     from tmrl.config.loader import ConfigError

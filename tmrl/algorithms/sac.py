@@ -380,16 +380,22 @@ class SACAgent(TrainingAgent):
             return self.log_alpha.detach().exp()
         return self.alpha_t
 
+    def _log_alpha_max(self) -> float:
+        """``log(alpha_max)`` rounded to ``log_alpha``'s precision: the value a cut writes, so that
+        a coefficient cut back to it reads as at the ceiling at the next step (in float64 the
+        rounded value can lie just above, for example for 0.07)."""
+        return float(torch.tensor(math.log(cast(float, self.alpha_max)), dtype=cast(torch.Tensor, self.log_alpha).dtype))
+
     def _at_alpha_max(self) -> bool:
         """Whether the learned coefficient is at or under ``alpha_max`` (read before its step)."""
         return (self.log_alpha is not None and self.alpha_max is not None
-                and float(self.log_alpha.detach()) <= math.log(self.alpha_max))
+                and float(self.log_alpha.detach()) <= self._log_alpha_max())
 
     @torch.no_grad()
     def _hold_alpha(self, was_at_max: bool) -> None:
         """After the coefficient's step: back to ``alpha_max`` if it was at or under it before."""
         if was_at_max:
-            cast(torch.Tensor, self.log_alpha).clamp_(max=math.log(cast(float, self.alpha_max)))
+            cast(torch.Tensor, self.log_alpha).clamp_(max=self._log_alpha_max())
 
     @torch.no_grad()
     def _update_targets(self) -> None:
