@@ -326,6 +326,12 @@ class SACAgent(TrainingAgent):
 
         self._make_optimizers()
         self._make_entropy_coef(target_entropy, lr_entropy)
+        # log(alpha_max) rounded to log_alpha's precision: the value a cut writes, so that a
+        # coefficient cut back to it reads as at the ceiling at the next step (in float64 the
+        # rounded value can lie just above, for example for 0.07). None: no ceiling acts.
+        self._log_alpha_max: float | None = None
+        if self.log_alpha is not None and self.alpha_max is not None:
+            self._log_alpha_max = float(torch.tensor(math.log(self.alpha_max), dtype=self.log_alpha.dtype))
 
         # Same order in both lists: Polyak averaging pairs them up.
         self._params: list[torch.Tensor] = list(self.model.parameters())
@@ -380,22 +386,16 @@ class SACAgent(TrainingAgent):
             return self.log_alpha.detach().exp()
         return self.alpha_t
 
-    def _log_alpha_max(self) -> float:
-        """``log(alpha_max)`` rounded to ``log_alpha``'s precision: the value a cut writes, so that
-        a coefficient cut back to it reads as at the ceiling at the next step (in float64 the
-        rounded value can lie just above, for example for 0.07)."""
-        return float(torch.tensor(math.log(cast(float, self.alpha_max)), dtype=cast(torch.Tensor, self.log_alpha).dtype))
-
     def _at_alpha_max(self) -> bool:
         """Whether the learned coefficient is at or under ``alpha_max`` (read before its step)."""
-        return (self.log_alpha is not None and self.alpha_max is not None
-                and float(self.log_alpha.detach()) <= self._log_alpha_max())
+        cap = self._log_alpha_max
+        return cap is not None and float(cast(torch.Tensor, self.log_alpha).detach()) <= cap
 
     @torch.no_grad()
     def _hold_alpha(self, was_at_max: bool) -> None:
         """After the coefficient's step: back to ``alpha_max`` if it was at or under it before."""
         if was_at_max:
-            cast(torch.Tensor, self.log_alpha).clamp_(max=self._log_alpha_max())
+            cast(torch.Tensor, self.log_alpha).clamp_(max=self._log_alpha_max)
 
     @torch.no_grad()
     def _update_targets(self) -> None:
