@@ -1,29 +1,48 @@
-"""The one schema of ``config.json``: every key with its type, default, allowed range and meaning.
+"""The one table of ``config.json``: every key with its type, default, allowed range, meaning and
+the constructor arguments it sets. **A new key is declared here** (in :data:`SCHEMA`, or in one of
+its sections) and nowhere else.
 
 Everything else derives from it: the loader validates against it and fills missing keys with its
 defaults, ``config/config.json`` is its defaults written out (the other ``config/*.json`` are the
-defaults with the changes of :data:`EXAMPLES`), and ``docs/config.md`` is generated from it. Regenerate both after a change with::
+defaults with the changes of :data:`~tmrl.config.generate.EXAMPLES`), and ``docs/config.md`` is
+generated from it. Regenerate both after a change with::
 
     python -m tmrl.config.schema --write
 
 (``--markdown`` and ``--json`` print the reference and the default config instead.)
+
+The parts the table is made of live beside it: the value types in :mod:`tmrl.config.spec`, the
+checks across keys in :mod:`tmrl.config.checks`, the generators of the files in
+:mod:`tmrl.config.generate`; their names are importable from here as well.
 
 Nothing here reads a file or touches the disk at import.
 """
 
 from __future__ import annotations
 
-import argparse
-import copy
-import difflib
-import json
-import math
 import sys
-from collections.abc import Mapping, Sequence
-from pathlib import Path
+from collections.abc import Mapping
 from typing import Any
 
-from tmrl.errors import UserError
+from tmrl.config import generate
+from tmrl.config.checks import check_consistency, redq_subset_problem
+from tmrl.config.generate import EXAMPLES
+from tmrl.config.spec import (
+    NO_CLASS_DEFAULT,
+    AnyDict,
+    AnyList,
+    Bool,
+    Choice,
+    ConfigError,
+    Int,
+    Number,
+    NumberList,
+    SchemaViolation,
+    Section,
+    Spec,
+    Str,
+    show,
+)
 
 __all__ = [
     "ALGORITHMS",
@@ -57,485 +76,6 @@ __all__ = [
     "generated_files",
     "markdown_reference",
 ]
-
-
-class ConfigError(UserError):
-    """A configuration mistake. ``str(err)`` is one line: where the value came from (the file, or
-    ``--config``), the full key path, the value found and what is expected."""
-
-
-class SchemaViolation(Exception):
-    """Raised by :meth:`Spec.check`; the loader turns it into a :class:`ConfigError` by adding the
-    source (file name or ``--config``) in front of the message.
-
-    Args:
-        path: the full key path of the bad value (``"ALG.LR_ACTOR"``; empty for the top level).
-        message: the one-line explanation, starting with the key path.
-    """
-
-    def __init__(self, path: str, message: str):
-        super().__init__(message)
-        self.path = path
-        self.message = message
-
-
-class _NoClassDefault:
-    def __repr__(self) -> str:
-        return "<no class default>"
-
-
-NO_CLASS_DEFAULT: Any = _NoClassDefault()
-"""``Spec.class_default`` of a key whose argument has no default of its own in the class."""
-
-
-def show(value: Any, limit: int = 80) -> str:
-    """Render a found value the way it would be written in JSON (``"fast"``, ``true``, ``null``),
-    shortened to ``limit`` characters so that an error stays on one line."""
-    try:
-        text = json.dumps(value, ensure_ascii=False)
-    except (TypeError, ValueError):
-        text = repr(value)
-    text = " ".join(text.split())
-    if len(text) > limit:
-        text = text[: limit - 3] + "..."
-    return text
-
-
-def _join(path: str, key: str) -> str:
-    return f"{path}.{key}" if path else key
-
-
-def _fmt(x: float) -> str:
-    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else repr(x)
-
-
-class Spec:
-    """One key of the schema.
-
-    Args:
-        default: the value a missing key takes (deep-copied on use).
-        doc: one-line meaning, shown in ``docs/config.md``.
-        nullable: ``null`` (Python ``None``) is accepted as well.
-        feeds: the constructor arguments this key sets, as ``"Class.argument"`` (for example
-            ``"SACAgent.lr_actor"``); :func:`arguments` collects them for one class, and a test
-            checks that each class takes each argument.
-        class_default: the default of that argument in the class's own signature, when the class
-            has one of its own (a script that builds ``SACAgent(...)`` without the argument gets
-            it; ``config.json`` gets ``default``). A test checks the signatures against it.
-    """
-
-    kind = "value"
-
-    def __init__(
-        self,
-        default: Any,
-        doc: str,
-        *,
-        nullable: bool = False,
-        feeds: Sequence[str] = (),
-        class_default: Any = NO_CLASS_DEFAULT,
-    ):
-        self.default = default
-        self.doc = doc
-        self.nullable = nullable
-        self.feeds = tuple(feeds)
-        self.class_default = class_default
-
-    @property
-    def expected(self) -> str:
-        """What a valid value is, as a phrase that completes "must be ..."."""
-        raise NotImplementedError
-
-    def describe(self) -> str:
-        """The expected phrase including ``or null`` for nullable keys."""
-        return self.expected + (" or null" if self.nullable else "")
-
-    def default_value(self) -> Any:
-        """A deep copy of :attr:`default` (so that a caller may modify it)."""
-        return copy.deepcopy(self.default)
-
-    def check(self, value: Any, path: str, *, fill: bool = True) -> Any:
-        """Validate ``value`` found at ``path`` and return it normalised (ints to floats for
-        numbers, canonical spelling for choices, tuples to lists).
-
-        Args:
-            value: the value found in the configuration (already parsed from JSON).
-            path: its full key path, used in the error message (``""`` for the top level).
-            fill: sections fill missing keys with defaults (False to validate a partial override).
-
-        Returns:
-            The normalised value (``None`` for ``null`` when the key is nullable).
-
-        Raises:
-            SchemaViolation: naming ``path``, the value and :meth:`describe`.
-        """
-        if value is None and self.nullable:
-            return None
-        return self._check(value, path, fill=fill)
-
-    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
-        raise NotImplementedError
-
-    def fail(self, path: str, value: Any) -> SchemaViolation:
-        """The error for a wrong ``value`` at ``path`` ("<path> must be <expected>, got <value>"),
-        returned for the caller to raise.
-
-        Args:
-            path: the full key path of the value.
-            value: the value found.
-        """
-        return SchemaViolation(path, f"{path} must be {self.describe()}, got {show(value)}")
-
-
-class Bool(Spec):
-    """``true`` or ``false`` (a JSON boolean: ``0``, ``1`` and strings are refused). Takes the
-    arguments of :class:`Spec`."""
-
-    kind = "bool"
-
-    @property
-    def expected(self) -> str:
-        return "true or false"
-
-    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
-        if not isinstance(value, bool):
-            raise self.fail(path, value)
-        return value
-
-
-class Int(Spec):
-    """An integer, optionally bounded (inclusive). An integral float such as ``1e6`` is accepted
-    and converted, since JSON writers often produce them; booleans are refused.
-
-    Args:
-        default: see :class:`Spec`.
-        doc: see :class:`Spec`.
-        min: the smallest value allowed (inclusive), None for no lower bound.
-        max: the largest value allowed (inclusive), None for no upper bound.
-        nullable: see :class:`Spec`.
-        **table: ``feeds`` and ``class_default``, see :class:`Spec`.
-    """
-
-    kind = "integer"
-
-    def __init__(
-        self,
-        default: Any,
-        doc: str,
-        *,
-        min: int | None = None,
-        max: int | None = None,
-        nullable: bool = False,
-        **table: Any,
-    ):
-        super().__init__(default, doc, nullable=nullable, **table)
-        self.min = min
-        self.max = max
-
-    @property
-    def expected(self) -> str:
-        lo, hi = self.min, self.max
-        if lo is not None and hi is not None:
-            return f"an integer from {lo} to {hi}"
-        if lo == 1:
-            return "a positive integer"
-        if lo == 0:
-            return "a non-negative integer"
-        if lo is not None:
-            return f"an integer >= {lo}"
-        if hi is not None:
-            return f"an integer <= {hi}"
-        return "an integer"
-
-    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
-        if isinstance(value, bool):
-            raise self.fail(path, value)
-        if isinstance(value, float) and math.isfinite(value) and value.is_integer():
-            value = int(value)
-        if not isinstance(value, int):
-            raise self.fail(path, value)
-        if (self.min is not None and value < self.min) or (self.max is not None and value > self.max):
-            raise self.fail(path, value)
-        return value
-
-
-class Number(Spec):
-    """A finite real number (an integer is accepted and converted to float), optionally bounded.
-
-    Args:
-        default: see :class:`Spec`.
-        doc: see :class:`Spec`.
-        min: the lower bound, None for none.
-        max: the upper bound, None for none.
-        min_open: the lower bound itself is refused (``min < value``).
-        max_open: the upper bound itself is refused (``value < max``).
-        nullable: see :class:`Spec`.
-        **table: ``feeds`` and ``class_default``, see :class:`Spec`.
-    """
-
-    kind = "number"
-
-    def __init__(
-        self,
-        default: Any,
-        doc: str,
-        *,
-        min: float | None = None,
-        max: float | None = None,
-        min_open: bool = False,
-        max_open: bool = False,
-        nullable: bool = False,
-        **table: Any,
-    ):
-        super().__init__(default, doc, nullable=nullable, **table)
-        self.min = min
-        self.max = max
-        self.min_open = min_open
-        self.max_open = max_open
-
-    @property
-    def expected(self) -> str:
-        lo, hi = self.min, self.max
-        if lo is not None and hi is not None:
-            left = "(" if self.min_open else "["
-            right = ")" if self.max_open else "]"
-            return f"a number in {left}{_fmt(lo)}, {_fmt(hi)}{right}"
-        if lo == 0 and hi is None:
-            return "a positive number" if self.min_open else "a non-negative number"
-        if lo is not None:
-            return f"a number {'>' if self.min_open else '>='} {_fmt(lo)}"
-        if hi is not None:
-            return f"a number {'<' if self.max_open else '<='} {_fmt(hi)}"
-        return "a number"
-
-    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(path, value)
-        value = float(value)
-        if not math.isfinite(value):
-            raise self.fail(path, value)
-        if self.min is not None and (value < self.min or (self.min_open and value == self.min)):
-            raise self.fail(path, value)
-        if self.max is not None and (value > self.max or (self.max_open and value == self.max)):
-            raise self.fail(path, value)
-        return value
-
-
-class Str(Spec):
-    """A string.
-
-    Args:
-        default: see :class:`Spec`.
-        doc: see :class:`Spec`.
-        nonempty: the empty string (or only spaces) is refused.
-        forbid: characters the string may not contain (for names used in file names); when not
-            empty, ``"."`` and ``".."`` are refused too.
-        nullable: see :class:`Spec`.
-        **table: ``feeds`` and ``class_default``, see :class:`Spec`.
-    """
-
-    kind = "string"
-
-    def __init__(self, default: Any, doc: str, *, nonempty: bool = False, forbid: str = "",
-                 nullable: bool = False, **table: Any):
-        super().__init__(default, doc, nullable=nullable, **table)
-        self.nonempty = nonempty
-        self.forbid = forbid
-
-    @property
-    def expected(self) -> str:
-        text = "a non-empty string" if self.nonempty else "a string"
-        if self.forbid:
-            text += " without " + " or ".join(self.forbid)
-        return text
-
-    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
-        if not isinstance(value, str):
-            raise self.fail(path, value)
-        if self.nonempty and not value.strip():
-            raise self.fail(path, value)
-        if any(c in value for c in self.forbid) or (self.forbid and value.strip() in (".", "..")):
-            raise self.fail(path, value)
-        return value
-
-
-class Choice(Spec):
-    """One string out of a fixed set, matched case-insensitively and returned in its canonical
-    spelling (``"redqsac"`` becomes ``"REDQSAC"``).
-
-    Args:
-        default: see :class:`Spec`.
-        doc: see :class:`Spec`.
-        options: the allowed values, in their canonical spelling.
-        nullable: see :class:`Spec`.
-        **table: ``feeds`` and ``class_default``, see :class:`Spec`.
-    """
-
-    kind = "choice"
-
-    def __init__(self, default: str, doc: str, options: Sequence[str], *, nullable: bool = False,
-                 **table: Any):
-        super().__init__(default, doc, nullable=nullable, **table)
-        self.options = tuple(options)
-
-    @property
-    def expected(self) -> str:
-        return "one of " + ", ".join(json.dumps(o) for o in self.options)
-
-    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
-        if isinstance(value, str):
-            wanted = value.strip().casefold()
-            for option in self.options:
-                if option.casefold() == wanted:
-                    return option
-        raise self.fail(path, value)
-
-
-class NumberList(Spec):
-    """A list (or tuple) of exactly ``length`` numbers, each within the bounds of ``item``.
-
-    Args:
-        default: see :class:`Spec`.
-        doc: see :class:`Spec`.
-        length: the number of items required.
-        item: the :class:`Number` each item must satisfy.
-        nullable: see :class:`Spec`.
-        **table: ``feeds`` and ``class_default``, see :class:`Spec`.
-    """
-
-    kind = "list"
-
-    def __init__(self, default: Any, doc: str, *, length: int, item: Number, nullable: bool = False,
-                 **table: Any):
-        super().__init__(default, doc, nullable=nullable, **table)
-        self.length = length
-        self.item = item
-
-    @property
-    def expected(self) -> str:
-        inner = self.item.expected
-        inner = inner.removeprefix("a ")
-        return f"a list of {self.length} {inner.replace('number', 'numbers', 1)}"
-
-    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
-        if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) or len(value) != self.length:
-            raise self.fail(path, value)
-        out = []
-        for x in value:
-            try:
-                out.append(self.item.check(x, path))
-            except SchemaViolation:
-                raise self.fail(path, value) from None
-        return out
-
-
-def _plain_data(value: Any, path: str) -> Any:
-    """Copy of a JSON-like value (tuples become lists); refuses anything JSON cannot hold so that
-    the value survives the trip through ``TMRL_CONFIG_OVERRIDE`` to child processes."""
-    if value is None or isinstance(value, (bool, int, str)):
-        return value
-    if isinstance(value, float):
-        return value
-    if isinstance(value, Mapping):
-        out = {}
-        for k, v in value.items():
-            if not isinstance(k, str):
-                raise SchemaViolation(path, f"{path} must have string keys, got key {show(k)}")
-            out[k] = _plain_data(v, _join(path, k))
-        return out
-    if isinstance(value, (list, tuple)):
-        return [_plain_data(v, f"{path}[{i}]") for i, v in enumerate(value)]
-    raise SchemaViolation(path, f"{path} must hold only JSON values, got {show(value)}")
-
-
-class AnyDict(Spec):
-    """A free-form object (keyword arguments passed through to user code). An override replaces
-    it as a whole instead of merging into it."""
-
-    kind = "object"
-
-    @property
-    def expected(self) -> str:
-        return "an object (a dict with string keys)"
-
-    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
-        if not isinstance(value, Mapping):
-            raise self.fail(path, value)
-        return _plain_data(value, path)
-
-
-class AnyList(Spec):
-    """A free-form list (positional arguments passed through to user code)."""
-
-    kind = "list"
-
-    @property
-    def expected(self) -> str:
-        return "a list"
-
-    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
-        if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
-            raise self.fail(path, value)
-        return _plain_data(value, path)
-
-
-class Section(Spec):
-    """A nested object with a fixed set of keys. Unknown keys are refused (with a suggestion
-    when one is close); missing keys take their defaults.
-
-    Args:
-        fields: key name -> :class:`Spec` of that key, in the order of ``config.json``.
-        doc: one-line meaning of the section, shown in ``docs/config.md``.
-    """
-
-    kind = "section"
-
-    def __init__(self, fields: dict[str, Spec], doc: str):
-        super().__init__(None, doc)
-        self.fields = fields
-
-    @property
-    def expected(self) -> str:
-        return "an object (a dict of keys)"
-
-    def default_value(self) -> dict[str, Any]:
-        """A new dict with every key of the section at its default."""
-        return {name: spec.default_value() for name, spec in self.fields.items()}
-
-    def _check(self, value: Any, path: str, *, fill: bool) -> Any:
-        if not isinstance(value, Mapping):
-            if not path:
-                raise SchemaViolation(path, f"the top level must be an object (a dict of keys), got {show(value)}")
-            raise self.fail(path, value)
-        for key in value:
-            if not isinstance(key, str) or key not in self.fields:
-                raise self.unknown(path, key)
-        out: dict[str, Any] = {}
-        for name, spec in self.fields.items():
-            if name in value:
-                out[name] = spec.check(value[name], _join(path, name), fill=fill)
-            elif fill:
-                out[name] = spec.default_value()
-        return out
-
-    def unknown(self, path: str, key: Any) -> SchemaViolation:
-        """The error for a ``key`` this section does not have, suggesting the closest known key
-        (returned for the caller to raise).
-
-        Args:
-            path: the key path of the section (``""`` for the top level).
-            key: the unknown key found.
-        """
-        where = _join(path, str(key))
-        close = difflib.get_close_matches(str(key), list(self.fields), n=1, cutoff=0.6)
-        if not close:
-            close = [k for k in self.fields if k.casefold() == str(key).casefold()]
-        if close:
-            hint = f"did you mean {_join(path, close[0])}?"
-        else:
-            hint = "remove it (docs/config.md lists every key)"
-        return SchemaViolation(where, f"{where} is not a known key; {hint}")
-
 
 # --- the schema ----------------------------------------------------------------------------------
 
@@ -825,21 +365,12 @@ SCHEMA = Section(
 """The schema of ``config.json``: every key with its type, default, range and meaning (the table
 of the Configuration page is generated from it)."""
 
+# --- the table's queries and generated files (the work is done in spec.py and generate.py) -------
+
 
 def defaults() -> dict[str, Any]:
     """A fresh dict holding every key at its default (with the placeholder password)."""
     return SCHEMA.default_value()
-
-
-def _fed(section: Section, cfg: Mapping[str, Any], cls: str, out: dict[str, Any]) -> None:
-    for name, spec in section.fields.items():
-        if isinstance(spec, Section):
-            _fed(spec, cfg[name], cls, out)
-            continue
-        for target in spec.feeds:
-            owner, _, arg = target.partition(".")
-            if owner == cls:
-                out[arg] = copy.deepcopy(cfg[name])
 
 
 def arguments(cfg: Mapping[str, Any], cls: str) -> dict[str, Any]:
@@ -850,201 +381,19 @@ def arguments(cfg: Mapping[str, Any], cls: str) -> dict[str, Any]:
         cfg: a complete, validated config (:func:`tmrl.config.loader.load_config`).
         cls: the class name as written in ``feeds``.
     """
-    out: dict[str, Any] = {}
-    _fed(SCHEMA, cfg, cls, out)
-    return out
+    return SCHEMA.arguments(cfg, cls)
 
 
 def fed_arguments() -> dict[str, dict[str, tuple[str, Any]]]:
     """For each class named in ``feeds``: ``{argument: (key path, class default)}`` (the class
     default is :data:`NO_CLASS_DEFAULT` where the table declares none). The tests check every
     class's signature against it."""
-    table: dict[str, dict[str, tuple[str, Any]]] = {}
-
-    def walk(section: Section, path: str) -> None:
-        for name, spec in section.fields.items():
-            key = _join(path, name)
-            if isinstance(spec, Section):
-                walk(spec, key)
-                continue
-            for target in spec.feeds:
-                owner, _, arg = target.partition(".")
-                table.setdefault(owner, {})[arg] = (key, spec.class_default)
-
-    walk(SCHEMA, "")
-    return table
-
-
-def redq_subset_problem(n: int, m: int) -> str | None:
-    """Why REDQ's ``m`` (critics drawn per target) does not fit its ``n`` critics, or None when
-    ``1 <= m <= n``. The one place this rule is written: the config check and ``REDQSACAgent``
-    both call it."""
-    if int(m) < 1:
-        return f"ALG.REDQ_M must be at least 1, got {int(m)}"
-    if int(m) > int(n):
-        return f"ALG.REDQ_M must be at most ALG.REDQ_N ({int(n)}), got {int(m)}"
-    return None
-
-
-def check_consistency(cfg: Mapping[str, Any]) -> None:
-    """Checks that involve several keys of a complete, validated config: REDQ's ``REDQ_M`` within
-    ``REDQ_N``, the simultaneous update order of REDQ, DroQ and TQC, TQC's dropped quantiles fewer
-    than its quantiles, the two pacing ratios not blocking each other,
-    ``act_in_obs`` for the simulator and TrackMania, grayscale images for ``SIMFULL``, a
-    ``GYM_ID`` for ``GYM``.
-
-    Args:
-        cfg: a complete config, each key already checked by :data:`SCHEMA`.
-
-    Raises:
-        SchemaViolation: naming the key to change.
-    """
-    alg = cfg["ALG"]
-    problem = redq_subset_problem(alg["REDQ_N"], alg["REDQ_M"]) if alg["ALGORITHM"] == "REDQSAC" else None
-    if problem:
-        raise SchemaViolation("ALG.REDQ_M", problem)
-    if alg["ALGORITHM"] in ("REDQSAC", "DROQ", "TQC") and alg["UPDATE_ORDER"] != "simultaneous":
-        raise SchemaViolation(
-            "ALG.UPDATE_ORDER",
-            f'ALG.UPDATE_ORDER must be "simultaneous" when ALG.ALGORITHM is {show(alg["ALGORITHM"])} (the '
-            f"sequential order is SAC's), got {show(alg['UPDATE_ORDER'])}",
-        )
-    if alg["ALGORITHM"] == "TQC" and alg["TQC_DROP_PER_CRITIC"] >= alg["TQC_QUANTILES"]:
-        raise SchemaViolation(
-            "ALG.TQC_DROP_PER_CRITIC",
-            f"ALG.TQC_DROP_PER_CRITIC must be below ALG.TQC_QUANTILES ({alg['TQC_QUANTILES']}), got "
-            f"{alg['TQC_DROP_PER_CRITIC']}: TQC would drop every quantile",
-        )
-    pace, ratio = cfg["MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP"], cfg["MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP"]
-    if pace and pace * ratio < 1.0:
-        raise SchemaViolation(
-            "MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP",
-            f"MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP ({_fmt(pace)}) times MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP "
-            f"({_fmt(ratio)}) must be at least 1, or workers and trainer would wait for each other; raise one of "
-            "them or set MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP to 0",
-        )
-    env = cfg["ENV"]
-    name = env["RTGYM_INTERFACE"]
-    if name.startswith(("SIM", "TM20")) and not env["RTGYM_CONFIG"]["act_in_obs"]:
-        raise SchemaViolation(
-            "ENV.RTGYM_CONFIG.act_in_obs",
-            f"ENV.RTGYM_CONFIG.act_in_obs must be true when ENV.RTGYM_INTERFACE is {show(name)} (its replay "
-            "memory rebuilds the action buffer of the observations), got false",
-        )
-    if name == "SIMFULL" and not env["IMG_GRAYSCALE"]:
-        raise SchemaViolation(
-            "ENV.IMG_GRAYSCALE",
-            'ENV.IMG_GRAYSCALE must be true when ENV.RTGYM_INTERFACE is "SIMFULL" (the simulator renders '
-            "grayscale images), got false",
-        )
-    if name == "GYM" and not env["GYM_ID"].strip():
-        raise SchemaViolation(
-            "ENV.GYM_ID",
-            'ENV.GYM_ID must name a Gymnasium environment (e.g. "Pendulum-v1") when ENV.RTGYM_INTERFACE is '
-            f'"GYM", got {show(env["GYM_ID"])}',
-        )
-
-
-# --- generated artefacts -------------------------------------------------------------------------
+    return SCHEMA.fed_arguments()
 
 
 def default_config_json() -> str:
     """The text of the shipped ``config/config.json``: the defaults, indented, ending in a newline."""
-    return json.dumps(defaults(), indent=2) + "\n"
-
-
-_GENERIC_TRAINING: dict[str, Any] = {
-    "RW_MAX_SAMPLES_PER_EPISODE": 200,
-    "MAX_EPOCHS": 20,
-    "ROUNDS_PER_EPOCH": 10,
-    "TRAINING_STEPS_PER_ROUND": 100,
-    "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 1.0,
-    "ENVIRONMENT_STEPS_BEFORE_TRAINING": 1000,
-    "UPDATE_MODEL_INTERVAL": 100,
-    "UPDATE_BUFFER_INTERVAL": 100,
-    "MEMORY_SIZE": 100000,
-    "BATCH_SIZE": 256,
-}
-_GENERIC_ALG: dict[str, Any] = {
-    "LEARN_ENTROPY_COEF": True,
-    "LR_ACTOR": 0.001,
-    "LR_CRITIC": 0.001,
-    "LR_ENTROPY": 0.001,
-    "GAMMA": 0.99,
-    "ALPHA": 0.2,
-    "TARGET_ENTROPY": None,
-    "BETAS_ACTOR": [0.9, 0.999],
-    "BETAS_CRITIC": [0.9, 0.999],
-}
-
-# The simulator's files: the demo's settings (tmrl.sim.demo.DEMO_SETTINGS), under which a server,
-# a trainer and a worker on one machine learn to drive the default track within minutes on a CPU.
-_SIM_TRAINING: dict[str, Any] = {
-    **_GENERIC_TRAINING,
-    "RW_MAX_SAMPLES_PER_EPISODE": 1000,
-    "MAX_EPOCHS": 10000,
-    "ROUNDS_PER_EPOCH": 10,
-    "TRAINING_STEPS_PER_ROUND": 200,
-    "UPDATE_MODEL_INTERVAL": 20,
-    "UPDATE_BUFFER_INTERVAL": 20,
-    "MEMORY_SIZE": 200000,
-    # The fast simulator runs far faster than the trainer: keep three samples per update at most.
-    "MAX_ENVIRONMENT_STEPS_PER_TRAINING_STEP": 3.0,
-    # In real time (SIM_FAST_MODE false) the clock sets the pace and the trainer, otherwise idle, does
-    # up to 4 updates per sample: SAC laps in fewer environment steps so (bench/track_learning.py).
-    # In fast mode the line above binds first and this one changes nothing. (In real time, set ALG's
-    # ALPHA 0.01 and LEARN_ENTROPY_COEF false too, as the demo does: docs/simulator.md.)
-    "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 4.0,
-}
-_SIM_RTGYM: dict[str, Any] = {
-    "time_step_duration": 0.05,
-    "start_obs_capture": 0.04,
-    "time_step_timeout_factor": 1.0,
-    "act_buf_len": 2,
-    "benchmark": False,
-    "wait_on_done": True,
-    "ep_max_length": 1000,
-    "interface_kwargs": {"track": "classic"},
-}
-
-
-def _sim_example(interface: str, **env: Any) -> dict[str, Any]:
-    return {
-        "RUN_NAME": f"{interface.lower()}_sac",
-        **_SIM_TRAINING,
-        "ALG": _GENERIC_ALG,
-        "ENV": {"RTGYM_INTERFACE": interface, "SIM_FAST_MODE": True, "IMG_HIST_LEN": 4, **env,
-                "RTGYM_CONFIG": _SIM_RTGYM},
-    }
-
-
-EXAMPLES: dict[str, dict[str, Any]] = {
-    "config_tm20lidar.json": {
-        "RUN_NAME": "SAC_4_LIDAR_pretrained",
-        "ENV": {"RTGYM_INTERFACE": "TM20LIDAR", "WINDOW_WIDTH": 958, "WINDOW_HEIGHT": 488},
-    },
-    "config_gym_pendulum.json": {
-        "RUN_NAME": "pendulum_sac",
-        **_GENERIC_TRAINING,
-        "ALG": _GENERIC_ALG,
-        "ENV": {"RTGYM_INTERFACE": "GYM", "GYM_ID": "Pendulum-v1", "GYM_KWARGS": {}},
-    },
-    "config_drone.json": {
-        "RUN_NAME": "drone_sac",
-        **_GENERIC_TRAINING,
-        "ALG": _GENERIC_ALG,
-        "ENV": {
-            "RTGYM_INTERFACE": "DRONE",
-            "RTGYM_CONFIG": {"time_step_duration": 0.05, "start_obs_capture": 0.05, "act_buf_len": 2,
-                             "wait_on_done": False, "ep_max_length": 100, "interface_kwargs": {}},
-        },
-    },
-    "config_simlidar.json": _sim_example("SIMLIDAR"),
-    "config_simlidarprogress.json": _sim_example("SIMLIDARPROGRESS"),
-    "config_simfull.json": _sim_example("SIMFULL", IMG_WIDTH=64, IMG_HEIGHT=64, IMG_GRAYSCALE=True),
-}
-"""Example files shipped beside the default ``config/config.json``: the defaults with these keys
-changed (starting points: copy one over your ``config.json``)."""
+    return generate.default_config_json(SCHEMA)
 
 
 def example_json(name: str) -> str:
@@ -1056,114 +405,26 @@ def example_json(name: str) -> str:
     Raises:
         KeyError: ``name`` is not one of :data:`EXAMPLES`.
     """
-    cfg = SCHEMA.check(defaults(), "")
-    delta = SCHEMA.check(EXAMPLES[name], "", fill=False)
-
-    def merge(base: dict[str, Any], upd: dict[str, Any], spec: Section) -> dict[str, Any]:
-        out = dict(base)
-        for k, v in upd.items():
-            sub = spec.fields[k]
-            out[k] = merge(out[k], v, sub) if isinstance(sub, Section) else v
-        return out
-
-    full = merge(cfg, delta, SCHEMA)
-    check_consistency(full)
-    return json.dumps(full, indent=2) + "\n"
+    return generate.example_json(SCHEMA, name)
 
 
 def generated_files() -> dict[str, str]:
-    """Repository-relative path -> text of every file generated from the schema."""
-    files = {"docs/config.md": markdown_reference(), "config/config.json": default_config_json()}
-    for name in EXAMPLES:
-        files[f"config/{name}"] = example_json(name)
-    return files
-
-
-def _md_escape(text: str) -> str:
-    return text.replace("|", "\\|")
-
-
-def _feeds_cell(spec: Spec) -> str:
-    """``SACAgent(lr_actor=0.001)``-style list of the arguments a key sets, with the class's own
-    default where it has one."""
-    parts = []
-    for target in spec.feeds:
-        owner, _, arg = target.partition(".")
-        if spec.class_default is NO_CLASS_DEFAULT:
-            parts.append(f"`{owner}({arg})`")
-        else:
-            parts.append(f"`{owner}({arg}={show(spec.class_default, 30)})`")
-    return ", ".join(parts)
-
-
-def _rows(section: Section, path: str, rows: list[str]) -> None:
-    for name, spec in section.fields.items():
-        key = _join(path, name)
-        if isinstance(spec, Section):
-            rows.append(f"| `{key}` | object | | {_md_escape(spec.doc)} (keys below) | |")
-            _rows(spec, key, rows)
-        else:
-            default = "" if spec.default is None and not spec.nullable else f"`{show(spec.default, 60)}`"
-            rows.append(f"| `{key}` | {_md_escape(spec.describe())} | {_md_escape(default)} | {_md_escape(spec.doc)} "
-                        f"| {_md_escape(_feeds_cell(spec))} |")
+    """Repository-relative path -> text of every file generated from the table."""
+    return generate.generated_files(SCHEMA)
 
 
 def markdown_reference() -> str:
     """The text of ``docs/config.md``: one table row per key, generated from :data:`SCHEMA`."""
-    rows: list[str] = []
-    _rows(SCHEMA, "", rows)
-    head = [
-        "# config.json reference",
-        "",
-        "<!-- Generated from tmrl/config/schema.py by `python -m tmrl.config.schema --write`; do not edit. -->",
-        "",
-        "`config.json` lives in `config/` of the data folder (`$TMRL_DATA`, or `~/TmrlData` when it is",
-        "not set); `python -m tmrl --install` creates it with a fresh random `PASSWORD`. A file written for",
-        "the original tmrl 0.7 loads unchanged.",
-        "",
-        "- A missing key takes the default below.",
-        "- An unknown key, a value of the wrong type or out of range stops the command with exit code 2",
-        "  and one line naming the key path, the value found and what is expected.",
-        "- `python -m tmrl ... -d '{\"ALG\": {\"LR_ACTOR\": 0.0001}}'` (JSON or a Python literal) overrides",
-        "  keys for one run. Sections merge key by key; free-form objects (`GYM_KWARGS`,",
-        "  `interface_kwargs`) are replaced as a whole. `python -m tmrl --print-config` shows the result.",
-        "- Choices (`ALGORITHM`, `RTGYM_INTERFACE`, optimizers) are matched without regard to case.",
-        "",
-        "- The last column names the constructor argument each key sets when `python -m tmrl` builds",
-        "  the objects, and that argument's own default in the class (what a script gets when it builds",
-        "  the class itself without that argument; the defaults of tmrl 0.7.1's classes and of its",
-        "  `config.json` differ in places, and both are kept).",
-        "",
-        "| key | expected | default | meaning | sets (class default) |",
-        "|---|---|---|---|---|",
-    ]
-    return "\n".join(head + rows) + "\n"
-
-
-def _repo_root() -> Path:
-    return Path(__file__).resolve().parents[2]
+    return generate.markdown_reference(SCHEMA)
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m tmrl.config.schema``: print or write the generated reference and default file."""
-    parser = argparse.ArgumentParser(prog="python -m tmrl.config.schema", description=main.__doc__)
-    group = parser.add_mutually_exclusive_group(required=True)
-    group.add_argument("--markdown", action="store_true", help="print docs/config.md")
-    group.add_argument("--json", action="store_true", help="print the default config.json")
-    group.add_argument("--write", action="store_true",
-                       help="write docs/config.md and the config/*.json files of the source checkout")
-    args = parser.parse_args(argv)
-    if args.markdown:
-        sys.stdout.write(markdown_reference())
-    elif args.json:
-        sys.stdout.write(default_config_json())
-    else:
-        root = _repo_root()
-        for rel, text in generated_files().items():
-            (root / rel).parent.mkdir(parents=True, exist_ok=True)
-            (root / rel).write_text(text, encoding="utf-8")
-            print(f"wrote {root / rel}")
-    return 0
+    """``python -m tmrl.config.schema``: print or write the generated reference and default file.
+
+    Args:
+        argv: the command-line arguments (default: ``sys.argv[1:]``).
+    """
+    return generate.main(SCHEMA, argv)
 
 
 if __name__ == "__main__":
