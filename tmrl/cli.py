@@ -330,9 +330,9 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
 
     command = args.command
     if command == "version":
-        import tmrl
+        from tmrl._version import __version__
 
-        print(f"tmrl {tmrl.__version__}")
+        print(f"tmrl {__version__}")
         return 0
     if os.environ.get(loader.DATA_ENV, "").strip():
         # Child processes may run elsewhere: hand them the folder as an absolute path.

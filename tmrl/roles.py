@@ -17,7 +17,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from tmrl.errors import UserError
-from tmrl.networking import STOP_TIMEOUT
+from tmrl.distributed import STOP_TIMEOUT
 
 __all__ = [
     "WORKER_MODES",
@@ -99,7 +99,7 @@ def run_server(cfg: Mapping[str, Any] | None = None, stop_event: threading.Event
     Raises:
         UserError: the port cannot be bound, or the TLS credentials are missing.
     """
-    from tmrl.networking import Server
+    from tmrl.distributed import Server
 
     _interrupt_on_sigterm()
     server = Server(settings=_settings())
@@ -150,8 +150,8 @@ def _seed_generators() -> None:
 
 
 def trainer_from_config() -> Any:
-    """The :class:`~tmrl.networking.Trainer` that ``--trainer`` runs, built from the config."""
-    from tmrl.networking import Trainer
+    """The :class:`~tmrl.distributed.Trainer` that ``--trainer`` runs, built from the config."""
+    from tmrl.distributed import Trainer
 
     _seed_generators()
     co = _objects()
@@ -223,9 +223,9 @@ def _with_replays(env_cls: Any) -> Any:
 
 
 def worker_from_config(standalone: bool = False, save_replays: bool = False) -> Any:
-    """The :class:`~tmrl.networking.RolloutWorker` that ``--worker`` runs, built from the config
+    """The :class:`~tmrl.distributed.RolloutWorker` that ``--worker`` runs, built from the config
     (``save_replays``: with the interface's replays on, for :func:`tmrl.tools.save_replays.save_replays`)."""
-    from tmrl.networking import RolloutWorker
+    from tmrl.distributed import RolloutWorker
 
     _seed_generators()
     cc, co, settings = _constants(), _objects(), _settings()

@@ -1,14 +1,14 @@
-"""Column packing of sample buffers for the wire: :func:`pack_buffer` and :func:`unpack_buffer`.
+"""The column encoding of samples for the wire: pure functions from samples to columns and back.
 
-A :class:`~tmrl.networking.Buffer` of samples travels as a data-only dict (:mod:`tmrl.wire`
-carries it): samples that share a structure become a few stacked NumPy arrays, one column per
-field, tagged with what they hold (see :func:`_pack_column`). A received payload is checked whole
-(:func:`_check_column`) before anything reads it, optionally validated against a
-:class:`~tmrl.spaces.SampleSchema`, and kept as columns by the buffer (:meth:`Buffer.as_columns`
-reads them without building one tuple per sample).
+Samples that share a structure become a few stacked NumPy arrays, one column per field, tagged
+with what they hold (see :func:`_pack_column`); :mod:`tmrl.wire` carries them as data. A received
+set of columns is checked whole (:func:`_check_column`) before anything reads it, optionally
+validated against a :class:`~tmrl.spaces.SampleSchema`, and then kept as columns by the receiving
+buffer (which reads them without building one tuple per sample).
 
-This module is about the format only; the :class:`~tmrl.networking.Buffer` itself is the roles'
-state and lives in :mod:`tmrl.networking`, which re-exports everything public here.
+This module knows nothing of the :class:`~tmrl.distributed.buffer.Buffer`: the buffer and its
+payload (:func:`~tmrl.distributed.buffer.pack_buffer`, :func:`~tmrl.distributed.buffer.unpack_buffer`)
+live in :mod:`tmrl.distributed.buffer`, which calls these functions.
 """
 
 from __future__ import annotations
@@ -16,17 +16,14 @@ from __future__ import annotations
 import itertools
 import operator
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from tmrl.errors import UserError
 from tmrl.spaces import Rows, SampleRejected, SampleSchema, finite_stat
 
-if TYPE_CHECKING:
-    from tmrl.networking import Buffer
-
-__all__ = ["PAYLOAD_VERSION", "PayloadError", "pack_buffer", "unpack_buffer"]
+__all__ = ["PAYLOAD_VERSION", "PayloadError", "clean_stats", "pack_samples", "unpack_samples"]
 
 PAYLOAD_VERSION = 1
 """Version of the sample and weight payloads (inside the wire format's own versioning)."""
@@ -240,40 +237,6 @@ def _chunk_arrays(n: int, cols: list[Any]) -> tuple[Any, Any, np.ndarray, np.nda
     return act, obs, scalars[0], scalars[1], scalars[2]
 
 
-def pack_buffer(buffer: Buffer, source_id: int, seq: int, run: str | None = None) -> dict[str, Any]:
-    """Describe ``buffer`` as a data-only dict for :mod:`tmrl.wire`, column by column.
-
-    Args:
-        buffer: the samples and statistics to send.
-        source_id: the sending worker's id.
-        seq: the sending worker's payload counter (lets the trainer count lost payloads).
-        run: the run identity of the weights the worker acts with (``None``: none received yet);
-            a trainer drops samples stamped for another run.
-
-    Raises:
-        UserError: a sample holds something the wire cannot carry (named in the message).
-    """
-    memory = buffer.memory
-    n = len(memory)
-    if n and all(type(s) is tuple and len(s) == 6 for s in memory):
-        cols: Any = [_pack_column(c) for c in zip(*memory)]
-    else:
-        cols = ("R", list(memory))
-    own = buffer.stats.get(buffer.source_id, {})
-    payload = {
-        "v": PAYLOAD_VERSION,
-        "kind": "samples",
-        "src": int(source_id),
-        "seq": int(seq),
-        "n": n,
-        "cols": cols,
-        "stats": dict(own),
-    }
-    if run is not None:
-        payload["run"] = str(run)
-    return payload
-
-
 def _schema_input(col: Any, n: int) -> Any:
     """A checked column as the schema reads it: arrays at the leaves, containers as such,
     irregular columns as :class:`~tmrl.spaces.Rows` (the schema transposes or stacks them)."""
@@ -344,33 +307,29 @@ def _validated_columns(n: int, cols: list[Any], schema: SampleSchema) -> list[An
     ]
 
 
-def unpack_buffer(payload: Any, maxlen: int | None = None, schema: SampleSchema | None = None) -> Buffer:
-    """Rebuild the :class:`Buffer` sent by :func:`pack_buffer`; ``sources`` is filled with the
-    sender's id and its statistics are recorded under that id (non-finite ones are dropped).
-
-    Args:
-        payload: the decoded payload.
-        maxlen: the buffer's capacity (at least the payload's size).
-        schema: when given, the samples are checked against it (shapes, dtypes, finite values,
-            action bounds) and cast to its dtypes; the buffer then holds them as columns.
+def pack_samples(samples: Sequence[Any]) -> Any:
+    """The column form of ``samples``: six packed columns when every sample is a 6-tuple
+    ``(act, obs, rew, terminated, truncated, info)``, otherwise one column of rows (``("R", list)``).
 
     Raises:
-        PayloadError: the payload does not have the structure :func:`pack_buffer` produces.
+        TypeError: a sample holds something the columns cannot carry.
+    """
+    if samples and all(type(s) is tuple and len(s) == 6 for s in samples):
+        return [_pack_column(c) for c in zip(*samples)]
+    return ("R", list(samples))
+
+
+def unpack_samples(cols: Any, n: int, schema: SampleSchema | None = None) -> tuple[list[Any] | None, list[Any] | None]:
+    """Check received columns of ``n`` samples (the inverse of :func:`pack_samples`).
+
+    Returns:
+        ``(columns, None)`` for six columns (checked against ``schema`` and cast to its dtypes when
+        it is given: the receiver keeps them as columns), or ``(None, samples)`` for a column of rows.
+
+    Raises:
+        PayloadError: the columns do not have the structure :func:`pack_samples` produces.
         SampleRejected: the samples do not fit ``schema``.
     """
-    if not isinstance(payload, dict) or payload.get("kind") != "samples":
-        raise PayloadError("received an object that is not a tmrl sample payload")
-    if payload.get("v") != PAYLOAD_VERSION:
-        raise PayloadError(
-            f"sample payload version {payload.get('v')!r} is not {PAYLOAD_VERSION}: "
-            "run the same tmrl version on workers and trainer"
-        )
-    n, src, cols = payload.get("n"), payload.get("src"), payload.get("cols")
-    if type(n) is not int or n < 0 or type(src) is not int:
-        raise PayloadError("malformed sample payload header")
-    from tmrl.networking import Buffer  # the roles' module, which imports this one
-
-    buf = Buffer(maxlen=max(maxlen or 0, n, 1))
     if isinstance(cols, list):
         if len(cols) != 6:
             raise PayloadError("sample payload does not have 6 columns")
@@ -378,21 +337,20 @@ def unpack_buffer(payload: Any, maxlen: int | None = None, schema: SampleSchema 
             _check_column(c, n)
         if n and schema is not None:
             cols = _validated_columns(n, cols, schema)
-        if n:  # kept as columns: tuples are built only if someone reads `memory`
-            buf._chunks = [(n, cols)]
-    else:
-        _check_column(cols, n)
-        if n and schema is not None:
-            raise SampleRejected("the samples are not (act, obs, rew, terminated, truncated, info) tuples")
-        buf.memory = _unpack_column(cols, n)
-    buf.sources = [src] * n
-    stats = payload.get("stats")
+        return cols, None
+    _check_column(cols, n)
+    if n and schema is not None:
+        raise SampleRejected("the samples are not (act, obs, rew, terminated, truncated, info) tuples")
+    return None, _unpack_column(cols, n)
+
+
+def clean_stats(stats: Any) -> dict[str, float]:
+    """The episode statistics of a received payload that are known, finite and in range (the
+    rest are dropped)."""
+    clean: dict[str, float] = {}
     if isinstance(stats, dict):
-        clean = {}
         for k, v in stats.items():
             value = finite_stat(v) if k in _STAT_NAMES else None
             if value is not None and (not k.endswith("steps") or 0 <= value < 2**62):
                 clean[k] = value
-        if clean:
-            buf.stats[src] = clean
-    return buf
+    return clean

@@ -43,11 +43,12 @@ __all__ = ["FusedSACUpdate", "fused_unsupported_reason"]
 
 def fused_unsupported_reason(agent: Any) -> str | None:
     """Why ``agent`` cannot take the fused update (None: it can)."""
-    from tmrl.algorithms.sac import SACAgent
-
-    for step in SACAgent.STEPS:
-        if getattr(type(agent), step) is not getattr(SACAgent, step):
-            return f"{type(agent).__name__} has its own {step}()"
+    overridden_steps = getattr(type(agent), "overridden_steps", None)
+    if not callable(overridden_steps):
+        return f"{type(agent).__name__} is not a SACAgent"
+    steps = overridden_steps()
+    if steps:
+        return f"{type(agent).__name__} has its own {steps[0]}()"
     if agent.update_order != "simultaneous":
         return "update_order is not 'simultaneous'"
     actor = getattr(agent.model, "actor", None)

@@ -35,7 +35,7 @@ from tmrl.algorithms.fused_sac import FusedSACUpdate
 from tmrl.algorithms.guard import NonFiniteGuard
 from tmrl.batch import Batch
 from tmrl.config.schema import OPTIMIZERS, UPDATE_ORDERS
-from tmrl.custom.utils.nn import copy_shared, no_grad
+from tmrl.nn import copy_shared, no_grad
 from tmrl.errors import UserError
 from tmrl.models import EnsembleQFunction, MLPActorCritic
 from tmrl.training import TrainingAgent
@@ -262,6 +262,12 @@ class SACAgent(TrainingAgent):
              "entropy_loss")
     """The steps a subclass may override; the fused update computes SAC's own and is used only
     when none of them is overridden."""
+
+    @classmethod
+    def overridden_steps(cls) -> list[str]:
+        """The steps of :attr:`STEPS` that this class defines differently from SAC's own, in
+        :attr:`STEPS` order (empty for SAC itself)."""
+        return [step for step in SACAgent.STEPS if getattr(cls, step) is not getattr(SACAgent, step)]
 
     def __init__(
         self,

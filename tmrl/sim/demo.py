@@ -251,7 +251,7 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
     import torch
 
     torch.set_num_threads(1)
-    from tmrl.networking import RolloutWorker, Server, Trainer
+    from tmrl.distributed import RolloutWorker, Server, Trainer
 
     common = dict(password=password, security=None)
     if role == "server":

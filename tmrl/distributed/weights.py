@@ -1,0 +1,290 @@
+"""Weights on the wire and into a worker's actor.
+
+The trainer broadcasts an envelope (:func:`pack_weights`): a magic, a small data-only header (the
+actor's spaces, the broadcast counter, the run identity, pacing fields) signed with the trainer
+key, then the weights file's bytes as they are. A worker opens it with :func:`unpack_weights` and
+installs it through its :class:`WeightsInstaller`, which checks every tensor before the actor
+sees it and keeps the previous actor on any problem.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import hashlib
+import logging
+import os
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tmrl.distributed._common import LOGGER_NAME, _one_line
+from tmrl.errors import UserError
+from tmrl.spaces import check_spaces
+from tmrl.util import RateLimitedLog, atomic_write_bytes
+from tmrl.wire_buffers import PAYLOAD_VERSION, PayloadError
+
+__all__ = ["WeightsInstaller", "WeightsRejected", "pack_weights", "unpack_weights"]
+
+logger = logging.getLogger(LOGGER_NAME)
+
+_WEIGHTS_MAGIC = b"TMRLWGT2"
+_U32 = struct.Struct("<I")
+_RESERVED_HEADER_KEYS = frozenset(("v", "kind", "version", "spaces", "size", "run", "sha256"))
+
+
+def pack_weights(
+    data: bytes,
+    spaces: dict[str, Any] | None,
+    version: int,
+    run: str | None = None,
+    meta: dict[str, Any] | None = None,
+    key: Any = None,
+) -> bytes:
+    """The bytes broadcast to workers: a magic, a small :mod:`tmrl.wire` header, a signature and
+    the weights file's bytes as they are (no re-encoding of the big part: one copy for a model of
+    any size).
+
+    Args:
+        data: the weights file's bytes.
+        spaces: :func:`describe_spaces` of the actor (``None``: unknown).
+        version: the trainer's broadcast counter.
+        run: the run identity (workers stamp their samples with it).
+        meta: extra data-only header fields (names other than the reserved ones).
+        key: a :class:`~tmrl.transport.credentials.TrainerKey`: the header (which holds the
+            SHA-256 of ``data``) is signed with it. ``None``: unsigned.
+
+    Raises:
+        ValueError: ``meta`` uses a reserved name.
+    """
+    from tmrl import wire
+
+    fields: dict[str, Any] = {
+        "v": PAYLOAD_VERSION,
+        "kind": "weights",
+        "version": int(version),
+        "spaces": spaces,
+        "size": len(data),
+        "run": run,
+    }
+    if meta:
+        clash = _RESERVED_HEADER_KEYS.intersection(meta)
+        if clash:
+            raise ValueError(f"weights header fields {sorted(clash)} are reserved")
+        fields.update(meta)
+    signature = b""
+    if key is not None:
+        fields["sha256"] = hashlib.sha256(data).digest()
+    header = wire.encode(fields)
+    if key is not None:
+        signature = key.sign(header)
+    return b"".join((_WEIGHTS_MAGIC, _U32.pack(len(header)), header, _U32.pack(len(signature)), signature, data))
+
+
+class WeightsRejected(PayloadError):
+    """Received weights that this worker must not load (the message says why)."""
+
+
+def unpack_weights(
+    envelope: bytes | bytearray | memoryview, public_key: bytes | None = None
+) -> tuple[dict[str, Any], memoryview]:
+    """Inverse of :func:`pack_weights`: ``(header, weights bytes as a view, not a copy)``.
+
+    Args:
+        envelope: the received bytes.
+        public_key: the pinned trainer public key (PEM): the envelope must then be signed by it
+            and its data must match the signed SHA-256. ``None``: no signature is required.
+
+    Raises:
+        PayloadError: not a weights envelope of this tmrl version, or truncated.
+        WeightsRejected: unsigned, or not signed by ``public_key``.
+    """
+    from tmrl import wire
+
+    view = memoryview(envelope)
+    start = len(_WEIGHTS_MAGIC) + _U32.size
+    if len(view) < start or bytes(view[: len(_WEIGHTS_MAGIC)]) != _WEIGHTS_MAGIC:
+        raise PayloadError("received weights in an unknown format: run the same tmrl version everywhere")
+    (hlen,) = _U32.unpack(view[len(_WEIGHTS_MAGIC) : start])
+    header_bytes = bytes(view[start : start + hlen])
+    sig_at = start + hlen
+    if len(view) < sig_at + _U32.size:
+        raise PayloadError("received weights that are truncated")
+    (slen,) = _U32.unpack(view[sig_at : sig_at + _U32.size])
+    signature = bytes(view[sig_at + _U32.size : sig_at + _U32.size + slen])
+    data = view[sig_at + _U32.size + slen :]
+    try:
+        header = wire.decode(header_bytes)
+    except wire.DecodeError as err:
+        raise PayloadError(f"received weights with a corrupt header ({err})") from None
+    if (
+        not isinstance(header, dict)
+        or header.get("kind") != "weights"
+        or header.get("v") != PAYLOAD_VERSION
+        or header.get("size") != len(data)
+        or len(signature) != slen
+    ):
+        raise PayloadError("received weights that are truncated or from another tmrl version")
+    if public_key is not None:
+        from tmrl.transport.credentials import verify_signature
+
+        if not signature:
+            raise WeightsRejected("the weights are not signed, but this worker pins the trainer's key")
+        if not verify_signature(public_key, signature, header_bytes):
+            raise WeightsRejected("the weights are not signed by the trainer whose key this worker pins")
+        if header.get("sha256") != hashlib.sha256(data).digest():
+            raise WeightsRejected("the weights do not match their signed checksum (corrupt or altered)")
+    return header, data
+
+
+# ================================================================================================
+# Server
+
+
+def _weights_problem(actor: Any, data: bytes | memoryview) -> str | None:
+    """What is wrong with the weights file ``data`` for ``actor``, or ``None``.
+
+    Safetensors files (the built-in actors' format) are read with NumPy: every floating-point
+    tensor must be finite and, for a module, names and shapes must be the module's (so that
+    loading cannot fail half-way). Other formats (a user actor's own) are left to ``actor.load``.
+    """
+    try:
+        from safetensors.numpy import load
+
+        arrays = load(bytes(data))
+    except Exception:  # noqa: BLE001 (not safetensors, or a dtype NumPy lacks: the actor decides)
+        return None
+    for name, arr in arrays.items():
+        if arr.dtype.kind in "fc" and not np.isfinite(arr).all():
+            return f"tensor {name} holds non-finite values"
+    state_dict = getattr(actor, "state_dict", None)
+    if callable(state_dict):
+        try:
+            mine = {k: tuple(v.shape) for k, v in state_dict().items()}
+        except Exception:  # noqa: BLE001 (not a torch module after all: nothing to compare)
+            return None
+        theirs = {k: tuple(a.shape) for k, a in arrays.items()}
+        if mine != theirs:
+            diff = sorted(set(mine) ^ set(theirs)) or [k for k in mine if mine[k] != theirs[k]]
+            return f"the tensors do not fit this actor (first difference: {diff[0]!r})"
+    return None
+
+
+class WeightsInstaller:
+    """Where a worker installs weights: every envelope the trainer broadcasts goes through
+    :meth:`install`, and the file kept from the last run through :meth:`load_file`.
+
+    Nothing reaches the actor before every check has passed: the signature when the trainer's key
+    is pinned, the spaces, the tensors (finite, the names and shapes of the actor's), and the
+    actor's own ``load`` into a new actor. ``model_path`` is replaced only once the new actor has
+    loaded; every ``model_history``-th accepted file is also kept in the history.
+
+    Args:
+        spaces: :func:`~tmrl.spaces.describe_spaces` of the worker's environment.
+        device: where the actor lives (``actor.load(..., device=)``).
+        model_path: the worker's copy of the latest weights.
+        model_path_history: prefix of the history files.
+        model_history: keep every ``model_history``-th accepted file (``0`` or negative: none).
+        keys_dir: the credentials folder where the trainer's public key may be pinned.
+    """
+
+    def __init__(
+        self,
+        spaces: dict[str, Any],
+        device: str,
+        model_path: str | os.PathLike[str],
+        model_path_history: str | os.PathLike[str],
+        model_history: int,
+        keys_dir: str | os.PathLike[str] | None,
+    ) -> None:
+        self.spaces = spaces
+        self.device = device
+        self.model_path = Path(model_path)
+        self.model_path_history = str(model_path_history)
+        self.model_history = int(model_history)
+        self.keys_dir = keys_dir
+        self.rejected = 0
+        """Envelopes refused so far."""
+        self._history_count = 0
+        self._log = RateLimitedLog(logger, logging.ERROR, 10.0)
+        self._unsigned_warned = False
+
+    def load_file(self, actor: Any) -> Any:
+        """``actor`` with the weights of ``model_path`` (at start), or ``actor`` itself when the
+        file does not exist or does not load: that is reported in one line and the worker goes on
+        (the trainer's next weights replace the file)."""
+        if not self.model_path.is_file():
+            return actor
+        logger.debug("loading weights from %s", self.model_path)
+        try:
+            problem = _weights_problem(actor, self.model_path.read_bytes())
+            if problem is not None:
+                raise UserError(problem)
+            return actor.load(str(self.model_path), device=self.device)
+        except Exception as err:  # noqa: BLE001 (any failure of a replaceable file: one line, go on)
+            logger.error(
+                "ignored the weights file %s (%s); starting with a fresh actor until the trainer's weights arrive",
+                self.model_path,
+                _one_line(err),
+            )
+            return actor
+
+    def pinned_key(self) -> bytes | None:
+        """The trainer's public key pinned in the credentials folder (``None``: none, warned once)."""
+        from tmrl.transport.credentials import load_trainer_public_key
+
+        key = load_trainer_public_key(self.keys_dir)
+        if key is None and not self._unsigned_warned:
+            self._unsigned_warned = True
+            logger.warning(
+                "weights from the server are not authenticated: copy trainer_public_key.pem from the "
+                "trainer's credentials folder into %s so that only the trainer's weights are loaded",
+                self.keys_dir or "this worker's credentials folder",
+            )
+        return key
+
+    def install(self, actor: Any, envelope: bytes, version: int, verbose: bool) -> tuple[Any, dict[str, Any]] | None:
+        """Check ``envelope`` and load its weights into a new actor.
+
+        Args:
+            actor: the worker's current actor (loads the new weights; kept on any problem).
+            envelope: the bytes received (:func:`pack_weights`).
+            version: the worker's current weights version (names the history file).
+            verbose: log the history file at INFO level.
+
+        Returns:
+            ``(new actor, envelope header)``, or ``None``: refused (counted in :attr:`rejected`,
+            one rate-limited line says why, nothing written).
+        """
+        # one name per worker: several workers of one machine may share a data folder and model_path
+        candidate = self.model_path.with_name(f".{self.model_path.name}.{os.getpid()}-{id(self):x}.incoming")
+        try:
+            header, data = unpack_weights(envelope, self.pinned_key())
+            check_spaces(self.spaces, header.get("spaces"))
+            problem = _weights_problem(actor, data)
+            if problem is not None:
+                raise WeightsRejected(problem)
+            atomic_write_bytes(candidate, data)
+            new_actor = actor.load(str(candidate), device=self.device)
+        except Exception as err:  # noqa: BLE001 (a peer's bytes, or user load code: never fatal)
+            self.rejected += 1
+            self._log(
+                "ignored weights from the server (%s); keeping the current actor (%d ignored so far)",
+                _one_line(err),
+                self.rejected,
+            )
+            with contextlib.suppress(OSError):
+                candidate.unlink()
+            return None
+        os.replace(candidate, self.model_path)
+        if self.model_history > 0:
+            self._history_count += 1
+            if self._history_count >= self.model_history:
+                self._history_count = 0
+                stamp = datetime.datetime.now().strftime("%d_%m_%Y_%H_%M_%S")
+                atomic_write_bytes(f"{self.model_path_history}{stamp}_{version + 1}.tmod", data)
+                if verbose:
+                    logger.info("weights saved in the history")
+        return new_actor, header
