@@ -3,7 +3,7 @@ of a big memory (first save, incremental save, load).
 
     python -m bench memory_speed                       # 1M samples, 3 rounds
     python -m bench memory_speed --size 200000 --act-buf-len 0   # GenericTorchMemory
-    git show HEAD:tmrl/memory.py > /tmp/memory_before.py
+    git show 5abb66b:tmrl/memory.py > /tmp/memory_before.py   # the single-file memory, before the package
     python -m bench memory_speed --reference /tmp/memory_before.py  # before/after a change
 
 Observations look like the lidar driving environment: speed (1,), lidar history (4, 19) float32,
@@ -17,6 +17,7 @@ import argparse
 import importlib
 import importlib.util
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -85,6 +86,7 @@ def memory_module(path: str | None) -> ModuleType:
     if spec is None or spec.loader is None:
         raise SystemExit(f"--reference {path}: not a Python file")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the file runs
     spec.loader.exec_module(module)
     return module
 
