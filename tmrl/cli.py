@@ -489,9 +489,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _run(args, extra)
     except UserError as e:
         return _report_user_error(e)
-    except KeyboardInterrupt:
-        print("tmrl: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:
+        # Ctrl-C, or SIGTERM / SIGHUP turned into a KeyboardInterrupt that carries its number
+        signum = int(getattr(err, "signum", 2))
+        try:
+            print("tmrl: interrupted" if signum == 2 else f"tmrl: stopped (signal {signum})", file=sys.stderr)
+        except OSError:  # a closed terminal
+            pass
+        return 128 + signum
     except SystemExit:
         raise
     except BaseException:  # noqa: BLE001 (anything else is a bug: report it)

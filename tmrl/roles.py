@@ -2,9 +2,10 @@
 
 Each function builds its object from ``tmrl.config.config_constants`` and
 ``tmrl.config.config_objects`` (which read ``config.json`` when first imported), runs it until it
-is done or interrupted, and returns the process exit code (0 done, 130 Ctrl-C, 143 SIGTERM).
-Ctrl-C and SIGTERM stop the role cleanly within a few seconds, in every state: the network link
-or relay is closed (no child process keeps a port) and one line says which signal stopped what.
+is done or interrupted, and returns the process exit code (0 done, 130 Ctrl-C, 143 SIGTERM,
+129 SIGHUP). Ctrl-C, SIGTERM and SIGHUP (a closed terminal; ignored under ``nohup``) stop the role
+cleanly within a few seconds, in every state: the network link or relay is closed (no child process
+keeps a port) and one line says which signal stopped what.
 """
 
 from __future__ import annotations
@@ -40,34 +41,58 @@ WORKER_MODES = ("train", "expert", "test")
 INTERRUPTED = 130
 #: Exit code of a role stopped by SIGTERM (128 + SIGTERM).
 TERMINATED = 143
+#: Exit code of a role stopped by SIGHUP (128 + SIGHUP): its terminal was closed.
+HUNG_UP = 129
 
 
 class Terminated(KeyboardInterrupt):
     """SIGTERM arrived (``kill``, a service manager): stop like Ctrl-C, and say which it was."""
 
+    signum = 15  # SIGTERM: the exit code is 128 + signum
+
+
+class HungUp(Terminated):
+    """SIGHUP arrived (the role's terminal was closed): stop like Ctrl-C, and say which it was."""
+
+    signum = 1  # SIGHUP
+
 
 def _interrupt_on_sigterm() -> None:
-    """Make SIGTERM stop a role like Ctrl-C: cleanly, within a few seconds."""
+    """Make SIGTERM and SIGHUP stop a role like Ctrl-C: cleanly, within a few seconds. A SIGHUP
+    inherited as ignored (``nohup``) stays ignored."""
     import signal
 
     def handler(signum: int, frame: Any) -> None:
         # A second signal during the clean-up would interrupt it half-way: the first one is enough.
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        raise Terminated
+        for other in stop_signals:
+            signal.signal(other, signal.SIG_IGN)
+        raise HungUp if signum == getattr(signal, "SIGHUP", None) else Terminated
 
+    stop_signals = [signal.SIGTERM]
+    if hasattr(signal, "SIGHUP") and signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:
+        stop_signals.append(signal.SIGHUP)
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, handler)
+        for signum in stop_signals:
+            signal.signal(signum, handler)
 
 
 def _stopped(role: str, err: KeyboardInterrupt, detail: str = "") -> int:
     """Say in one line that ``role`` stopped and why; return the exit code."""
-    name, code = ("SIGTERM", TERMINATED) if isinstance(err, Terminated) else ("Ctrl-C", INTERRUPTED)
+    if isinstance(err, HungUp):
+        name, code = "SIGHUP", HUNG_UP
+    elif isinstance(err, Terminated):
+        name, code = "SIGTERM", TERMINATED
+    else:
+        name, code = "Ctrl-C", INTERRUPTED
     _say(f"tmrl: {role} stopped ({name}){detail}")
     return code
 
 
 def _say(line: str) -> None:
-    print(line, file=sys.stderr, flush=True)
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except OSError:  # the terminal was closed (SIGHUP): nobody left to read it
+        pass
 
 
 def _constants() -> Any:

@@ -60,6 +60,10 @@ DEMO_SETTINGS: dict[str, Any] = dict(
 # A model every 20 updates keeps the worker moving smoothly.
 
 _INTERFACES = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
+# The demo's process id, in its roles' environment: a role whose parent changed stops.
+_PARENT_ENV = "TMRL_DEMO_PARENT"
+# Seconds the roles get to stop after the parent's SIGINT, all together, before SIGKILL.
+_ROLES_GRACE = 7.0
 
 
 # ------------------------------------------------------------------------------------------------
@@ -245,13 +249,12 @@ def _training_cls(interface: str, track: str, workdir: Path, realtime: bool = Fa
 
 def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, password: str,
               realtime: bool = False) -> None:
-    # The parent stops its roles with SIGINT. A shell that starts the demo in the background
-    # (`nohup ... &`) passes SIGINT on as ignored, and the roles would then wait for SIGKILL.
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    # Stop signals (the parent's SIGINT, or SIGTERM when the parent died) arrive as
+    # KeyboardInterrupt (see main()): each role closes its network process within STOP_TIMEOUT.
     import torch
 
     torch.set_num_threads(1)
-    from tmrl.distributed import RolloutWorker, Server, Trainer
+    from tmrl.distributed import STOP_TIMEOUT, RolloutWorker, Server, Trainer
 
     common = dict(password=password, security=None)
     if role == "server":
@@ -260,10 +263,14 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
             while True:
                 time.sleep(1.0)
         finally:
-            server.stop()
+            server.stop(STOP_TIMEOUT)
     elif role == "trainer":
-        Trainer(training_cls=_training_cls(interface, track, workdir, realtime), server_ip="127.0.0.1", server_port=port,
-                model_path=str(workdir / "weights.tmod"), checkpoint_path=None, **common).run()
+        trainer = Trainer(training_cls=_training_cls(interface, track, workdir, realtime), server_ip="127.0.0.1",
+                          server_port=port, model_path=str(workdir / "weights.tmod"), checkpoint_path=None, **common)
+        try:
+            trainer.run()
+        finally:
+            trainer.interface.close(STOP_TIMEOUT)
     elif role == "worker":
         parts = _parts(interface)
         actor_cls = parts["actor_cls"]
@@ -274,7 +281,10 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
             model_path=str(workdir / "weights_worker.tmod"), model_history=0, **common)
         # Fast mode: the trainer's pace (sent with the weights) holds the worker back; real time:
         # the clock sets the pace, and the worker pauses between episodes only.
-        worker.run()
+        try:
+            worker.run()
+        finally:
+            worker.close(STOP_TIMEOUT)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -287,11 +297,11 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _wait_listening(port: int, timeout: float, proc: subprocess.Popen) -> None:
+def _wait_listening(port: int, timeout: float, proc: subprocess.Popen, logs_dir: Path) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise RuntimeError("the demo server exited at start; see server.log in the run folder")
+            raise RuntimeError(f"the demo server exited at start; see server.log in {logs_dir}")
         try:
             with socket.create_connection(("127.0.0.1", port), timeout=0.5):
                 return
@@ -404,6 +414,33 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
     return p.parse_args(list(argv))
 
 
+def _role_main(args: argparse.Namespace) -> int:
+    """A role's process (``--role``): it stops on the parent's SIGINT, on SIGTERM or SIGHUP, and
+    when its parent dies (even by SIGKILL); then, with the parent gone, it removes the run folder,
+    which nobody else will."""
+    from tmrl.sim.lifeline import die_with_parent, parent_gone, stop_on_signals
+
+    workdir = Path(args.workdir)
+    parent = os.environ.get(_PARENT_ENV, "")
+    parent_pid = int(parent) if parent.isdigit() else None
+    if parent_pid is not None:
+        die_with_parent(parent_pid, on_orphaned=lambda: shutil.rmtree(workdir, ignore_errors=True))
+    DEMO_SETTINGS["start_training"] = max(1, int(args.start_training))
+    DEMO_SETTINGS["algorithm"] = args.algorithm
+    try:
+        # stop_on_signals: SIGINT raises KeyboardInterrupt even when a shell started the demo with
+        # it ignored (`nohup ... &`), SIGTERM and SIGHUP raise a KeyboardInterrupt too.
+        with stop_on_signals(force_sigint=True):
+            _run_role(args.role, args.interface, args.track, workdir, args.port,
+                      os.environ.get("TMRL_DEMO_PASSWORD", ""), args.realtime)
+    except KeyboardInterrupt:  # the parent stops its roles with SIGINT: a normal end
+        pass
+    finally:
+        if parent_pid is not None and parent_gone(parent_pid):
+            shutil.rmtree(workdir, ignore_errors=True)
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the demo (or, with the hidden ``--role``, one of its processes). Returns the exit code.
 
@@ -412,14 +449,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     args = _parse(sys.argv[1:] if argv is None else argv)
     if args.role:
-        DEMO_SETTINGS["start_training"] = max(1, int(args.start_training))
-        DEMO_SETTINGS["algorithm"] = args.algorithm
-        try:
-            _run_role(args.role, args.interface, args.track, Path(args.workdir), args.port,
-                      os.environ.get("TMRL_DEMO_PASSWORD", ""), args.realtime)
-        except KeyboardInterrupt:  # the parent stops its roles with SIGINT: a normal end
-            pass
-        return 0
+        return _role_main(args)
     from tmrl.sim.track import make_track
 
     if args.config:
@@ -441,6 +471,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise UserError(f"--algorithm {args.algorithm} trains on lidar observations only: use SAC or REDQSAC with "
                         "SIMFULL images")
     from tmrl.config.loader import ensure_data_folder, load_config
+    from tmrl.sim.lifeline import exit_code, ignore_stop_signals, signal_name, stop_on_signals
 
     load_config()  # a configuration mistake is reported before anything is created
     ensure_data_folder()  # before the demo starts its processes, which read it
@@ -450,6 +481,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1", TMRL_DEMO_PASSWORD=secrets.token_hex(16),
                TMRL_DEMO_CONFIG=args.config or "")
     env.setdefault("TMRL_DATA", str(workdir / "TmrlData"))
+    env[_PARENT_ENV] = str(os.getpid())
     procs: list[subprocess.Popen] = []
     logs = []
 
@@ -460,6 +492,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                "--track", str(args.track), "--workdir", str(workdir), "--port", str(port),
                "--start-training", str(args.start_training), "--algorithm", args.algorithm]
         cmd += ["--realtime"] if args.realtime else []
+        # A session of its own: Ctrl-C in the terminal reaches the demo only, which stops the roles
+        # in order. The role stops by itself when the demo dies (tmrl.sim.lifeline).
         proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=log, start_new_session=True)
         procs.append(proc)
         return proc
@@ -467,71 +501,118 @@ def main(argv: Sequence[str] | None = None) -> int:
     budget = args.minutes * 60.0
     tty = sys.stdout.isatty()
     print(f"tmrl demo: {args.interface} on track {args.track} ({'real time' if args.realtime else 'fast mode'}, {args.algorithm}), budget {args.minutes:g} min"
-          f"{f' or {args.steps} steps' if args.steps else ''}; Ctrl-C stops early. Run folder: {workdir}")
+          f"{f' or {args.steps} steps' if args.steps else ''}; Ctrl-C stops early. Run folder: {workdir}", flush=True)
     t0 = time.monotonic()
-    interrupted = False
+    stopped: KeyboardInterrupt | None = None
     worker: dict[str, Any] = {}
+    logs_dir = out / "logs"
     try:
-        server = start("server")
-        _wait_listening(port, 60.0, server)
-        start("trainer")
-        start("worker")
-        last_print = 0.0
-        while True:
-            time.sleep(0.5)
-            elapsed = time.monotonic() - t0
-            worker = _read_json(workdir / "worker.json") or worker
-            trainer = _read_json(workdir / "trainer.json")
-            line = _status_line(elapsed, worker, trainer)
-            if tty:
-                print("\r" + line, end="", flush=True)
-            elif elapsed - last_print >= 10.0:
-                print(line, flush=True)
-                last_print = elapsed
-            dead = [p for p in procs if p.poll() is not None]
-            if dead:
-                raise RuntimeError(f"a demo process exited early (code {dead[0].returncode}); see the logs in {workdir}")
-            if elapsed >= budget or (args.steps and worker.get("steps", 0) >= args.steps):
-                break
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
-        for p in reversed(procs):
-            if p.poll() is None:
-                try:
-                    os.killpg(p.pid, signal.SIGINT)
-                except ProcessLookupError:
-                    pass
-        for p in reversed(procs):
+        with stop_on_signals():  # SIGTERM and SIGHUP (a closed terminal) stop the demo like Ctrl-C
             try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
-        for log in logs:
-            log.close()
-    if tty:
-        print()
-    worker = _read_json(workdir / "worker.json") or worker
-    paths = _finish(workdir, out, args.track, args.interface, worker)
+                server = start("server")
+                _wait_listening(port, 60.0, server, logs_dir)
+                start("trainer")
+                start("worker")
+                last_print = 0.0
+                while True:
+                    time.sleep(0.5)
+                    elapsed = time.monotonic() - t0
+                    worker = _read_json(workdir / "worker.json") or worker
+                    trainer = _read_json(workdir / "trainer.json")
+                    line = _status_line(elapsed, worker, trainer)
+                    if tty:
+                        print("\r" + line, end="", flush=True)
+                    elif elapsed - last_print >= 10.0:
+                        print(line, flush=True)
+                        last_print = elapsed
+                    dead = [p for p in procs if p.poll() is not None]
+                    if dead:
+                        raise RuntimeError(f"a demo process exited early (code {dead[0].returncode}); see its log "
+                                           f"in {logs_dir}")
+                    if elapsed >= budget or (args.steps and worker.get("steps", 0) >= args.steps):
+                        break
+            except KeyboardInterrupt as err:
+                stopped = err
+            finally:
+                ignore_stop_signals()  # the clean-up below finishes, whatever comes next
+                _stop_roles(procs)
+                for log in logs:
+                    log.close()
+                _keep_logs(workdir, logs_dir)
+            if stopped is not None and signal_name(stopped) == "SIGHUP" and sys.stdout.isatty():
+                _detach_from_terminal()  # the terminal is gone: the outputs are still written
+            _say("" if tty else None)
+            worker = _read_json(workdir / "worker.json") or worker
+            paths = _finish(workdir, out, args.track, args.interface, worker)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
     returns = worker.get("returns") or []
     first, best = worker.get("first_lap_s"), worker.get("best_lap")
-    print(f"tmrl demo {'stopped (Ctrl-C)' if interrupted else 'finished'} after {time.monotonic() - t0:.0f} s: "
-          f"{worker.get('episodes', 0)} episodes, {worker.get('steps', 0)} steps, best return "
-          f"{max(returns) if returns else float('nan'):.1f}, laps completed {worker.get('laps', 0)}")
-    print(f"  first completed lap after {first:.0f} s of training" if first is not None else "  no lap completed yet: "
-          "give it more time (--minutes)")
+    how = "finished" if stopped is None else f"stopped ({signal_name(stopped)})"
+    _say(f"tmrl demo {how} after {time.monotonic() - t0:.0f} s: "
+         f"{worker.get('episodes', 0)} episodes, {worker.get('steps', 0)} steps, best return "
+         f"{max(returns) if returns else float('nan'):.1f}, laps completed {worker.get('laps', 0)}")
+    _say(f"  first completed lap after {first:.0f} s of training" if first is not None else "  no lap completed yet: "
+         "give it more time (--minutes)")
     if best is not None:
-        print(f"  best lap time {best:.2f} s (simulated){_versus_reference(args.track, best)}")
-    for name, path in paths.items():
-        print(f"  {name}: {path}")
-    # The role logs stay with the outputs: they are where to look when something went wrong.
-    (out / "logs").mkdir(exist_ok=True)
+        _say(f"  best lap time {best:.2f} s (simulated){_versus_reference(args.track, best)}")
+    for name, path in {**paths, "logs": logs_dir}.items():
+        _say(f"  {name}: {path}")
+    return 0 if stopped is None else exit_code(stopped)
+
+
+def _stop_roles(procs: list[subprocess.Popen]) -> None:
+    """SIGINT to each role's process group (the role and its network process), newest first;
+    SIGKILL to the groups still there after :data:`_ROLES_GRACE` seconds, all roles together."""
+    for p in reversed(procs):
+        if p.poll() is None:
+            try:
+                os.killpg(p.pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+    deadline = time.monotonic() + _ROLES_GRACE
+    for p in reversed(procs):
+        try:
+            p.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass
+        try:  # what the role left in its group (its network process) goes too
+            os.killpg(p.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+        p.wait()
+
+
+def _keep_logs(workdir: Path, logs_dir: Path) -> None:
+    """Copy the roles' logs next to the outputs: they are where to look when something went wrong."""
     for role in ("server", "trainer", "worker"):
         if (workdir / f"{role}.log").exists():
-            shutil.copyfile(workdir / f"{role}.log", out / "logs" / f"{role}.log")
-    shutil.rmtree(workdir, ignore_errors=True)
-    return 130 if interrupted else 0
+            logs_dir.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(workdir / f"{role}.log", logs_dir / f"{role}.log")
+
+
+def _say(line: str | None) -> None:
+    """Print ``line`` (nothing for None); a closed terminal or pipe silences the rest."""
+    if line is None:
+        return
+    try:
+        print(line, flush=True)
+    except OSError:
+        _detach_from_terminal()
+
+
+def _detach_from_terminal() -> None:
+    """Point stdout and stderr at /dev/null: the terminal was closed (SIGHUP) or the reader of
+    the pipe left, and a write there would fail."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                os.dup2(devnull, stream.fileno())
+            except (OSError, ValueError, AttributeError):
+                pass
+    finally:
+        os.close(devnull)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,196 @@
+"""Stop means stop, for every signal (issue 40): ``python -m tmrl --demo`` stopped by SIGINT,
+SIGTERM or SIGHUP, or its process killed with SIGKILL, and the three command-line roles of the
+Quick start stopped by SIGINT, SIGTERM or SIGHUP: within 10 s no process of the run is left and
+the demo's run folder (``$TMPDIR/tmrl-demo-*``) is gone.
+
+Every run gets its own ``TMPDIR``; the processes of a run are found through it, in their
+environment (``/proc/PID/environ``): the demo, its roles and the network processes below them
+all inherit it. Each run stops as soon as its roles are up (each role has started its network
+process), so that the test costs the start-up only.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = [
+    pytest.mark.timeout(240),
+    pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc"),
+]
+
+GONE_WITHIN = 10.0
+START_TIMEOUT = 150.0  # a loaded 2-core CI machine imports torch three times at once
+
+
+def run_processes(marker: str) -> list[int]:
+    """Live processes (not zombies) whose environment holds ``marker``."""
+    needle = marker.encode()
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit() or int(entry) == os.getpid():
+            continue
+        try:
+            with open(f"/proc/{entry}/environ", "rb") as f:
+                if needle not in f.read():
+                    continue
+            with open(f"/proc/{entry}/stat") as f:
+                if f.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    continue
+        except OSError:
+            continue
+        found.append(int(entry))
+    return found
+
+
+def cmdline(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def network_processes(marker: str) -> list[int]:
+    return [p for p in run_processes(marker) if "tmrl.transport._netproc" in cmdline(p)]
+
+
+class Run:
+    """The processes started by one test, with their output collected in the background."""
+
+    def __init__(self, tmp_path: Path) -> None:
+        self.tmpdir = tmp_path / "tmp"
+        self.tmpdir.mkdir()
+        self.marker = str(self.tmpdir)
+        self.env = dict(os.environ, TMPDIR=self.marker, PYTHONUNBUFFERED="1", TMRL_DATA=str(tmp_path / "data"))
+        self.cwd = tmp_path
+        self.procs: list[subprocess.Popen] = []
+        self.output: dict[int, list[str]] = {}
+
+    def start(self, *args: str, env: dict[str, str] | None = None) -> subprocess.Popen:
+        # A session of its own, as a command typed in its own terminal: a signal sent to it
+        # reaches that process only.
+        proc = subprocess.Popen([sys.executable, "-m", "tmrl", *args], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, env={**self.env, **(env or {})}, cwd=self.cwd,
+                                start_new_session=True)
+        lines: list[str] = []
+        self.output[proc.pid] = lines
+        self.procs.append(proc)
+        threading.Thread(target=lambda: lines.extend(raw.decode(errors="replace") for raw in proc.stdout),
+                         daemon=True).start()
+        return proc
+
+    def text(self, proc: subprocess.Popen) -> str:
+        return "".join(self.output[proc.pid])
+
+    def wait_until(self, what: str, condition, timeout: float = START_TIMEOUT) -> None:
+        deadline = time.monotonic() + timeout
+        while not condition():
+            dead = [p for p in self.procs if p.poll() is not None]
+            if dead or time.monotonic() > deadline:
+                logs = "\n".join(f"--- {' '.join(map(str, p.args[2:]))} (exit {p.poll()}):\n{self.text(p)[-3000:]}"
+                                 for p in self.procs)
+                raise AssertionError(f"{what}: not reached ({'a process exited' if dead else 'timeout'})\n{logs}")
+            time.sleep(0.1)
+
+    def assert_all_gone(self, how: str) -> float:
+        """Wait up to :data:`GONE_WITHIN` seconds for every process of the run and every
+        ``tmrl-*`` folder in its TMPDIR to be gone; returns how long it took."""
+        t0 = time.monotonic()
+        while True:
+            for p in self.procs:
+                p.poll()  # reap the ones we started
+            left = run_processes(self.marker)
+            folders = sorted(p.name for p in self.tmpdir.glob("tmrl-*"))
+            if not left and not folders:
+                return time.monotonic() - t0
+            if time.monotonic() - t0 > GONE_WITHIN:
+                logs = "\n".join(f"--- {' '.join(map(str, p.args[2:]))} (exit {p.poll()}):\n{self.text(p)[-3000:]}"
+                                 for p in self.procs)
+                raise AssertionError(f"{how}: after {GONE_WITHIN:.0f} s, processes left "
+                                     f"{[(p, cmdline(p)[:120]) for p in left]}, run folders left {folders}\n{logs}")
+            time.sleep(0.05)
+
+    def kill_everything(self) -> None:
+        for pid in run_processes(self.marker):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        for p in self.procs:
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+
+
+@pytest.fixture
+def run(tmp_path):
+    r = Run(tmp_path)
+    yield r
+    r.kill_everything()
+
+
+NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP"}
+
+
+# ------------------------------------------------------------------------------------------------
+# the demo
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGKILL],
+                         ids=lambda s: signal.Signals(s).name)
+def test_the_demo_and_all_its_processes_stop_and_leave_no_run_folder(sig, run, tmp_path):
+    demo = run.start("--demo", "--minutes", "30", "--out", str(tmp_path / "out"))
+    # up: the run folder exists and each of the three roles has started its network process
+    run.wait_until("the demo's three roles up",
+                   lambda: len(network_processes(run.marker)) == 3 and any(run.tmpdir.glob("tmrl-demo-*")))
+    assert len(run_processes(run.marker)) == 7  # the demo, three roles, three network processes
+    os.kill(demo.pid, sig)
+    took = run.assert_all_gone(f"--demo after {signal.Signals(sig).name}")
+    if sig != signal.SIGKILL:
+        assert demo.wait() == 128 + sig
+        out = run.text(demo)
+        assert f"tmrl demo stopped ({NAMES[sig]})" in out, out[-3000:]
+        assert "Traceback" not in out, out[-3000:]
+        assert (tmp_path / "out" / "logs" / "worker.log").exists()  # the logs are kept with the outputs
+    print(f"[stop] --demo {signal.Signals(sig).name}: all gone in {took:.2f} s")
+
+
+# ------------------------------------------------------------------------------------------------
+# the command-line roles of the Quick start, each in its own terminal
+
+
+def _quick_start_override(port: int) -> str:
+    return json.dumps({
+        "PORT": port, "TLS": False, "PASSWORD": "stop-signals-test", "ENVIRONMENT_STEPS_BEFORE_TRAINING": 10**9,
+        "ENV": {"RTGYM_INTERFACE": "GYM", "GYM_ID": "Pendulum-v1"},
+    })
+
+
+UP = {"server": "server running on port", "trainer": "waiting for samples",
+      "worker": "waiting for the trainer's first weights"}
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=lambda s: signal.Signals(s).name)
+def test_the_three_command_line_roles_stop_on_every_signal(sig, run, port_factory):
+    env = {"TMRL_CONFIG_OVERRIDE": _quick_start_override(port_factory())}
+    roles = {role: run.start(f"--{role}", env=env) for role in ("server", "trainer", "worker")}
+    run.wait_until("the three roles up", lambda: len(network_processes(run.marker)) == 3
+                   and all(UP[role] in run.text(p) for role, p in roles.items()))
+    for proc in roles.values():
+        os.kill(proc.pid, sig)
+    took = run.assert_all_gone(f"--server, --trainer and --worker after {signal.Signals(sig).name}")
+    for role, proc in roles.items():
+        out = run.text(proc)
+        assert proc.wait() == 128 + sig, f"--{role}: exit {proc.returncode}\n{out[-3000:]}"
+        assert f"tmrl: {role} stopped ({NAMES[sig]})" in out, out[-3000:]
+        assert "Traceback" not in out, out[-3000:]
+    print(f"[stop] --server/--trainer/--worker {signal.Signals(sig).name}: all gone in {took:.2f} s")
