@@ -1,8 +1,9 @@
 """What both sides of the network process share: framing, checks, and the process plumbing.
 
 The relay's classes live in :mod:`tmrl.transport._netrelay`, the link's in
-:mod:`tmrl.transport._netlink`; :mod:`tmrl.transport._netproc` is the entry point that starts
-:func:`main`. Importing this module imports neither Twisted nor tlspyo.
+:mod:`tmrl.transport._netlink`; :mod:`tmrl.transport._netproc` is the entry point (its
+:func:`~tmrl.transport._netproc.main` opens the pipe from the parent and hands it to the relay or
+the link). Importing this module imports neither Twisted nor tlspyo, nor any of those three.
 
 The network process behind a :class:`~tmrl.transport.RelayServer` or a link.
 
@@ -50,14 +51,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from tmrl import wire
-from tmrl.transport import _pipe
-
 log_relay = logging.getLogger("tmrl.transport.relay")
 log_link = logging.getLogger("tmrl.transport.link")
 
 _KILLED, _CLOSED, _ALIVE, _HANDSHAKE = "KILLED", "CLOSED", "ALIVE", "HANDSHAKE"
-_STDIN: Any = None  # the raw pipe from the parent, opened by main()
 _COMPACT_BYTES = 1 << 20
 
 
@@ -271,28 +268,14 @@ def _serve(shutdown: Callable[[float], None], control_loop: Callable[[], None]) 
     reactor.run(installSignalHandlers=False)
 
 
-class _PipeLogHandler(logging.Handler):
-    """Sends log records to the parent, which logs them under the same logger name."""
+def arm_parent_watch() -> bool:
+    """Make this process stop when its parent asks (SIGTERM) or dies: the signal handlers, the
+    parent-death signal and the watch thread. False when the parent is gone already.
 
-    def __init__(self, writer: _pipe.PipeWriter):
-        super().__init__()
-        self.writer = writer
-
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            msg = record.getMessage()
-            if record.exc_info:
-                msg += "\n" + logging.Formatter().formatException(record.exc_info)
-            self.writer.send(_pipe.LOG, wire.encode((record.levelno, record.name, msg)))
-        except Exception:  # noqa: BLE001, S110 (the parent is gone: no one left to tell)
-            pass
-
-
-def main() -> None:
-    """Entry point of the network process (see the module docstring)."""
-    # Ctrl-C reaches the whole process group: the parent decides when we stop (or dies, closing
-    # our stdin), so that pending objects are flushed and no port stays held.
-    global _STDIN, _PARENT_PID
+    Ctrl-C reaches the whole process group: it is ignored here, the parent decides when this
+    process stops (or dies, closing its stdin), so that pending objects are flushed and no port
+    stays held."""
+    global _PARENT_PID
     _PARENT_PID = os.getppid()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_signal)
@@ -300,38 +283,6 @@ def main() -> None:
         signal.signal(signal.SIGUSR2, _on_signal)
     _set_parent_death_signal()
     if _parent_gone():  # died before the death signal was armed
-        return
+        return False
     threading.Thread(target=_watch_parent, daemon=True, name="tmrl-parent-watch").start()
-    _STDIN = open(0, "rb", buffering=0, closefd=False)  # noqa: SIM115 (for the process's lifetime)
-    out_fd = os.dup(1)
-    os.dup2(2, 1)  # a stray print must not corrupt the pipe protocol
-    writer = _pipe.PipeWriter(out_fd)
-    try:
-        _kind, payload = _pipe.read_message(_STDIN, 1 << 20)
-    except _pipe.PipeClosed:
-        return
-    cfg = wire.decode(payload)
-    root = logging.getLogger()
-    root.handlers[:] = [_PipeLogHandler(writer)]
-    root.setLevel(cfg["log_level"])
-    from twisted.logger import STDLibLogObserver, globalLogBeginner
-
-    logging.getLogger("tmrl.transport.twisted").setLevel(logging.WARNING)
-    logging.getLogger("tlspyo").setLevel(logging.WARNING)
-    globalLogBeginner.beginLoggingTo(
-        [STDLibLogObserver(name="tmrl.transport.twisted")], redirectStandardIO=False
-    )
-    try:
-        if cfg["role"] == "relay":
-            from tmrl.transport._netrelay import run_relay
-
-            run_relay(cfg, writer)
-        else:
-            from tmrl.transport._netlink import run_link
-
-            run_link(cfg, writer)
-    finally:
-        try:
-            writer.send(_pipe.CLOSED)
-        except _pipe.PipeClosed:
-            pass
+    return True

@@ -2,7 +2,7 @@
 # mypy: disable-error-code="misc, has-type, arg-type, call-arg, import-untyped, list-item"
 """The link side of the network process (a worker's or the trainer's connection to the relay).
 
-Imported only in the network process (by :func:`tmrl.transport._netcommon.main`): importing it
+Imported only in the network process (by :func:`tmrl.transport._netproc.main`): importing it
 imports Twisted and tlspyo and installs Twisted's default reactor.
 
 - :class:`LinkState`: what survives reconnections: the bounded store of unsent objects, samples
@@ -474,21 +474,21 @@ def _connect(cfg: dict[str, Any], factory: LinkFactory, writer: _pipe.PipeWriter
     return True
 
 
-def _wait_pipe(ready: Callable[[float], bool]) -> None:
-    """Wait until ``ready(0.25)`` is true, watching the pipe meanwhile: a parent that closes it
-    (stopping, or dead) is noticed at once.
+def _wait_pipe(ready: Callable[[float], bool], stdin: Any) -> None:
+    """Wait until ``ready(0.25)`` is true, watching the pipe from the parent (``stdin``)
+    meanwhile: a parent that closes it (stopping, or dead) is noticed at once.
 
     Raises:
         _pipe.PipeClosed: the parent's end of the pipe closed.
     """
     while not ready(0.25):
-        if _pipe.peer_closed(common._STDIN):
+        if _pipe.peer_closed(stdin):
             raise _pipe.PipeClosed()
 
 
-def _control_loop(state: LinkState) -> None:
-    """The control thread: hand the parent's objects and credit to the reactor; stop on STOP (or
-    when the parent's end of the pipe closes)."""
+def _control_loop(state: LinkState, stdin: Any) -> None:
+    """The control thread: hand the parent's objects and credit (read from the pipe ``stdin``) to
+    the reactor; stop on STOP (or when the parent's end of the pipe closes)."""
     sem = threading.Semaphore(2)  # at most two objects handed to the reactor at a time
     limit = state.max_object_bytes + (1 << 20)
     budget = common._PARENT_GONE_BUDGET
@@ -496,10 +496,10 @@ def _control_loop(state: LinkState) -> None:
         while True:
             # Held back by the relay (the connection's buffer is full), this process stops
             # reading the pipe so that the parent's sends block; it still watches the pipe.
-            _wait_pipe(state.writable.wait)
-            kind, payload = _pipe.read_message(common._STDIN, limit)
+            _wait_pipe(state.writable.wait, stdin)
+            kind, payload = _pipe.read_message(stdin, limit)
             if kind == _pipe.SEND:
-                _wait_pipe(lambda t: sem.acquire(timeout=t))
+                _wait_pipe(lambda t: sem.acquire(timeout=t), stdin)
                 reactor.callFromThread(state.handle_send, payload, sem.release)
             elif kind == _pipe.CREDIT:
                 reactor.callFromThread(state.on_credit, int.from_bytes(payload, "little"))
@@ -511,12 +511,13 @@ def _control_loop(state: LinkState) -> None:
     reactor.callFromThread(state.shutdown, budget)
 
 
-def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
-    """Serve as the link described by ``cfg`` until the parent says stop (or dies)."""
+def run_link(cfg: dict[str, Any], writer: _pipe.PipeWriter, stdin: Any) -> None:
+    """Serve as the link described by ``cfg`` until the parent says stop (or dies); ``writer``
+    and ``stdin`` are the pipes to and from the parent."""
     state = LinkState(cfg, writer)
     factory = state.factory = LinkFactory(state)
     if not _connect(cfg, factory, writer):
         return
     writer.send(_pipe.READY, wire.encode({"ok": True}))
     reactor.callLater(1.0, state.flush_logs)
-    common._serve(state.shutdown, lambda: _control_loop(state))
+    common._serve(state.shutdown, lambda: _control_loop(state, stdin))

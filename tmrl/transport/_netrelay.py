@@ -2,7 +2,7 @@
 # mypy: disable-error-code="misc, has-type, arg-type, call-arg, import-untyped, list-item"
 """The relay side of the network process: tlspyo's relay with tmrl's framing, bounds and checks.
 
-Imported only in the network process (by :func:`tmrl.transport._netcommon.main`): importing it
+Imported only in the network process (by :func:`tmrl.transport._netproc.main`): importing it
 imports Twisted and tlspyo and installs Twisted's default reactor.
 
 - :class:`RelayState`: the relay's bookkeeping (tlspyo's clients and groups), the bounded queue
@@ -650,12 +650,13 @@ def _listen(cfg: dict[str, Any], factory: RelayFactory, writer: _pipe.PipeWriter
         return None
 
 
-def _control_loop(state: RelayState) -> None:
-    """The control thread: wait for the parent's STOP (or its end of the pipe closing)."""
+def _control_loop(state: RelayState, stdin: Any) -> None:
+    """The control thread: wait for the parent's STOP on the pipe ``stdin`` (or its end of the
+    pipe closing)."""
     budget = common._PARENT_GONE_BUDGET
     while True:
         try:
-            kind, payload = _pipe.read_message(common._STDIN, 1 << 20)
+            kind, payload = _pipe.read_message(stdin, 1 << 20)
         except _pipe.PipeClosed:
             break
         if kind == _pipe.STOP:
@@ -664,8 +665,9 @@ def _control_loop(state: RelayState) -> None:
     reactor.callFromThread(state.shutdown, budget)
 
 
-def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
-    """Serve as the relay described by ``cfg`` until the parent says stop (or dies)."""
+def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter, stdin: Any) -> None:
+    """Serve as the relay described by ``cfg`` until the parent says stop (or dies); ``writer``
+    and ``stdin`` are the pipes to and from the parent."""
     state = RelayState(cfg)
     factory = RelayFactory(state)
     listening = _listen(cfg, factory, writer)
@@ -680,4 +682,4 @@ def run_relay(cfg: dict[str, Any], writer: _pipe.PipeWriter) -> None:
     )
     writer.send(_pipe.READY, wire.encode({"ok": True, "port": bound}))
     reactor.callLater(min(5.0, state.partial_timeout / 4), state.sweep_partials)
-    common._serve(state.shutdown, lambda: _control_loop(state))
+    common._serve(state.shutdown, lambda: _control_loop(state, stdin))
