@@ -7,7 +7,7 @@
 - :mod:`tmrl.transport.base`: the contract the roles use (:class:`WorkerTransport`,
   :class:`TrainerTransport`, :class:`RelayTransport`) and :data:`BACKENDS`, the transports that
   implement it: ``"tlspyo"`` (the default) and ``"nats"`` (NATS JetStream,
-  :mod:`tmrl.transport.nats_backend`; needs ``pip install "tmrl[nats]"``).
+  :mod:`tmrl.transport.jetstream`; needs ``pip install "tmrl[nats]"``).
 
 Everything on the wire is :mod:`tmrl.wire` data; see docs/transport.md. Importing this package
 imports neither Twisted nor tlspyo (they run in the network processes only) nor ``nats``
@@ -17,7 +17,7 @@ imports neither Twisted nor tlspyo (they run in the network processes only) nor 
 from tmrl.transport.base import Backend, RelayTransport, TrainerTransport, WorkerTransport
 from tmrl.transport.credentials import CERT_FILE, KEY_FILE, ensure_credentials
 from tmrl.transport.links import TrainerLink, WorkerLink
-from tmrl.transport.nats_backend import NatsRelay, NatsTrainerLink, NatsWorkerLink
+from tmrl.transport.jetstream import NatsRelay, NatsTrainerLink, NatsWorkerLink
 from tmrl.transport.relay import RelayServer
 
 BACKENDS: dict[str, Backend] = {

@@ -3,7 +3,7 @@
 A transport backend provides three things, registered in :data:`tmrl.transport.BACKENDS` as a
 :class:`Backend`: a relay (the server), a worker's connection and the trainer's connection. The
 roles call exactly the members listed in the protocols below, nothing else; the second transport
-(NATS JetStream, :mod:`tmrl.transport.nats_backend`) is an addition that implements them, not a
+(NATS JetStream, :mod:`tmrl.transport.jetstream`) is an addition that implements them, not a
 fork of the roles.
 
 Semantics, as the tlspyo backend implements them (and the contract tests in

@@ -1,0 +1,249 @@
+"""The NATS backend's weights channel: the trainer's writing and the workers' reading.
+
+The weights travel through JetStream's object store (chunked by NATS) in the bucket
+:data:`~tmrl.transport.jetstream.layout.DEFAULT_BUCKET`; a key-value entry
+:data:`~tmrl.transport.jetstream.layout.LATEST_KEY` of the same bucket names the newest object,
+and its revision is the weights' version. A message on ``tmrl.notify.<bucket>`` announces each
+new one.
+
+- :class:`_WeightsWriter` (in :class:`~tmrl.transport.jetstream.trainer.NatsTrainerLink`): uploads
+  the newest weights in the background (older ones not uploaded yet are skipped) and keeps the
+  previous object for workers reading it now.
+- :class:`_WeightsReader` (in :class:`~tmrl.transport.jetstream.worker.NatsWorkerLink`): reads the
+  newest weights on each announcement and every :data:`WEIGHTS_POLL` seconds, never an older
+  version over a newer one.
+
+:data:`WEIGHTS_POLL` is read here: set it on this module, not on the re-export modules.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import secrets
+import threading
+import time
+from typing import Any
+
+from tmrl import wire
+from tmrl.transport._nats_server import NOTIFY_PREFIX
+from tmrl.transport.jetstream.connect import _NatsLink
+from tmrl.transport.jetstream.layout import LATEST_KEY, WEIGHTS_OBJECT
+
+logger = logging.getLogger("tmrl.transport.nats")
+
+WEIGHTS_POLL = 2.0
+"""Seconds between a worker's checks for new weights when it hears no announcement."""
+
+
+class _WeightsReader(_NatsLink):
+    """The workers' end of the weights channel (mixed into the worker's link)."""
+
+    def _init_reader(self) -> None:
+        """The reading side's state (before the connection starts)."""
+        self._weights: bytes | None = None
+        self._weights_cv = threading.Condition()
+        self._version: tuple[str, int] | None = None
+        self._relookup = True
+        self._weights_wake: Any = None  # an asyncio.Event, made on the loop
+
+    def latest_weights(self, block: bool = False, timeout: float | None = None) -> bytes | None:
+        """The newest weights broadcast since the last call (older unread ones dropped), or None;
+        with ``block``, wait up to ``timeout`` seconds for them."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._weights_cv:
+            while block and self._weights is None and not self._closed:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    break
+                self._weights_cv.wait(1.0 if left is None else min(left, 1.0))
+            weights, self._weights = self._weights, None
+        return weights
+
+    @property
+    def weights_version(self) -> tuple[str, int] | None:
+        """``(store epoch, revision)`` of the last weights received, or None."""
+        return self._version
+
+    async def _weights_reader(self) -> None:
+        import asyncio
+
+        wake = self._weights_wake
+
+        async def announced(msg: Any) -> None:
+            wake.set()
+
+        subscribed = False
+        kv = obs = None
+        epoch = ""
+        while True:
+            try:
+                await asyncio.wait_for(wake.wait(), WEIGHTS_POLL)
+            except asyncio.TimeoutError:
+                pass
+            wake.clear()
+            if not self._is_connected:
+                continue
+            if self._relookup:
+                kv, self._relookup = None, False  # looked up again after a reconnection
+            try:
+                if not subscribed:
+                    await self._nc.subscribe(f"{NOTIFY_PREFIX}.{self._bucket}", cb=announced)
+                    subscribed = True  # nats-py subscribes again by itself after reconnections
+                if kv is None:
+                    js = self._nc.jetstream(timeout=5)
+                    kv = await js.key_value(self._bucket)
+                    obs = await js.object_store(self._bucket)
+                    status = await kv.status()
+                    epoch = str(getattr(status.stream_info, "created", "") or "")
+                await self._read_weights(kv, obs, epoch)
+            except Exception as e:  # noqa: BLE001 (no bucket yet, a restart: tried again later)
+                logger.debug("worker link: no weights read (%s: %s)", type(e).__name__, e)
+                kv = None
+
+    async def _read_weights(self, kv: Any, obs: Any, epoch: str) -> None:
+        import asyncio
+
+        import nats.js.errors as jse
+
+        try:
+            entry = await kv.get(LATEST_KEY)
+        except jse.KeyNotFoundError:
+            return
+        version = (epoch, int(entry.revision))
+        if self._version is not None and self._version[0] == epoch and version[1] <= self._version[1]:
+            return  # never an older version over a newer one
+        meta = wire.decode(bytes(entry.value or b""))
+        if not (isinstance(meta, dict) and isinstance(meta.get("name"), str) and isinstance(meta.get("nuid"), str)
+                and type(meta.get("size")) is int):
+            logger.error("worker link: ignored a weights announcement that is not valid")
+            return
+        try:
+            # A get whose object is deleted meanwhile (two newer broadcasts) waits forever: bounded.
+            result = await asyncio.wait_for(obs.get(meta["name"]), 30.0 + meta["size"] / 1e6)
+        except (asyncio.TimeoutError, jse.NotFoundError):
+            self._weights_wake.set()
+            return
+        if result.info.nuid != meta["nuid"]:
+            return  # replaced meanwhile: its own announcement follows
+        try:
+            weights = wire.decode(bytes(result.data))
+        except Exception as e:  # noqa: BLE001 (hostile or corrupt data must not stop the reader)
+            logger.error("worker link: dropped weights that could not be decoded: %s", e)
+            return
+        if not isinstance(weights, (bytes, bytearray)):
+            logger.error("worker link: dropped a broadcast that is not weights bytes (%s)", type(weights).__name__)
+            return
+        self._version = version
+        with self._weights_cv:
+            self._weights = bytes(weights)
+            self._weights_cv.notify_all()
+
+
+class _WeightsWriter(_NatsLink):
+    """The trainer's end of the weights channel (mixed into the trainer's link)."""
+
+    def _init_writer(self) -> None:
+        """The writing side's state (before the connection starts)."""
+        self.broadcasts = 0
+        """Weights uploaded and announced."""
+        self._pending_weights: bytes | None = None
+        self._weights_lock = threading.Lock()
+        self._weights_wake: Any = None  # an asyncio.Event, made on the loop
+        self._uploading = False
+        self._objects: collections.deque[str] = collections.deque()
+
+    def broadcast_weights(self, data: bytes) -> None:
+        """Send ``data`` to every connected worker and to every worker that connects later (only
+        the newest broadcast is kept). Returns at once; the upload runs in the background.
+
+        Raises:
+            TypeError: ``data`` is not bytes-like.
+            RuntimeError: the link is closed.
+        """
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise TypeError(f"broadcast_weights takes bytes, not {type(data).__name__}")
+        if self._closed:
+            raise RuntimeError("this link is closed")
+        encoded = wire.encode(bytes(data))
+        with self._weights_lock:
+            self._pending_weights = encoded
+        self._loop.call(self._weights_wake.set)
+
+    async def _broadcaster(self) -> None:
+        import asyncio
+
+        while True:
+            await self._weights_wake.wait()
+            self._weights_wake.clear()
+            while self._is_connected:
+                with self._weights_lock:
+                    data, self._pending_weights = self._pending_weights, None
+                    self._uploading = data is not None
+                if data is None:
+                    break
+                try:
+                    js = self._nc.jetstream(timeout=10)
+                    obs = await js.object_store(self._bucket)
+                    name = f"{WEIGHTS_OBJECT}-{secrets.token_hex(8)}"
+                    info = await obs.put(name, data, meta=self._object_meta(name))
+                    kv = await js.key_value(self._bucket)
+                    await kv.put(LATEST_KEY, wire.encode({"name": name, "nuid": info.nuid, "size": int(info.size)}))
+                    await self._nc.publish(f"{NOTIFY_PREFIX}.{self._bucket}", b"")
+                    self.broadcasts += 1
+                    self._objects.append(name)
+                    while len(self._objects) > 2:  # the previous one stays for workers reading it now
+                        await self._delete_object(obs, self._objects.popleft())
+                except Exception as e:  # noqa: BLE001 (kept and uploaded after the reconnection)
+                    self._error_log("trainer link: uploading the weights failed (%s: %s)", type(e).__name__, e)
+                    with self._weights_lock:
+                        if self._pending_weights is None:
+                            self._pending_weights = data
+                    await asyncio.sleep(0.5)
+                finally:
+                    with self._weights_lock:
+                        self._uploading = False
+
+    def _object_meta(self, name: str) -> Any:
+        """Chunks as large as the server allows (at most 4 MiB): fewer round trips than the
+        default 128 KiB for a large actor."""
+        from nats.js import api
+
+        chunk = max(128 * 1024, min(4 * 2**20, int(self._nc.max_payload) - 64 * 1024))
+        return api.ObjectMeta(name=name, options=api.ObjectMetaOptions(max_chunk_size=chunk))
+
+    async def _delete_object(self, obs: Any, name: str) -> None:
+        try:
+            await obs.delete(name)
+        except Exception as e:  # noqa: BLE001 (deleted already; or left for the next trainer's cleanup)
+            logger.debug("trainer link: weights object %s not deleted (%s)", name, e)
+
+    async def _clean_objects(self, js: Any) -> None:
+        """Delete the weights objects a previous trainer left, except the latest."""
+        import nats.js.errors as jse
+
+        obs = await js.object_store(self._bucket)
+        kv = await js.key_value(self._bucket)
+        keep = None
+        try:
+            meta = wire.decode(bytes((await kv.get(LATEST_KEY)).value or b""))
+            keep = meta.get("name") if isinstance(meta, dict) else None
+        except (jse.NotFoundError, wire.DecodeError):
+            pass
+        try:
+            listed = await obs.list()
+        except jse.NotFoundError:
+            return
+        for info in listed:
+            if info.name != keep and not info.deleted:
+                await self._delete_object(obs, info.name)
+        if keep:
+            self._objects.append(keep)
+
+    def _flush(self, budget: float) -> None:
+        deadline = time.monotonic() + budget
+        while self._is_connected and time.monotonic() < deadline:
+            with self._weights_lock:
+                if self._pending_weights is None and not self._uploading:
+                    break
+            time.sleep(0.05)
