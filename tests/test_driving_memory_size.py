@@ -70,7 +70,7 @@ def _samples(n: int, parts: dict[str, Any], seed: int = 0) -> list:
 
 def _arrays_held(obj: Any) -> list[np.ndarray]:
     """NumPy arrays among the memory's attributes (directly, in lists, tuples and dicts, or in the
-    memory's parts: the objects of tmrl.memory it is composed of), each counted once."""
+    memory's parts: the objects of tmrl.memory's modules it is composed of), each counted once."""
     found: list[np.ndarray] = []
     seen: set[int] = set()
 
@@ -80,7 +80,7 @@ def _arrays_held(obj: Any) -> list[np.ndarray]:
         seen.add(id(x))
         if isinstance(x, np.ndarray):
             found.append(x)
-        elif type(x).__module__ == "tmrl.memory":
+        elif type(x).__module__.startswith("tmrl.memory."):
             walk(vars(x))
         elif isinstance(x, (list, tuple)):
             for y in x:

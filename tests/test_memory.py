@@ -588,6 +588,18 @@ def test_collate_torch_shapes():
         collate_torch([None, None])
 
 
+def test_collate_torch_is_one_function_at_its_three_paths_and_tmrl_util_does_not_import_torch():
+    import tmrl.batch
+    import tmrl.util
+
+    # tmrl 0.7's path (tmrl.util), the memory's and the one where it lives
+    assert tmrl.util.collate_torch is tmrl.memory.collate_torch is tmrl.batch.collate_torch
+    code = "import sys, tmrl.util; print('torch' in sys.modules)"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "False", "importing tmrl.util imported torch"
+
+
 def test_dataset_path_refuses_pickle(tmp_path):
     (tmp_path / "data.pkl").write_bytes(b"\x80\x04N.")
     with pytest.raises(UserError, match="pickle"):

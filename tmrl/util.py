@@ -395,10 +395,11 @@ def show_progress_on_console() -> bool:
 
 
 def __getattr__(name: str) -> Any:
-    # Compatibility with the original ``tmrl.util.collate_torch``: the function belongs to the
-    # replay memory (a higher layer), so it is looked up there only when asked for by this name.
+    # Compatibility with the original ``tmrl.util.collate_torch``: the function lives next to the
+    # Batch it builds, in tmrl.batch, which imports torch; it is looked up there only when asked
+    # for by this name, so that importing tmrl.util does not import torch.
     if name == "collate_torch":
-        from tmrl.memory import collate_torch
+        from tmrl.batch import collate_torch
 
         return collate_torch
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
