@@ -157,6 +157,19 @@ def test_to_tracks_the_device():
     assert actor.to_device(torch.device("cpu")) is actor
 
 
+def test_the_device_follows_a_move_of_the_module_that_holds_the_actor():
+    """An agent moves its actor-critic, not the actor: torch never calls the actor's ``to`` then.
+    The "meta" device stands in for a GPU on a CPU-only machine (any device but the CPU will do)."""
+    actor = SquashedGaussianMLPActor(OBS_SPACE, ACT_SPACE, hidden_sizes=(8, 8))
+    holder = torch.nn.ModuleDict({"actor": actor})
+    holder.to("meta")
+    assert next(actor.parameters()).device.type == "meta" and actor.device == torch.device("meta")
+    holder.to_empty(device="cpu")
+    assert actor.device == torch.device("cpu")
+    holder.float()
+    assert actor.device == torch.device("cpu")
+
+
 def test_tutorial_style_json_actor_works_unchanged(tmp_path):
     torch.manual_seed(3)
     trained = _TutorialJSONActor(OBS_SPACE, ACT_SPACE)

@@ -148,7 +148,9 @@ class TorchActorModule(ActorModule, torch.nn.Module):
     Args:
         observation_space: the environment's (preprocessed) observation space.
         action_space: the environment's action space.
-        device: where observations are collated for :meth:`act`; kept up to date by ``to()``.
+        device: where observations are collated for :meth:`act`; it follows the module wherever it
+            moves (``to()``, ``cuda()``, ``cpu()``, also when the move is made on a module that holds
+            this actor).
     """
 
     def __init__(self, observation_space: Any, action_space: Any, device: Any = "cpu") -> None:
@@ -218,6 +220,16 @@ class TorchActorModule(ActorModule, torch.nn.Module):
         if device is not None:
             self.device = device
         return super().to(*args, **kwargs)
+
+    def _apply(self, fn: Any, *args: Any, **kwargs: Any) -> TorchActorModule:
+        # why: torch calls _apply on every module of a tree when any ancestor moves (.to, .cuda,
+        # .cpu, to_empty), never `to` on the submodules: an actor inside a moved actor-critic must
+        # learn its new device here, or act_() collates observations on the old one.
+        out = super()._apply(fn, *args, **kwargs)
+        moved = fn(torch.empty(0, device=self.device)).device  # where the move sends our tensors
+        if moved != torch.device(self.device):  # a dtype-only move keeps the device as it was given
+            self.device = moved
+        return out
 
     def to_device(self, device: Any) -> TorchActorModule:
         """Move the module to ``device`` and return it."""
