@@ -3,8 +3,8 @@ of a big memory (first save, incremental save, load).
 
     python -m bench memory_speed                       # 1M samples, 3 rounds
     python -m bench memory_speed --size 200000 --act-buf-len 0   # GenericTorchMemory
-    git show 5abb66b:tmrl/memory.py > /tmp/memory_before.py   # the single-file memory, before the package
-    python -m bench memory_speed --reference /tmp/memory_before.py  # before/after a change
+    git worktree add /tmp/tmrl-before HEAD~1
+    python -m bench memory_speed --before /tmp/tmrl-before   # before/after a change, both whole trees
 
 Observations look like the lidar driving environment: speed (1,), lidar history (4, 19) float32,
 then an action buffer rebuilt by RealTimeTorchMemory. Needs about 1 GB of RAM and of disk per
@@ -16,7 +16,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import json
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -138,6 +140,32 @@ def one_round(args: argparse.Namespace, rnd: int, rec: harness.Recorder, side: s
         shutil.rmtree(folder, ignore_errors=True)
 
 
+class _Forward:
+    """The recorder of a child process: each measurement goes to the parent as one result line."""
+
+    def add(self, case: str, metric: str, side: str, value: float | None, **extra: Any) -> None:
+        harness.answer({"case": case, "metric": metric, "side": side, "value": value, **extra})
+
+
+def child_main(argv: list[str]) -> None:
+    """One round in a child process of one side (``--before``): ``argv`` is the settings as JSON."""
+    settings = json.loads(argv[0])
+    rnd, side = settings.pop("_round"), settings.pop("_side")
+    one_round(argparse.Namespace(**settings), rnd, _Forward(), side)  # type: ignore[arg-type]
+
+
+def _round_in(side: harness.Side, args: argparse.Namespace, rnd: int, rec: harness.Recorder) -> None:
+    """Run one round in ``side``'s tree and record what it measured."""
+    cmd = side.command("memory_speed", json.dumps({**vars(args), "_round": rnd, "_side": side.name}))
+    out = subprocess.run(cmd, env=side.env, cwd=side.cwd, capture_output=True, text=True, check=False)
+    if out.returncode != 0:
+        raise SystemExit(f"the {side.name} side failed:\n{out.stderr[-3000:]}")
+    for line in out.stdout.splitlines():
+        if line.startswith(harness.RESULT):
+            m = json.loads(line[len(harness.RESULT):])
+            rec.add(m.pop("case"), m.pop("metric"), m.pop("side"), m.pop("value"), **m)
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m bench memory_speed", description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=1_000_000, help="samples in the memory")
@@ -145,14 +173,25 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--act-buf-len", type=int, default=2, help="0: GenericTorchMemory")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--reference", metavar="FILE", default=None,
-                    help="a memory module file (e.g. git show HEAD:tmrl/memory.py > FILE) timed as side 'before', "
-                         "alternating with this checkout's in every round")
+                    help="a single-file memory module (tmrl/memory.py of a commit before the memory package) "
+                         "timed as side 'before' in this process, alternating with this checkout's in every round")
+    ap.add_argument("--before", metavar="CHECKOUT", default=None,
+                    help="an earlier commit of this repository checked out there (git worktree add): each of its "
+                         "rounds runs in a child process on that tree (memory and checkpoint code), labelled before")
     args = ap.parse_args(argv)
+    if args.reference and args.before:
+        raise SystemExit("--reference and --before both name the before side: give one")
     rec = harness.Recorder("memory_speed", vars(args))
-    sides = [("ours", memory_module(None))]
+    sides: list[tuple[str, Any]] = [("ours", memory_module(None))]
     if args.reference:
         sides.append(("before", memory_module(args.reference)))
-    for rnd, (side, module) in harness.alternate(sides, args.rounds):
-        one_round(args, rnd, rec, side, module)
-    rec.print_table(ratios=(("ours", "before"),) if args.reference else ())
+    if args.before:  # both sides in fresh child processes, one per round: the same conditions
+        sides = [("ours", harness.ours_side()), ("before", harness.before_side(args.before))]
+    settings = argparse.Namespace(**{k: v for k, v in vars(args).items() if k not in ("reference", "before")})
+    for rnd, (side, how) in harness.alternate(sides, args.rounds):
+        if isinstance(how, harness.Side):
+            _round_in(how, settings, rnd, rec)
+        else:
+            one_round(args, rnd, rec, side, how)
+    rec.print_table(ratios=(("ours", "before"),) if len(sides) > 1 else ())
     rec.close()
