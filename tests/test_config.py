@@ -502,6 +502,36 @@ def test_config_constants_reads_config_and_creates_nothing(_isolated_data_folder
     assert not _isolated_data_folder.exists()
 
 
+@pytest.mark.parametrize("interface, lidar, progress", [
+    ("TM20FULL", False, False), ("TM20LIDAR", True, False), ("TM20LIDARPROGRESS", True, True),
+    ("SIMFULL", False, False), ("SIMLIDAR", True, False), ("SIMLIDARPROGRESS", True, True),
+    ("GYM", False, False), ("DRONE", False, False),
+])
+def test_constants_flag_the_lidar_and_progress_interfaces(interface, lidar, progress):
+    from tmrl.config.constants import constants
+
+    c = constants(loader.validate({"ENV": {"RTGYM_INTERFACE": interface}}))
+    assert (c.RTGYM_INTERFACE, c.PRAGMA_LIDAR, c.PRAGMA_PROGRESS) == (interface, lidar, progress)
+
+
+def test_config_constants_exposes_every_constant_of_its_configuration(_isolated_data_folder):
+    """The compatibility module is tmrl.config.constants.constants() of the configuration it read,
+    name for name (and the roles take theirs from the same function)."""
+    code = (
+        "import json\n"
+        "import tmrl.config.config_constants as c\n"
+        "from tmrl.config.constants import constants\n"
+        "mine = vars(constants(c.TMRL_CONFIG))\n"
+        "public = {n for n in vars(c) if n.isupper() and not n.startswith('_')}\n"
+        "print(json.dumps({'missing': sorted(set(mine) - public), 'extra': sorted(public - set(mine)),\n"
+        "  'differ': sorted(n for n in mine if repr(getattr(c, n)) != repr(mine[n])),\n"
+        "  'same_config': mine['TMRL_CONFIG'] is c.TMRL_CONFIG}))\n"
+    )
+    out = run_python(code, {loader.OVERRIDE_ENV: '{"ENV": {"RTGYM_INTERFACE": "SIMLIDARPROGRESS"}, "NB_WORKERS": -1}'})
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout) == {"missing": [], "extra": [], "differ": [], "same_config": True}
+
+
 def test_config_constants_bad_config_is_a_config_error(_isolated_data_folder):
     write_config(_isolated_data_folder, {"PORT": "x"})
     out = run_python(

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from conftest import free_port
 
 from tmrl.config import loader
 from tmrl.config.loader import ConfigError
@@ -239,6 +240,83 @@ def test_drone_kwargs_of_the_interface_and_of_the_drone_pass(fresh_objects):
     o = fresh_objects({"ENV": {"RTGYM_INTERFACE": "DRONE", "RTGYM_CONFIG": {
         "interface_kwargs": {"success_distance": 0.05, "mass": 2.0, "save_replays": False}}}})
     assert o.CONFIG_DICT["interface_kwargs"] == {"success_distance": 0.05, "mass": 2.0}
+
+
+# --- the roles and config_objects: one configuration, the same objects ----------------------------
+
+_ROLES_FIRST = textwrap.dedent(
+    """
+    import json
+    from tmrl import roles
+    trainer = roles.trainer_from_config()  # the roles first: they read the configuration
+    trainer.interface.close(2.0)
+    import tmrl.config.config_constants as c  # then a script's import of the compatibility modules
+    import tmrl.config.config_objects as o
+    worker = roles.worker_from_config(standalone=True)
+    worker.close()
+    agent = trainer.training_cls.keywords["training_agent_cls"]
+    print(json.dumps({
+        "trainer": trainer.training_cls is o.TRAINER, "agent": agent is o.AGENT,
+        "lr": [agent.keywords["lr_actor"], o.AGENT.keywords["lr_actor"]],
+        "worker": [worker.sample_compressor is o.SAMPLE_COMPRESSOR, type(worker.actor) is o.POLICY],
+        "checkpoint": trainer.checkpoint_path == str(c.CHECKPOINT_PATH), "port": [trainer.settings.port, c.PORT],
+    }))
+    """
+)
+
+_SCRIPT_FIRST = textwrap.dedent(
+    """
+    import json
+    from tmrl.config.loader import set_override_env
+    set_override_env({"ALG": {"LR_ACTOR": 0.0456}})  # a script sets its overrides, then imports
+    import tmrl.config.config_objects as o
+    set_override_env({"ALG": {"LR_ACTOR": 0.0789}})  # too late: the configuration was read
+    from tmrl import roles
+    trainer = roles.trainer_from_config()
+    trainer.interface.close(2.0)
+    print(json.dumps({"trainer": trainer.training_cls is o.TRAINER, "lr": o.AGENT.keywords["lr_actor"]}))
+    """
+)
+
+
+def _run_script(code: str, override: dict[str, Any]) -> dict[str, Any]:
+    env = {**os.environ, loader.OVERRIDE_ENV: json.dumps(override)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=180,
+                         check=False)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_roles_and_config_objects_hand_out_the_same_objects():
+    """Roles first, config_objects imported afterwards by the script: one configuration, one set of
+    objects (the trainer trains config_objects.TRAINER itself, the worker runs its compressor)."""
+    port = free_port()
+    got = _run_script(_ROLES_FIRST, {"RUN_NAME": "same_objects", "PORT": port, "ALG": {"LR_ACTOR": 0.0123},
+                                     "ENV": {"RTGYM_INTERFACE": "SIMLIDAR"}})
+    assert got == {"trainer": True, "agent": True, "lr": [0.0123, 0.0123], "worker": [True, True],
+                   "checkpoint": True, "port": [port, port]}
+
+
+def test_roles_run_the_configuration_config_constants_read():
+    """A script that imported config_objects first: the roles build from the configuration it read
+    (even when the override changed afterwards), the same objects."""
+    got = _run_script(_SCRIPT_FIRST, {})
+    assert got == {"trainer": True, "lr": 0.0456}
+
+
+def test_assemble_builds_once_per_configuration():
+    from tmrl.assembly import assemble
+
+    gym = {"ENV": {"RTGYM_INTERFACE": "GYM"}}
+    a, b = loader.load_config(overrides=gym), loader.load_config(overrides=gym)
+    other = loader.load_config(overrides={**gym, "ALG": {"LR_ACTOR": 0.5}})
+    assert a is not b and assemble(a) is assemble(b)  # equal configurations: the same objects
+    assert assemble(other).AGENT.keywords["lr_actor"] == 0.5
+    assert assemble(a).AGENT.keywords["lr_actor"] == a["ALG"]["LR_ACTOR"] != 0.5
+    assert assemble(a).TRAINER.keywords["training_agent_cls"] is assemble(a).AGENT
+    # the objects keep a copy: changing the dict afterwards changes none of them
+    a["ALG"]["LR_ACTOR"] = 0.25
+    assert assemble(b).ALG_CONFIG == b["ALG"] and assemble(b).ALG_CONFIG["LR_ACTOR"] != 0.25
 
 
 # --- TrackMania: built without the game ----------------------------------------------------------

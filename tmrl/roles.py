@@ -1,11 +1,12 @@
 """What ``python -m tmrl --server/--trainer/--worker/--expert/--test/--benchmark`` start.
 
-Each function builds its object from ``tmrl.config.config_constants`` and
-``tmrl.config.config_objects`` (which read ``config.json`` when first imported), runs it until it
-is done or interrupted, and returns the process exit code (0 done, 130 Ctrl-C, 143 SIGTERM,
-129 SIGHUP). Ctrl-C, SIGTERM and SIGHUP (a closed terminal; ignored under ``nohup``) stop the role
-cleanly within a few seconds, in every state: the network link or relay is closed (no child process
-keeps a port) and one line says which signal stopped what.
+Each function builds its object from the process's configuration
+(:func:`tmrl.config.loader.process_config`, read once, the one ``tmrl.config.config_constants``
+exposes) through :func:`tmrl.assembly.assemble` (the objects ``tmrl.config.config_objects`` hands
+out too), runs it until it is done or interrupted, and returns the process exit code (0 done,
+130 Ctrl-C, 143 SIGTERM, 129 SIGHUP). Ctrl-C, SIGTERM and SIGHUP (a closed terminal; ignored
+under ``nohup``) stop the role cleanly within a few seconds, in every state: the network link or
+relay is closed (no child process keeps a port) and one line says which signal stopped what.
 """
 
 from __future__ import annotations
@@ -95,30 +96,39 @@ def _say(line: str) -> None:
         pass
 
 
-def _constants() -> Any:
-    from tmrl.config import config_constants
+def _config() -> dict[str, Any]:
+    """The configuration the roles run with: the process's, which ``config_constants`` exposes too."""
+    from tmrl.config.loader import process_config
 
-    return config_constants
+    return process_config()
+
+
+def _constants() -> Any:
+    """The original ``config_constants`` names of the roles' configuration."""
+    from tmrl.config.constants import constants
+
+    return constants(_config())
 
 
 def _settings() -> Any:
-    """The roles' settings of the loaded config (the one ``config_objects`` was built from)."""
+    """The roles' settings of the loaded config (the one the objects were built from)."""
     from tmrl.config.settings import NetSettings
 
-    return NetSettings.from_config(_constants().TMRL_CONFIG)
+    return NetSettings.from_config(_config())
 
 
 def _objects() -> Any:
-    from tmrl.config import config_objects
+    """The objects of the roles' configuration: the same ones ``config_objects`` hands out."""
+    from tmrl.assembly import assemble
 
-    return config_objects
+    return assemble(_config())
 
 
 def run_server(cfg: Mapping[str, Any] | None = None, stop_event: threading.Event | None = None) -> int:
     """Run the server until Ctrl-C (or until ``stop_event`` is set). Returns the exit code.
 
     Args:
-        cfg: the loaded config dict (the values themselves are read through ``config_constants``).
+        cfg: the loaded config dict (the values themselves are read from the process's configuration).
         stop_event: lets a caller (tests, a service wrapper) stop the server without a signal.
 
     Raises:
@@ -317,7 +327,7 @@ def run_benchmark(cfg: Mapping[str, Any] | None = None, nb_steps: int = 1000) ->
 
 
 def configured_actor() -> Any:
-    """A fresh instance of the actor the configured workers run (``config_objects.POLICY`` on the
+    """A fresh instance of the actor the configured workers run (the objects' ``POLICY`` on the
     environment's spaces), on the CPU."""
     env = _env_cls()()
     try:

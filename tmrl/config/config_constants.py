@@ -1,8 +1,9 @@
 """Compatibility module: the constants of the original ``tmrl.config.config_constants``.
 
-Its documented job is to read the configuration when imported: it calls
-:func:`tmrl.config.loader.load_config` (``config.json`` of the data folder, or the defaults when
-that file does not exist yet, plus ``$TMRL_CONFIG_OVERRIDE``) and exposes the values under the
+Its documented job is to read the configuration when imported: it loads it
+(:func:`tmrl.config.loader.process_config`: ``config.json`` of the data folder, or the defaults
+when that file does not exist yet, plus ``$TMRL_CONFIG_OVERRIDE``; the roles of :mod:`tmrl.roles`
+run with the same one) and exposes the values of :func:`tmrl.config.constants.constants` under the
 original names. Unlike the original it creates no folder, downloads nothing, sets no environment
 variable and configures no logging; paths are :class:`pathlib.Path` objects.
 
@@ -16,125 +17,127 @@ Raises (at import):
 
 from __future__ import annotations
 
-import platform
+import platform  # noqa: F401 (the original module's namespace held it)
 from pathlib import Path
 from typing import Any
 
-from tmrl.config.loader import data_paths, load_config
-from tmrl.config.settings import NetSettings
+from tmrl.config.constants import constants as _constants
+from tmrl.config.loader import data_paths, load_config  # noqa: F401 (as above)
+from tmrl.config.loader import process_config as _process_config
+from tmrl.config.settings import NetSettings  # noqa: F401 (as above)
 
 __compatibility__ = "0.6.0"
 
-TMRL_CONFIG: dict[str, Any] = load_config()
-CONFIG_VERSION: str = TMRL_CONFIG["__VERSION__"]
+# Read again at every import of this module (its documented job); the roles run with this one too.
+TMRL_CONFIG: dict[str, Any] = _process_config(reload=True)
+_C = _constants(TMRL_CONFIG)
+CONFIG_VERSION: str = _C.CONFIG_VERSION
 
 # --- data folder ---------------------------------------------------------------------------------
 
-_PATHS = data_paths(TMRL_CONFIG)
-_NET = NetSettings.from_config(TMRL_CONFIG)
-TMRL_FOLDER: Path = _PATHS.root
-PATH_DATA: Path = TMRL_FOLDER
-CONFIG_FOLDER: Path = TMRL_FOLDER / "config"
-CONFIG_FILE: Path = _PATHS.config_file
-WEIGHTS_FOLDER: Path = _PATHS.weights
-CHECKPOINTS_FOLDER: Path = _PATHS.checkpoints
-DATASET_FOLDER: Path = _PATHS.dataset
-REWARD_FOLDER: Path = _PATHS.reward
-CREDENTIALS_FOLDER: Path = _PATHS.credentials
-LOGS_FOLDER: Path = _PATHS.logs
+TMRL_FOLDER: Path = _C.TMRL_FOLDER
+PATH_DATA: Path = _C.PATH_DATA
+CONFIG_FOLDER: Path = _C.CONFIG_FOLDER
+CONFIG_FILE: Path = _C.CONFIG_FILE
+WEIGHTS_FOLDER: Path = _C.WEIGHTS_FOLDER
+CHECKPOINTS_FOLDER: Path = _C.CHECKPOINTS_FOLDER
+DATASET_FOLDER: Path = _C.DATASET_FOLDER
+REWARD_FOLDER: Path = _C.REWARD_FOLDER
+CREDENTIALS_FOLDER: Path = _C.CREDENTIALS_FOLDER
+LOGS_FOLDER: Path = _C.LOGS_FOLDER
 
 # --- general -------------------------------------------------------------------------------------
 
-RUN_NAME: str = TMRL_CONFIG["RUN_NAME"]
-RESET_TRAINING: bool = TMRL_CONFIG["RESET_TRAINING"]
-BUFFERS_MAXLEN: int = TMRL_CONFIG["BUFFERS_MAXLEN"]
-RW_MAX_SAMPLES_PER_EPISODE: int = TMRL_CONFIG["RW_MAX_SAMPLES_PER_EPISODE"]
-PRAGMA_RNN = False
-CUDA_TRAINING: bool = TMRL_CONFIG["CUDA_TRAINING"]
-CUDA_INFERENCE: bool = TMRL_CONFIG["CUDA_INFERENCE"]
-PRAGMA_GAMEPAD: bool = TMRL_CONFIG["VIRTUAL_GAMEPAD"]
-SEED: int | None = TMRL_CONFIG["SEED"]
+RUN_NAME: str = _C.RUN_NAME
+RESET_TRAINING: bool = _C.RESET_TRAINING
+BUFFERS_MAXLEN: int = _C.BUFFERS_MAXLEN
+RW_MAX_SAMPLES_PER_EPISODE: int = _C.RW_MAX_SAMPLES_PER_EPISODE
+PRAGMA_RNN = _C.PRAGMA_RNN
+CUDA_TRAINING: bool = _C.CUDA_TRAINING
+CUDA_INFERENCE: bool = _C.CUDA_INFERENCE
+PRAGMA_GAMEPAD: bool = _C.PRAGMA_GAMEPAD
+SEED: int | None = _C.SEED
 
-LOCALHOST_WORKER: bool = TMRL_CONFIG["LOCALHOST_WORKER"]
-LOCALHOST_TRAINER: bool = TMRL_CONFIG["LOCALHOST_TRAINER"]
-PUBLIC_IP_SERVER: str = TMRL_CONFIG["PUBLIC_IP_SERVER"]
-SERVER_IP_FOR_WORKER: str = _NET.server_ip_for_worker
-SERVER_IP_FOR_TRAINER: str = _NET.server_ip_for_trainer
+LOCALHOST_WORKER: bool = _C.LOCALHOST_WORKER
+LOCALHOST_TRAINER: bool = _C.LOCALHOST_TRAINER
+PUBLIC_IP_SERVER: str = _C.PUBLIC_IP_SERVER
+SERVER_IP_FOR_WORKER: str = _C.SERVER_IP_FOR_WORKER
+SERVER_IP_FOR_TRAINER: str = _C.SERVER_IP_FOR_TRAINER
 
 # --- environment ---------------------------------------------------------------------------------
 
-ENV_CONFIG: dict[str, Any] = TMRL_CONFIG["ENV"]
-RTGYM_INTERFACE: str = ENV_CONFIG["RTGYM_INTERFACE"]
-SYSTEM: str = platform.system()
-RTGYM_VERSION = "real-time-gym-ts-v1"
-PRAGMA_PROGRESS: bool = RTGYM_INTERFACE.endswith("LIDARPROGRESS")
-PRAGMA_LIDAR: bool = RTGYM_INTERFACE.endswith("LIDAR") or PRAGMA_PROGRESS
-PRAGMA_TM2020_TMNF = True
-LIDAR_BLACK_THRESHOLD = [55, 55, 55]
-REWARD_CONFIG: dict[str, Any] = ENV_CONFIG["REWARD_CONFIG"]
-REWARD_END_OF_TRACK: float = REWARD_CONFIG["END_OF_TRACK"]
-CONSTANT_PENALTY: float = REWARD_CONFIG["CONSTANT_PENALTY"]
-SLEEP_TIME_AT_RESET: float = ENV_CONFIG["SLEEP_TIME_AT_RESET"]
-IMG_HIST_LEN: int = ENV_CONFIG["IMG_HIST_LEN"]
-ACT_BUF_LEN: int = ENV_CONFIG["RTGYM_CONFIG"]["act_buf_len"]
-WINDOW_WIDTH: int = ENV_CONFIG["WINDOW_WIDTH"]
-WINDOW_HEIGHT: int = ENV_CONFIG["WINDOW_HEIGHT"]
-GRAYSCALE: bool = ENV_CONFIG["IMG_GRAYSCALE"]
-IMG_WIDTH: int = ENV_CONFIG["IMG_WIDTH"]
-IMG_HEIGHT: int = ENV_CONFIG["IMG_HEIGHT"]
-LINUX_X_OFFSET: int = ENV_CONFIG["LINUX_X_OFFSET"]
-LINUX_Y_OFFSET: int = ENV_CONFIG["LINUX_Y_OFFSET"]
-IMG_SCALE_CHECK_ENV: float = ENV_CONFIG["IMG_SCALE_CHECK_ENV"]
-GYM_ID: str = ENV_CONFIG["GYM_ID"]
-GYM_KWARGS: dict[str, Any] = ENV_CONFIG["GYM_KWARGS"]
-SIM_FAST_MODE: bool = ENV_CONFIG["SIM_FAST_MODE"]
+ENV_CONFIG: dict[str, Any] = _C.ENV_CONFIG
+RTGYM_INTERFACE: str = _C.RTGYM_INTERFACE
+SYSTEM: str = _C.SYSTEM
+RTGYM_VERSION = _C.RTGYM_VERSION
+PRAGMA_PROGRESS: bool = _C.PRAGMA_PROGRESS
+PRAGMA_LIDAR: bool = _C.PRAGMA_LIDAR
+PRAGMA_TM2020_TMNF = _C.PRAGMA_TM2020_TMNF
+LIDAR_BLACK_THRESHOLD = _C.LIDAR_BLACK_THRESHOLD
+REWARD_CONFIG: dict[str, Any] = _C.REWARD_CONFIG
+REWARD_END_OF_TRACK: float = _C.REWARD_END_OF_TRACK
+CONSTANT_PENALTY: float = _C.CONSTANT_PENALTY
+SLEEP_TIME_AT_RESET: float = _C.SLEEP_TIME_AT_RESET
+IMG_HIST_LEN: int = _C.IMG_HIST_LEN
+ACT_BUF_LEN: int = _C.ACT_BUF_LEN
+WINDOW_WIDTH: int = _C.WINDOW_WIDTH
+WINDOW_HEIGHT: int = _C.WINDOW_HEIGHT
+GRAYSCALE: bool = _C.GRAYSCALE
+IMG_WIDTH: int = _C.IMG_WIDTH
+IMG_HEIGHT: int = _C.IMG_HEIGHT
+LINUX_X_OFFSET: int = _C.LINUX_X_OFFSET
+LINUX_Y_OFFSET: int = _C.LINUX_Y_OFFSET
+IMG_SCALE_CHECK_ENV: float = _C.IMG_SCALE_CHECK_ENV
+GYM_ID: str = _C.GYM_ID
+GYM_KWARGS: dict[str, Any] = _C.GYM_KWARGS
+SIM_FAST_MODE: bool = _C.SIM_FAST_MODE
 
 # --- algorithm -----------------------------------------------------------------------------------
 
-ALG_CONFIG: dict[str, Any] = TMRL_CONFIG["ALG"]
-ALG_NAME: str = ALG_CONFIG["ALGORITHM"]
+ALG_CONFIG: dict[str, Any] = _C.ALG_CONFIG
+ALG_NAME: str = _C.ALG_NAME
 
 # --- debugging and benchmarking ------------------------------------------------------------------
 
-CRC_DEBUG = False
-CRC_DEBUG_SAMPLES = 100
-PROFILE_TRAINER = False
-SYNCHRONIZE_CUDA = False
-DEBUG_MODE: bool = TMRL_CONFIG["DEBUG_MODE"]
+CRC_DEBUG = _C.CRC_DEBUG
+CRC_DEBUG_SAMPLES = _C.CRC_DEBUG_SAMPLES
+PROFILE_TRAINER = _C.PROFILE_TRAINER
+SYNCHRONIZE_CUDA = _C.SYNCHRONIZE_CUDA
+DEBUG_MODE: bool = _C.DEBUG_MODE
 
 # --- files ---------------------------------------------------------------------------------------
 
-MODEL_HISTORY: int = _NET.model_history
-MODEL_PATH_WORKER: Path = _NET.model_path_worker
-MODEL_PATH_SAVE_HISTORY: Path = _NET.model_path_save_history
-MODEL_PATH_TRAINER: Path = _NET.model_path_trainer
-CHECKPOINT_PATH: Path = _NET.checkpoint_path
-DATASET_PATH: Path = _PATHS.dataset
-REWARD_PATH: Path = _PATHS.reward_file
+MODEL_HISTORY: int = _C.MODEL_HISTORY
+MODEL_PATH_WORKER: Path = _C.MODEL_PATH_WORKER
+MODEL_PATH_SAVE_HISTORY: Path = _C.MODEL_PATH_SAVE_HISTORY
+MODEL_PATH_TRAINER: Path = _C.MODEL_PATH_TRAINER
+CHECKPOINT_PATH: Path = _C.CHECKPOINT_PATH
+DATASET_PATH: Path = _C.DATASET_PATH
+REWARD_PATH: Path = _C.REWARD_PATH
 
 # --- wandb ---------------------------------------------------------------------------------------
 
-WANDB_RUN_ID: str = _NET.wandb_run_id
-WANDB_PROJECT: str = _NET.wandb_project
-WANDB_ENTITY: str = _NET.wandb_entity
-WANDB_KEY: str = _NET.wandb_key
+WANDB_RUN_ID: str = _C.WANDB_RUN_ID
+WANDB_PROJECT: str = _C.WANDB_PROJECT
+WANDB_ENTITY: str = _C.WANDB_ENTITY
+WANDB_KEY: str = _C.WANDB_KEY
 
 # --- networking ----------------------------------------------------------------------------------
 
-PRINT_BYTESIZES = True
-PORT: int = _NET.port
-LOCAL_PORT_SERVER: int = TMRL_CONFIG["LOCAL_PORT_SERVER"]
-LOCAL_PORT_TRAINER: int = TMRL_CONFIG["LOCAL_PORT_TRAINER"]
-LOCAL_PORT_WORKER: int = TMRL_CONFIG["LOCAL_PORT_WORKER"]
-PASSWORD: str = _NET.password
-SECURITY: str | None = _NET.security
-CREDENTIALS_DIRECTORY: Path = _NET.credentials_directory
-HOSTNAME: str = _NET.hostname
-NB_WORKERS: int | None = _NET.max_workers
-BUFFER_SIZE: int = TMRL_CONFIG["BUFFER_SIZE"]
-HEADER_SIZE: int = _NET.header_size
-ALLOW_PLAIN_TCP: bool = _NET.allow_plain_tcp
-ALLOW_PICKLE: bool = _NET.allow_pickle
-MAX_FRAME_BYTES: int = _NET.max_frame_bytes
-SERVER_MEMORY_BYTES: int = _NET.server_memory_bytes
-SERVER_PARTIAL_TIMEOUT: float = _NET.server_partial_timeout
+PRINT_BYTESIZES = _C.PRINT_BYTESIZES
+PORT: int = _C.PORT
+LOCAL_PORT_SERVER: int = _C.LOCAL_PORT_SERVER
+LOCAL_PORT_TRAINER: int = _C.LOCAL_PORT_TRAINER
+LOCAL_PORT_WORKER: int = _C.LOCAL_PORT_WORKER
+PASSWORD: str = _C.PASSWORD
+SECURITY: str | None = _C.SECURITY
+CREDENTIALS_DIRECTORY: Path = _C.CREDENTIALS_DIRECTORY
+HOSTNAME: str = _C.HOSTNAME
+NB_WORKERS: int | None = _C.NB_WORKERS
+BUFFER_SIZE: int = _C.BUFFER_SIZE
+HEADER_SIZE: int = _C.HEADER_SIZE
+ALLOW_PLAIN_TCP: bool = _C.ALLOW_PLAIN_TCP
+ALLOW_PICKLE: bool = _C.ALLOW_PICKLE
+MAX_FRAME_BYTES: int = _C.MAX_FRAME_BYTES
+SERVER_MEMORY_BYTES: int = _C.SERVER_MEMORY_BYTES
+SERVER_PARTIAL_TIMEOUT: float = _C.SERVER_PARTIAL_TIMEOUT

@@ -23,6 +23,7 @@ import logging
 import os
 import secrets
 import tempfile
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,6 +53,7 @@ __all__ = [
     "install",
     "load_config",
     "parse_override",
+    "process_config",
     "set_override_env",
     "shipped_config",
     "switch_environment",
@@ -634,3 +636,27 @@ def load_config(path: str | os.PathLike[str] | None = None,
     if overrides is not None:
         cfg = apply_override(cfg, overrides, source="--config")
     return cfg
+
+
+_PROCESS_CONFIG: dict[str, Any] | None = None
+_PROCESS_LOCK = threading.Lock()
+
+
+def process_config(reload: bool = False) -> dict[str, Any]:
+    """The configuration this process runs with: the one the roles (:mod:`tmrl.roles`) build
+    from and the compatibility module :mod:`tmrl.config.config_constants` exposes, so that both
+    see the same. :func:`load_config` (``config.json`` of the data folder with
+    ``$TMRL_CONFIG_OVERRIDE``) on the first call; the same dict on every later call.
+
+    Args:
+        reload: load it again and keep the new one for the later calls (importing
+            ``config_constants`` does: that module reads the configuration when imported).
+
+    Raises:
+        ConfigError: the configuration is invalid (one line naming the key).
+    """
+    global _PROCESS_CONFIG
+    with _PROCESS_LOCK:
+        if reload or _PROCESS_CONFIG is None:
+            _PROCESS_CONFIG = load_config()
+        return _PROCESS_CONFIG

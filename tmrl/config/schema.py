@@ -41,15 +41,19 @@ from tmrl.config.spec import (
     Section,
     Spec,
     Str,
-    show,
+    show,  # noqa: F401 (the loader and older code reach it here)
 )
 
 __all__ = [
+    "AGENT_CLASSES",
     "ALGORITHMS",
     "EXAMPLES",
+    "NO_CLASS_DEFAULT",
+    "OPTIMIZERS",
     "PASSWORD_PLACEHOLDER",
     "RTGYM_INTERFACES",
     "SCHEMA",
+    "UPDATE_ORDERS",
     "AnyDict",
     "AnyList",
     "Bool",
@@ -62,19 +66,15 @@ __all__ = [
     "Section",
     "Spec",
     "Str",
-    "AGENT_CLASSES",
-    "NO_CLASS_DEFAULT",
-    "OPTIMIZERS",
-    "UPDATE_ORDERS",
     "arguments",
     "check_consistency",
-    "fed_arguments",
-    "redq_subset_problem",
     "default_config_json",
     "defaults",
     "example_json",
+    "fed_arguments",
     "generated_files",
     "markdown_reference",
+    "redq_subset_problem",
 ]
 
 # --- the schema ----------------------------------------------------------------------------------
@@ -400,10 +400,11 @@ def example_json(name: str) -> str:
     """The text of the shipped example ``config/<name>``: a complete, valid config.
 
     Args:
-        name: a file name among the keys of :data:`EXAMPLES` (``"config_simlidar.json"``).
+        name: a file name among the keys of :data:`~tmrl.config.generate.EXAMPLES`
+            (``"config_simlidar.json"``).
 
     Raises:
-        KeyError: ``name`` is not one of :data:`EXAMPLES`.
+        KeyError: ``name`` is not one of :data:`~tmrl.config.generate.EXAMPLES`.
     """
     return generate.example_json(SCHEMA, name)
 
