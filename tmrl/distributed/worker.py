@@ -23,6 +23,9 @@ from tmrl.util import show_progress_on_console
 
 logger = logging.getLogger(LOGGER_NAME)
 
+#: Seconds between two lines of a worker that still waits for the trainer's first weights.
+WAITING_NOTE_INTERVAL = 30.0
+
 
 class EpisodeLog:
     """The worker's episode reports: every episode at DEBUG level; at ``level`` (INFO by
@@ -206,6 +209,8 @@ class RolloutWorker:
         self.buffer = Buffer(cfg.buffers_maxlen)
         self.buffer.source_id = self.source_id
         self._seq = 0
+        self.samples_sent = 0
+        """Samples handed to the network since this worker was built (what its summaries add up)."""
         self.weights_version = 0
         self.run_id: str | None = None
         """The run identity of the weights this worker acts with (stamped on its samples)."""
@@ -360,8 +365,26 @@ class RolloutWorker:
         if self._link is None:
             return
         logger.info("waiting for the trainer's first weights")
+        started = time.monotonic()
+        next_note = started + WAITING_NOTE_INTERVAL
         while self.weights_version == 0 and not self._closed:
-            self.update_actor_weights(verbose=False, blocking=True)
+            t0 = time.monotonic()
+            envelope = self._link.latest_weights(block=True, timeout=1.0)
+            if envelope is not None:
+                self._load_weights(envelope, verbose=False)
+                continue
+            now = time.monotonic()
+            if now - t0 < 0.5:  # the link's process is gone: do not spin
+                time.sleep(0.5)
+            if now >= next_note:  # say why nothing happens, and what to start
+                next_note = now + WAITING_NOTE_INTERVAL
+                if not self.connected:
+                    logger.warning("still waiting for the trainer's first weights after %.0f s: no connection to the "
+                                   "server at %s yet; is `python -m tmrl --server` running there, with this config's "
+                                   "PORT and PASSWORD?", now - started, self.server_ip)
+                else:
+                    logger.warning("still waiting for the trainer's first weights after %.0f s: connected to the "
+                                   "server, no trainer yet; is `python -m tmrl --trainer` running?", now - started)
 
     def _keep_pace(self, end_of_episode: bool) -> None:
         """Pause while this worker is ahead of the trainer's budget of samples (see :class:`Pace`):
@@ -459,9 +482,11 @@ class RolloutWorker:
             ):
                 ret = self.run_episode(self.max_samples_per_episode, train=False)
                 summary.test(ret, self.buffer.stat_test_steps)
+            sent_before = self.samples_sent
             self.collect_train_episode(self.max_samples_per_episode)
-            n = len(self.buffer) if self._link is not None else 0  # standalone: nothing is sent
             self.send_and_clear_buffer()
+            # counted where samples are handed to the network: the pace may flush mid-episode
+            n = self.samples_sent - sent_before
             if expert:
                 self.ignore_actor_weights()
             elif episode == 0 and self.weights_version == 0:
@@ -617,6 +642,7 @@ class RolloutWorker:
                 "(drop the rest in a sample_compressor)"
             ) from err
         self._seq += 1
+        self.samples_sent += len(self.buffer)
         self.buffer.clear()
 
     def _load_weights(self, envelope: bytes, verbose: bool) -> bool:
