@@ -62,7 +62,8 @@ def test_the_samples_a_worker_reports_sent_are_the_samples_the_trainer_stored(tm
     from tmrl.models import SquashedGaussianMLPActor
     from tmrl.util import partial
 
-    caplog.set_level(logging.DEBUG, logger=LOGGER_NAME)
+    caplog.set_level(logging.INFO, logger="tmrl.metrics")
+    caplog.set_level(logging.DEBUG, logger=LOGGER_NAME)  # last: it sets the capture's level too
     port = port_factory()
     server = Server(port=port, password=PW, security=None)
     worker = None
@@ -106,6 +107,9 @@ def test_the_samples_a_worker_reports_sent_are_the_samples_the_trainer_stored(tm
     assert reported == [STEPS + 1] * EPISODES, reported
     assert run.total_samples == sum(reported) == sent  # what the trainer received and stored
     assert trainer.interface.received_samples == sent
+    # the trainer's round line says the same number
+    rounds = [r.getMessage() for r in caplog.records if r.name == "tmrl.metrics" and " round " in r.getMessage()]
+    assert rounds and f"| samples {sent} memory " in rounds[-1], rounds[-3:]
 
 
 @pytest.mark.parametrize("server", [False, True], ids=["no server", "no trainer"])

@@ -64,7 +64,7 @@ def _fmt(value: Any) -> str:
 def format_row(row: Mapping[str, Any]) -> str:
     """The compact console line for one round, e.g.
     ``epoch 2 round 7/50 | loss_actor -3.21 loss_critic 0.123 entropy_coef 0.0412 | return train
-    -140.5 test -130.2 | memory 12000 | 105.3 upd/s 51.2 smp/s``.
+    -140.5 test -130.2 | samples 12100 memory 12000 | 105.3 upd/s 51.2 smp/s``.
 
     Args:
         row: the round's metrics (``RoundMetrics.as_row()``).
@@ -80,7 +80,9 @@ def format_row(row: Mapping[str, Any]) -> str:
     if losses:
         parts.append(losses)
     parts.append(f"return train {_fmt(row.get('return_train'))} test {_fmt(row.get('return_test'))}")
-    parts.append(f"memory {_fmt(row.get('memory_len'))}")
+    # the samples received so far: what the workers' summaries add up to (the memory may hold fewer)
+    samples = f"samples {_fmt(row['total_samples'])} " if "total_samples" in row else ""
+    parts.append(f"{samples}memory {_fmt(row.get('memory_len'))}")
     parts.append(
         f"{_fmt(row.get('updates_per_second'))} upd/s {_fmt(row.get('samples_per_second'))} smp/s"
     )
