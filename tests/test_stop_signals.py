@@ -182,7 +182,10 @@ UP = {"server": "server running on port", "trainer": "waiting for samples",
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=lambda s: signal.Signals(s).name)
 def test_the_three_command_line_roles_stop_on_every_signal(sig, run, port_factory):
     env = {"TMRL_CONFIG_OVERRIDE": _quick_start_override(port_factory())}
-    roles = {role: run.start(f"--{role}", env=env) for role in ("server", "trainer", "worker")}
+    run.env.pop("OMP_NUM_THREADS", None)  # the roles size their threads themselves (issue 40)
+    run.env.pop("TMRL_THREADS", None)
+    roles = {role: run.start(f"--{role}", *(["--threads", "2"] if role == "trainer" else []), env=env)
+             for role in ("server", "trainer", "worker")}
     run.wait_until("the three roles up", lambda: len(network_processes(run.marker)) == 3
                    and all(UP[role] in run.text(p) for role, p in roles.items()))
     for proc in roles.values():
@@ -193,4 +196,7 @@ def test_the_three_command_line_roles_stop_on_every_signal(sig, run, port_factor
         assert proc.wait() == 128 + sig, f"--{role}: exit {proc.returncode}\n{out[-3000:]}"
         assert f"tmrl: {role} stopped ({NAMES[sig]})" in out, out[-3000:]
         assert "Traceback" not in out, out[-3000:]
+    # threads per role: --threads for the trainer, the worker's share of the cores by default
+    assert "trainer: 2 PyTorch threads (TMRL_THREADS" in run.text(roles["trainer"])
+    assert "worker: 1 PyTorch thread (" in run.text(roles["worker"]) and " cores;" in run.text(roles["worker"])
     print(f"[stop] --server/--trainer/--worker {signal.Signals(sig).name}: all gone in {took:.2f} s")

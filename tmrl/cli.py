@@ -32,7 +32,8 @@ validated, then stored as JSON in ``$TMRL_CONFIG_OVERRIDE`` so that
 
 Exit codes: 0 success, 2 a user mistake (:class:`tmrl.errors.UserError`, one line on stderr, no
 traceback) or a command that has not landed yet, 1 a bug (traceback and a request to report it),
-130 interrupted.
+3 ``--doctor`` found a problem, 129 stopped by SIGHUP (its terminal closed), 130 interrupted
+(Ctrl-C), 143 stopped by SIGTERM.
 """
 
 from __future__ import annotations
@@ -91,6 +92,9 @@ TM_BENCHMARK_STEPS = 500
 
 _SECRET_KEYS = ("PASSWORD", "WANDB_KEY")
 
+#: The commands whose roles size their PyTorch threads (``--threads``, ``$TMRL_THREADS``).
+_THREADED = ("trainer", "worker", "expert", "test", "benchmark", "demo")
+
 _DESCRIPTION = """\
 tmrl: distributed real-time reinforcement learning (TrackMania, a simulated track, any Gymnasium
 environment). A run has three parts that can live on different machines: a server that relays
@@ -109,7 +113,12 @@ examples:
   python -m tmrl --print-config -d "{'CUDA_TRAINING': True}"
 
 exit codes: 0 success, 1 a bug in tmrl (please report it), 2 a mistake in the command or the
-configuration (one line says what to change), 130 interrupted.
+configuration (one line says what to change), 3 --doctor found a problem (its report says what to
+fix), 129 stopped by SIGHUP (the terminal was closed), 130 interrupted (Ctrl-C), 143 stopped by
+SIGTERM.
+
+threads: each role sizes its PyTorch threads to this machine's cores (a worker 1, a trainer all
+cores but one); --threads N or TMRL_THREADS=N sets them.
 """
 
 
@@ -209,6 +218,10 @@ def build_parser() -> argparse.ArgumentParser:
                          help="with --import-weights or --export-weights: where to write the converted file")
     options.add_argument("--use-keyboard", action="store_true",
                          help="with --record-reward: drive with the keyboard instead of a gamepad")
+    options.add_argument("--threads", metavar="N", type=int,
+                         help="with --trainer, --worker, --expert, --test, --benchmark or --demo: PyTorch (and "
+                              "OpenMP) threads of each role (default: $TMRL_THREADS, else $OMP_NUM_THREADS, else "
+                              "1 for a worker and all cores but one for a trainer)")
     options.add_argument("-v", "--verbose", action="store_true", help="show debug messages")
     options.add_argument("-q", "--quiet", action="store_true", help="show only warnings and errors")
     return parser
@@ -345,6 +358,12 @@ def _run(args: argparse.Namespace, extra: list[str]) -> int:
         return _print_quietly(json.dumps(_hidden(loader.load_config()), indent=2))
 
     flag = _flag(command)
+    if command in _THREADED:
+        from tmrl.roles import THREADS_ENV, role_threads
+
+        if args.threads is not None:
+            os.environ[THREADS_ENV] = str(args.threads)  # the demo's roles inherit it
+        role_threads(command)  # a bad $TMRL_THREADS is reported here, before anything starts
     if command == "demo":
         # The demo checks its arguments and the configuration, then prepares the data folder
         # itself: --demo --help or a mistake creates nothing.
@@ -428,6 +447,9 @@ def _check_combinations(parser: argparse.ArgumentParser, args: argparse.Namespac
         (args.env is not None and args.command != "install", "--env goes with --install (python -m tmrl --install --env simlidar)"),
         (args.wandb and args.command != "trainer", "--wandb goes with --trainer"),
         (args.use_keyboard and args.command != "record_reward", "--use-keyboard goes with --record-reward"),
+        (args.threads is not None and args.command not in _THREADED,
+         "--threads goes with --trainer, --worker, --expert, --test, --benchmark or --demo"),
+        (args.threads is not None and args.threads < 1, f"--threads {args.threads}: give at least 1"),
         (args.verbose and args.quiet, "choose one of --verbose and --quiet"),
     ]
     for bad, message in wrong:

@@ -22,6 +22,7 @@ from tmrl.errors import UserError
 from tmrl.distributed import STOP_TIMEOUT
 
 __all__ = [
+    "THREADS_ENV",
     "WORKER_MODES",
     "configured_actor",
     "run_benchmark",
@@ -30,6 +31,8 @@ __all__ = [
     "run_server",
     "run_trainer",
     "run_worker",
+    "role_threads",
+    "size_threads",
 ]
 
 logger = logging.getLogger(__name__)
@@ -94,6 +97,56 @@ def _say(line: str) -> None:
         print(line, file=sys.stderr, flush=True)
     except OSError:  # the terminal was closed (SIGHUP): nobody left to read it
         pass
+
+
+#: Environment variable: how many threads each role's PyTorch (and OpenMP, MKL) uses; set by
+#: ``--threads N`` too. Unset: ``OMP_NUM_THREADS`` when set, else the role's share of the cores.
+THREADS_ENV = "TMRL_THREADS"
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))  # the cores this process may run on
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def role_threads(role: str, cores: int | None = None) -> tuple[int, str]:
+    """How many threads ``role`` (``"trainer"``, ``"worker"``, ...) gives PyTorch, and why.
+
+    ``$TMRL_THREADS`` when set, else ``$OMP_NUM_THREADS`` when set, else the role's share of this
+    machine's ``cores``: a worker 1 (it acts on one observation at a time), a trainer every core
+    but one, which is left to the worker and the server's relay that usually run beside it (on
+    two cores: 1 each, as in the demo; PyTorch's own default, a thread per core in every role,
+    oversubscribes the machine as soon as two roles share it).
+
+    Raises:
+        UserError: ``$TMRL_THREADS`` is not a whole number of at least 1.
+    """
+    text = os.environ.get(THREADS_ENV, "").strip()
+    if text:
+        if not text.isdigit() or int(text) < 1:
+            raise UserError(f"{THREADS_ENV}={text!r}: set it to a whole number of threads of at least 1 (or unset it)")
+        return int(text), THREADS_ENV
+    omp = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if omp.isdigit() and int(omp) >= 1:
+        return int(omp), "OMP_NUM_THREADS"
+    cores = _cores() if cores is None else cores
+    return (max(1, cores - 1) if role == "trainer" else 1), f"{cores} cores"
+
+
+def size_threads(role: str) -> int:
+    """Give this process's PyTorch :func:`role_threads` threads, and set ``OMP_NUM_THREADS`` and
+    ``MKL_NUM_THREADS`` to the same number for the libraries and processes started later.
+    Returns the number."""
+    n, why = role_threads(role)
+    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(n)
+    import torch
+
+    torch.set_num_threads(n)
+    logger.info("%s: %d PyTorch thread%s (%s; %s or --threads to change)", role, n, "" if n == 1 else "s", why,
+                THREADS_ENV)
+    return n
 
 
 def _config() -> dict[str, Any]:
@@ -213,6 +266,7 @@ def run_trainer(cfg: Mapping[str, Any] | None = None, wandb: bool = False) -> in
     """Run the trainer (with Weights & Biases logging when ``wandb``) until its last epoch or
     Ctrl-C. Returns the exit code."""
     _interrupt_on_sigterm()
+    size_threads("trainer")
     cc = _constants()
     trainer = trainer_from_config()
     trainer.metrics_logger = _metrics_logger(cc)
@@ -296,6 +350,7 @@ def run_worker(cfg: Mapping[str, Any] | None = None, mode: str = "train", standa
     if mode not in WORKER_MODES:
         raise UserError(f"unknown worker mode {mode!r}: use one of {', '.join(WORKER_MODES)}")
     _interrupt_on_sigterm()
+    size_threads("worker")
     worker = worker_from_config(standalone=mode == "test" if standalone is None else standalone)
     try:
         if mode == "train":
@@ -315,6 +370,7 @@ def run_worker(cfg: Mapping[str, Any] | None = None, mode: str = "train", standa
 def run_benchmark(cfg: Mapping[str, Any] | None = None, nb_steps: int = 1000) -> int:
     """Benchmark the configured environment (``--benchmark``): a standalone worker steps it
     ``nb_steps`` times and the environment's timing figures are printed. Returns the exit code."""
+    size_threads("worker")
     worker = worker_from_config(standalone=True)
     try:
         res = worker.run_env_benchmark(nb_steps=nb_steps, test=False, verbose=False)

@@ -251,10 +251,11 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
               realtime: bool = False) -> None:
     # Stop signals (the parent's SIGINT, or SIGTERM when the parent died) arrive as
     # KeyboardInterrupt (see main()): each role closes its network process within STOP_TIMEOUT.
-    import torch
-
-    torch.set_num_threads(1)
     from tmrl.distributed import STOP_TIMEOUT, RolloutWorker, Server, Trainer
+    from tmrl.roles import size_threads
+
+    if role != "server":
+        size_threads(role)  # 1 (the parent sets OMP_NUM_THREADS=1) unless TMRL_THREADS says otherwise
 
     common = dict(password=password, security=None)
     if role == "server":
