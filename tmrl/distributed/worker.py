@@ -49,12 +49,25 @@ class EpisodeLog:
         self._test: tuple[float, int] | None = None
 
     def test(self, ret: float, steps: int) -> None:
-        """A test episode's return and length (reported with the next summary)."""
+        """Record a test episode (reported with the next summary).
+
+        Args:
+            ret: its return.
+            steps: its length.
+        """
         logger.debug("test episode: return %.1f in %d steps", ret, steps)
         self._test = (ret, steps)
 
     def train(self, episode: int, ret: float, steps: int, sent: int, version: int) -> None:
-        """A finished episode: its index, return, length, samples sent, weights version."""
+        """Record a finished train episode; log a summary when one is due.
+
+        Args:
+            episode: its index.
+            ret: its return.
+            steps: its length.
+            sent: samples sent since the previous call.
+            version: the weights version the worker acts with.
+        """
         logger.debug("%s episode %d: return %.1f in %d steps; %d samples sent; weights version %d",
                      self.kind, episode, ret, steps, sent, version)
         if not self._returns:
