@@ -14,7 +14,12 @@ What it guarantees, so that a figure can be checked:
   is taken (``{"kind": "measure", ...}``), followed by the summary rows (``{"kind": "summary"}``).
 
 Only the standard library is imported here: the harness also runs inside the other sides'
-interpreters, where this project's dependencies may be missing.
+interpreters, where this project's dependencies may be missing (:func:`resolve_device` and
+:func:`device_settings` import our tmrl or torch when called, in the parent only).
+
+- **One device per record**: ``--device`` (:func:`add_device_argument`) puts every side's memory
+  and agent on the same device; the record's settings name it (and the GPU), and so does the
+  first line a benchmark prints.
 """
 
 from __future__ import annotations
@@ -162,6 +167,49 @@ def add_side_arguments(parser: argparse.ArgumentParser, tmrl: bool = True, sb3: 
                              "labelled before, measured by this checkout's benchmark code")
 
 
+def add_device_argument(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--device cpu|cuda|cuda:N|auto``: where every side's memory and agent train (``auto``:
+    the GPU when PyTorch sees one); resolved by :func:`resolve_device`."""
+    parser.add_argument("--device", default=default, metavar="DEVICE",
+                        help=f"cpu, cuda, cuda:N or auto (the GPU when there is one); every side trains there "
+                             f"(default: {default})")
+
+
+def resolve_device(parser: argparse.ArgumentParser, device: str) -> str:
+    """The torch device ``--device`` names on this machine (``auto`` resolved), checked by our
+    tmrl's :func:`tmrl.util.resolve_device`; a device this machine lacks ends the command with
+    the parser's one-line error. Run by the parent only (it imports our tmrl): each side's child
+    is handed the resolved name."""
+    from tmrl.errors import UserError
+    from tmrl.util import resolve_device as resolve
+
+    try:
+        return resolve(device)
+    except UserError as e:
+        parser.error(str(e))
+        raise  # unreachable: parser.error exits
+
+
+def device_settings(device: str) -> dict[str, Any]:
+    """What a record says of the device its figures were taken on: ``{"device": "cpu"}``, or for
+    a GPU also its name, driver, and the CUDA and PyTorch versions (a GPU figure is never compared
+    with a CPU one: :class:`Recorder` names the device in its first line and its header)."""
+    if not device.startswith("cuda"):
+        return {"device": device}
+    import torch  # the parent's own torch (our interpreter), asked only for a GPU run
+
+    index = int(device.split(":")[1]) if ":" in device else 0
+    driver = None
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader", "-i", str(index)],
+                             capture_output=True, text=True, timeout=30, check=False)
+        driver = out.stdout.strip() or None
+    except (OSError, subprocess.TimeoutExpired):
+        pass
+    return {"device": device, "gpu": torch.cuda.get_device_name(index), "gpu_driver": driver,
+            "cuda": torch.version.cuda, "torch": torch.__version__}
+
+
 def sides_from_args(args: argparse.Namespace) -> list[Side]:
     """Ours, then each other side the options ask for (their installs checked now)."""
     sides = [ours_side()]
@@ -224,7 +272,8 @@ class Recorder:
 
     Args:
         bench: the benchmark's name (file name prefix).
-        settings: the settings applied to every side (written in the header record).
+        settings: the settings applied to every side (written in the header record); a
+            ``"device"`` key (and ``"gpu"``, :func:`device_settings`) is named in the first line.
         out_dir: where the ``.jsonl`` file goes.
     """
 
@@ -256,7 +305,11 @@ class Recorder:
             "machine": platform.processor() or platform.machine(), "load_average": os.getloadavg(),
             "install": install(),
         })
-        print(f"{self.bench}: load average {_loads()} at start; results also go to {self.path}", flush=True)
+        where = ""
+        if "device" in self.settings:
+            gpu = self.settings.get("gpu")
+            where = f" on {self.settings['device']}" + (f" ({gpu})" if gpu else "")
+        print(f"{self.bench}{where}: load average {_loads()} at start; results also go to {self.path}", flush=True)
 
     def _write(self, record: dict[str, Any]) -> None:
         self._file.write(json.dumps(record, default=str) + "\n")

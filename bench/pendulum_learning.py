@@ -5,6 +5,7 @@ agents beside it in environment steps.
     python -m bench pendulum_learning                        # Pendulum, both orders, 5 seeds each
     python -m bench pendulum_learning --env simlidar --steps 20000
     python -m bench pendulum_learning --orders simultaneous --agents SAC,REDQSAC,DROQ,TQC --updates-per-step 1
+    python -m bench pendulum_learning --device cuda          # memory, agent and the workers' actors on the GPU
 
 ``simultaneous`` (our default: the actor loss reads the critics before their step, one backward
 pass) against ``sequential`` (the original tmrl SAC: after it), ``ALG.UPDATE_ORDER``. Each run is
@@ -18,7 +19,9 @@ The loop: ``--start-steps`` uniformly random actions, then the policy; samples g
 standalone :class:`tmrl.networking.RolloutWorker` (the simulator's preprocessor and compressor
 included) into the trainer's replay memory every ``--append-every`` steps; one update per step
 once the memory holds a batch; ``--eval-episodes`` deterministic test episodes every
-``--eval-every`` steps.
+``--eval-every`` steps. ``--device`` (default ``cpu``, the published figures'; ``cuda``,
+``cuda:N`` or ``auto``) puts the memory's batches, the agent and the actors the loop acts with
+on that device; the first printed line and the record's settings name it.
 """
 
 from __future__ import annotations
@@ -51,9 +54,10 @@ class _UniformActor:
         return self.action_space.sample()
 
 
-def _parts(env_name: str, batch_size: int, memory_size: int, track: str = "classic") -> dict[str, Any]:
-    """Environment factory, memory, agent class and worker extras of ``env_name`` (``"simlidar"``:
-    on ``track``)."""
+def _parts(env_name: str, batch_size: int, memory_size: int, track: str = "classic",
+           device: str = "cpu") -> dict[str, Any]:
+    """Environment factory, memory (its batches collated on ``device``), agent class and worker
+    extras of ``env_name`` (``"simlidar"``: on ``track``)."""
     from tmrl.memory import GenericTorchMemory
     from tmrl.models import MLPActorCritic, SquashedGaussianMLPActor
     from tmrl.util import partial
@@ -63,7 +67,7 @@ def _parts(env_name: str, batch_size: int, memory_size: int, track: str = "class
 
         return {"env_cls": partial(GenericGymEnv, id="Pendulum-v1"), "model_cls": MLPActorCritic,
                 "actor_cls": SquashedGaussianMLPActor,
-                "memory": GenericTorchMemory(device="cpu", nb_steps=1, memory_size=memory_size, batch_size=batch_size),
+                "memory": GenericTorchMemory(device=device, nb_steps=1, memory_size=memory_size, batch_size=batch_size),
                 "worker": {}, "max_samples": 200}
     from tmrl.sim.demo import DEMO_SETTINGS, _demo_config
     from tmrl.sim.interfaces import fast_env, pipeline_parts
@@ -71,7 +75,7 @@ def _parts(env_name: str, batch_size: int, memory_size: int, track: str = "class
     parts = pipeline_parts("SIMLIDAR")
     cfg = _demo_config("SIMLIDAR", track)
     memory = parts["memory_cls"](hist_len=DEMO_SETTINGS["img_hist_len"], act_buf_len=DEMO_SETTINGS["act_buf_len"],
-                                 device="cpu", nb_steps=1, memory_size=memory_size, batch_size=batch_size)
+                                 device=device, nb_steps=1, memory_size=memory_size, batch_size=batch_size)
     return {"env_cls": partial(fast_env, cfg), "model_cls": parts["model_cls"], "actor_cls": parts["actor_cls"],
             "memory": memory,
             "worker": {"obs_preprocessor": parts["obs_preprocessor"], "sample_compressor": parts["sample_compressor"]},
@@ -81,16 +85,17 @@ def _parts(env_name: str, batch_size: int, memory_size: int, track: str = "class
 AGENTS = ("SAC", "REDQSAC", "DROQ", "TQC")
 
 
-def _agent(name: str, order: str, env_name: str, spaces: tuple[Any, Any], model_cls: Any) -> Any:
-    """The agent ``name`` (an ``ALG.ALGORITHM`` value) with its class defaults (and its own MLP
-    model, the class default, except SAC, which trains the environment's model)."""
+def _agent(name: str, order: str, env_name: str, spaces: tuple[Any, Any], model_cls: Any,
+           device: str = "cpu") -> Any:
+    """The agent ``name`` (an ``ALG.ALGORITHM`` value) on ``device`` with its class defaults (and
+    its own MLP model, the class default, except SAC, which trains the environment's model)."""
     from tmrl.algorithms import agent_class
 
     if name == "SAC":
-        return agent_class(name)(*spaces, "cpu", model_cls=model_cls, update_order=order)
+        return agent_class(name)(*spaces, device, model_cls=model_cls, update_order=order)
     if env_name != "pendulum":
         raise SystemExit(f"{name} is measured on Pendulum only (its MLP models do not read the simulator's lidar)")
-    return agent_class(name)(*spaces, "cpu")
+    return agent_class(name)(*spaces, device)
 
 
 def _feed_and_train(worker: Any, memory: Any, agent: Any, append_every: int, n_updates: int,
@@ -113,8 +118,8 @@ def _feed_and_train(worker: Any, memory: Any, agent: Any, append_every: int, n_u
 
 def run(env_name: str, order: str, seed: int, steps: int, start_steps: int, eval_every: int, eval_episodes: int,
         batch_size: int, append_every: int, threads: int, agent_name: str = "SAC",
-        updates_per_step: int = 1) -> dict[str, Any]:
-    """One learning run; returns its test curve and timings."""
+        updates_per_step: int = 1, device: str = "cpu") -> dict[str, Any]:
+    """One learning run on ``device``; returns its test curve and timings."""
     import numpy as np
     import torch
 
@@ -123,14 +128,14 @@ def run(env_name: str, order: str, seed: int, steps: int, start_steps: int, eval
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
     np.random.seed(seed)
-    p = _parts(env_name, batch_size, 100_000)
+    p = _parts(env_name, batch_size, 100_000, device=device)
     memory = p["memory"]
     # The workers' own actors are replaced below (uniform, then the trained one).
     worker_kwargs = dict(env_cls=p["env_cls"], actor_module_cls=p["actor_cls"], standalone=True, model_history=0,
                          max_samples_per_episode=p["max_samples"], model_path=os.devnull + "_none", **p["worker"])
     worker, tester = RolloutWorker(**worker_kwargs), RolloutWorker(**worker_kwargs)
     agent = _agent(agent_name, order, env_name, (worker.env.observation_space, worker.env.action_space),
-                   p["model_cls"])
+                   p["model_cls"], device)
     worker.env.action_space.seed(seed)
     worker.actor, tester.actor = _UniformActor(worker.env.action_space), agent.get_actor()
     curve, updates, t_update = [], 0, 0.0
@@ -184,7 +189,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--agents", default="SAC", help="comma-separated ALG.ALGORITHM values: SAC (in each --orders), "
                     "REDQSAC, DROQ, TQC (their own class defaults; Pendulum only)")
     ap.add_argument("--updates-per-step", type=int, default=1, help="updates per environment step, every agent")
+    harness.add_device_argument(ap, "cpu")
     args = ap.parse_args(argv)
+    device = harness.resolve_device(ap, args.device)
     orders = [o for o in args.orders.split(",") if o]
     if set(orders) - set(ORDERS):
         ap.error(f"unknown order(s) {sorted(set(orders) - set(ORDERS))}: use {', '.join(ORDERS)}")
@@ -198,6 +205,7 @@ def main(argv: list[str] | None = None) -> None:
     variants.update({a: (a, "simultaneous") for a in agents if a != "SAC"})
     threshold = args.threshold if args.threshold is not None else THRESHOLDS[args.env]
     settings = {k: v for k, v in vars(args).items() if k not in ("orders", "seeds")}
+    settings.update(harness.device_settings(device))
     settings.update(threshold=threshold, algorithm="each agent's class defaults (SAC: MLP 256x256, lr 1e-3, "
                     "gamma 0.99, alpha 0.2 learned)")
     rec = harness.Recorder("pendulum_learning", settings)
@@ -207,7 +215,7 @@ def main(argv: list[str] | None = None) -> None:
         kwargs = dict(env_name=args.env, order=order, seed=seed, steps=args.steps, start_steps=args.start_steps,
                       eval_every=args.eval_every, eval_episodes=args.eval_episodes, batch_size=args.batch_size,
                       append_every=args.append_every, threads=args.threads, agent_name=agent_name,
-                      updates_per_step=args.updates_per_step)
+                      updates_per_step=args.updates_per_step, device=device)
         # A fresh process per run; its progress lines go to stderr, its result to stdout.
         out = subprocess.run(side.command("pendulum_learning", "--run", json.dumps(kwargs)), env=side.env,
                              cwd=side.cwd, stdout=subprocess.PIPE, text=True, check=False)

@@ -5,6 +5,7 @@ on the built-in tracks, with the simulator's lidar observations in fast mode (an
     python -m bench track_learning --quick         # a CI-sized check (one seed, classic, 1,000 steps)
     python -m bench track_learning --agents SAC,SAC-UTD2,SAC-UTD4 --tracks classic --seeds 5 --jobs 2
     python -m bench track_learning --floor         # the least time the full run can take on this machine
+    python -m bench track_learning --device cpu    # on the CPU even where there is a GPU
 
 In real time an environment step costs 50 ms of somebody's afternoon whatever the computer, so
 the figure that matters is steps, not updates per second. Each run is a fresh process with one
@@ -13,7 +14,10 @@ torch thread (``--jobs`` of them at once): a plain synchronous loop (one environ
 its own; ``--start-steps`` sets one for all), the samples going through a
 standalone :class:`tmrl.networking.RolloutWorker` (the simulator's preprocessor and compressor)
 into the trainer's replay memory every ``--append-every`` steps. Every ``--eval-every`` steps one
-deterministic test episode is driven (not counted as training steps).
+deterministic test episode is driven (not counted as training steps). The memory's batches, the
+agent and the actors train and act on ``--device`` (default ``auto``: the GPU when PyTorch sees
+one, which the first printed line names; ``cpu``, ``cuda`` or ``cuda:N`` to choose); ``--merge``
+refuses to join records taken on different devices.
 
 Printed per track and agent (median, min and max over the seeds): environment steps to the first
 completed lap (training or test episode; "-" where a seed never lapped: then the median counts it
@@ -169,9 +173,9 @@ PROFILES: dict[str, dict[str, Any]] = {
 # --- one run (child process) ----------------------------------------------------------------------
 
 
-def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
-    """The agent of variant ``label`` on ``env_name``'s spaces, ``utd`` updates per environment
-    step. REDQ-SAC and DroQ update their policy once per environment step, as in their papers
+def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int, device: str = "cpu") -> Any:
+    """The agent of variant ``label`` on ``env_name``'s spaces and on ``device``, ``utd`` updates
+    per environment step. REDQ-SAC and DroQ update their policy once per environment step, as in their papers
     (their ``q_updates_per_policy_update`` is the update-to-data ratio), unless the variant's
     :data:`DEMO_OVERRIDES` entry names its own ``policy_every``."""
     from tmrl.algorithms import agent_class
@@ -201,7 +205,7 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int) -> Any:
             kwargs["n"] = v["redq_n"]
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = policy_every
-    agent = cls(*spaces, "cpu", **kwargs)
+    agent = cls(*spaces, device, **kwargs)
     if source == "demo" and v["backup_entropy"] is not True:
         _entropy_term_in_target(agent, v["backup_entropy"])
     return agent
@@ -267,11 +271,12 @@ def _n_step_targets(agent: Any, memory: Any, n: int) -> None:
             ret = ret + np.where(ok, disc * store.rew[nxt], 0.0)
             disc = np.where(ok, disc * gamma, disc)
             going = ok & ~(store.terminated[ends] | store.truncated[ends])
-        discount["now"] = torch.as_tensor(disc, dtype=torch.float32)
-        return Batch(to_torch(memory.build_obs(links.prev_slots(slots)), "cpu"), to_torch(store.act[slots], "cpu"),
-                     torch.as_tensor(ret, dtype=torch.float32), to_torch(memory.build_obs(ends), "cpu"),
-                     torch.as_tensor(store.terminated[ends], dtype=torch.float32),
-                     torch.as_tensor(store.truncated[ends], dtype=torch.float32))
+        dev = memory.device
+        discount["now"] = torch.as_tensor(disc, dtype=torch.float32, device=dev)
+        return Batch(to_torch(memory.build_obs(links.prev_slots(slots)), dev), to_torch(store.act[slots], dev),
+                     torch.as_tensor(ret, dtype=torch.float32, device=dev), to_torch(memory.build_obs(ends), dev),
+                     torch.as_tensor(store.terminated[ends], dtype=torch.float32, device=dev),
+                     torch.as_tensor(store.truncated[ends], dtype=torch.float32, device=dev))
 
     target_value = agent.target_value
     agent.fused_update = None  # the fused update computes its own target
@@ -293,9 +298,9 @@ def _lidar_model(alg: str) -> Any:
 
 def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps: int, eval_every: int,
         batch_size: int, append_every: int, settle: int | None = None,
-        on_agent: Callable[[Any], None] | None = None) -> dict[str, Any]:
-    """One learning run: its training episodes (end step, return, lap time or None), its test
-    episodes, and timings. With ``settle``, the run ends that many steps after its first lap
+        on_agent: Callable[[Any], None] | None = None, device: str = "cpu") -> dict[str, Any]:
+    """One learning run on ``device``: its training episodes (end step, return, lap time or
+    None), its test episodes, and timings. With ``settle``, the run ends that many steps after its first lap
     (or at ``steps``). ``on_agent`` is called with the agent once it is built (the floor's FLOP
     count wraps its update there)."""
     import numpy as np
@@ -306,12 +311,13 @@ def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps:
     torch.set_num_threads(1)
     torch.manual_seed(seed)
     np.random.seed(seed)
-    p = _parts("pendulum" if env_name == "pendulum" else "simlidar", batch_size, 200_000, track=env_name)
+    p = _parts("pendulum" if env_name == "pendulum" else "simlidar", batch_size, 200_000, track=env_name,
+               device=device)
     memory = p["memory"]
     worker_kwargs = dict(env_cls=p["env_cls"], actor_module_cls=p["actor_cls"], standalone=True, model_history=0,
                          max_samples_per_episode=p["max_samples"], model_path=os.devnull + "_none", **p["worker"])
     worker, tester = RolloutWorker(**worker_kwargs), RolloutWorker(**worker_kwargs)
-    agent = _agent(label, (worker.env.observation_space, worker.env.action_space), env_name, utd)
+    agent = _agent(label, (worker.env.observation_space, worker.env.action_space), env_name, utd, device)
     n_step = int(DEMO_OVERRIDES.get(label, {}).get("n_step", 1))
     if n_step > 1:
         _n_step_targets(agent, memory, n_step)
@@ -593,10 +599,13 @@ def main(argv: list[str] | None = None) -> None:
                     "runs this command would start, at this core's best rate (the least time they can take here)")
     ap.add_argument("--merge", nargs="+", type=Path, metavar="JSONL",
                     help="run nothing: one table and one PNG of the runs recorded in these files")
+    harness.add_device_argument(ap, "auto")
     args = ap.parse_args(argv)
     if args.merge:
         merge_main(args.merge)
         return
+    # --floor counts one CPU core's matrix products: its record is a CPU one whatever --device says
+    device = "cpu" if args.floor else harness.resolve_device(ap, args.device)
     profile = PROFILES["quick" if args.quick else "full"]
     labels = [a.strip().upper() for a in args.agents.split(",") if a.strip()]
     if set(labels) - set(VARIANTS):
@@ -613,7 +622,8 @@ def main(argv: list[str] | None = None) -> None:
     settle = settle_per_env(profile, envs, args.settle)
     settings = {"profile": "quick" if args.quick else "full", "budgets": budgets, "utd": utd,
                 "start_steps": start, "eval_every": eval_every, "batch_size": args.batch_size,
-                "append_every": args.append_every, "jobs": args.jobs, "torch_threads_per_run": 1, "settle": settle}
+                "append_every": args.append_every, "jobs": args.jobs, "torch_threads_per_run": 1, "settle": settle,
+                **harness.device_settings(device)}
     rec = harness.Recorder("track_learning", settings)
     if args.floor:
         floor_main(labels, {t: budgets[t] for t in tracks}, settle, start, seeds, args.jobs, args.batch_size, rec)
@@ -626,7 +636,8 @@ def main(argv: list[str] | None = None) -> None:
         env, seed, label = job
         kwargs = {"env_name": env, "label": label, "seed": seed, "steps": budgets[env], "utd": utd[label],
                       "start_steps": min(start[label], budgets[env] // 2), "eval_every": eval_every,
-                      "batch_size": args.batch_size, "append_every": args.append_every, "settle": settle[env]}
+                      "batch_size": args.batch_size, "append_every": args.append_every, "settle": settle[env],
+                      "device": device}
         out = subprocess.run(side.command("track_learning", "--run", json.dumps(kwargs)), env=side.env,
                              cwd=side.cwd, stdout=subprocess.PIPE, text=True, check=False)
         if out.returncode != 0:
@@ -664,6 +675,7 @@ def load_results(paths: list[Path]) -> tuple[dict[tuple[str, str], list[dict[str
     same track, agent and seed) counts once, the later record winning."""
     runs: dict[tuple[str, str, int], dict[str, Any]] = {}
     budgets: dict[str, int] = {}
+    devices: dict[str, Path] = {}
     for path in paths:
         if not Path(path).is_file():
             raise SystemExit(f"{path}: no such record (the JSONL files are in bench/out/)")
@@ -674,6 +686,13 @@ def load_results(paths: list[Path]) -> tuple[dict[tuple[str, str], list[dict[str
             if rec.get("kind") == "run":
                 if rec.get("bench") != "track_learning":
                     raise SystemExit(f"{path}: not a track_learning record (bench {rec.get('bench')!r})")
+                # records from before --device were all taken on the CPU
+                device = rec["settings"].get("device", "cpu").split(":")[0]
+                devices.setdefault(device, Path(path))
+                if len(devices) > 1:
+                    first, second = devices.items()
+                    raise SystemExit(f"{second[1]} was recorded on {second[0]} and {first[1]} on {first[0]}: "
+                                     "merge the records of one device at a time")
                 for env, steps in rec["settings"]["budgets"].items():
                     budgets[env] = max(budgets.get(env, 0), int(steps))
                 continue

@@ -3,12 +3,20 @@ and the matrix-product floor of the same update.
 
     python -m bench trainer_speed                         # Pendulum-shaped SAC and REDQ-SAC
     python -m bench trainer_speed --cases tmlidar,tmfull  # TrackMania-shaped (SAC)
+    python -m bench trainer_speed --device cuda           # every side on the GPU
 
 Every side runs in its own process with the same torch thread count, on the same synthetic data
 (Pendulum-shaped: observation ``(3,)`` in a Tuple, action ``(1,)``, episodes of 200 steps, 100k
 samples in memory), MLP 256x256, batch 256, and the same allocator settings
 (:func:`tmrl.util.reuse_freed_memory`, which our trainer applies; ``--glibc-defaults-for-tmrl``
 adds a labelled line with tmrl 0.7.1 on glibc's defaults). Rounds alternate the order of the sides.
+
+``--device`` (default ``cpu``, the published figures' device; ``cuda``, ``cuda:N`` or ``auto``)
+puts every side's replay memory (where it collates its batches) and agent on that device: ours,
+tmrl 0.7.1's (``device=`` of its memories and agents) and Stable-Baselines3's (``SAC(device=)``).
+The first printed line and the record's settings name it, with the GPU's name and driver. On a
+GPU each timing ends with ``torch.cuda.synchronize``, so the queued work is counted; a side that
+fails on the device (tmrl 0.7.1's REDQ-SAC on CUDA) gets ``-`` and its error, and the others go on.
 
 Figures, per side and algorithm:
 
@@ -17,8 +25,8 @@ Figures, per side and algorithm:
   buffer filled with the same samples (SAC only: it has no REDQ);
 - ``agent``: ``agent.train(batch)`` on one ready batch (ours and tmrl 0.7.1);
 - ``floor``: the matrix products of one update (the same shapes: every linear layer's forward
-  and backward products that the update computes), timed alone with torch on the same threads,
-  in milliseconds; ``floor / ours`` is the fraction of the floor our update reaches
+  and backward products that the update computes), timed alone with torch on the same threads
+  (on the GPU with ``--device cuda``), in milliseconds; ``floor / ours`` is the fraction of the floor our update reaches
   (1.0: the update costs no more than its products).
 
 TrackMania cases (``--cases tmfull,tmlidar``), SAC only, with the ALG values of the original's
@@ -87,16 +95,16 @@ class _PlainBuffer:
         return len(self.memory)
 
 
-def _build(side: str, algo: str, variant: str = ""):
+def _build(side: str, algo: str, variant: str = "", device: str = "cpu"):
     obs_space, act_space = _spaces()
     if side == "tmrl":
         from tmrl.custom.custom_memories import GenericTorchMemory
 
         from tmrl.custom.custom_algorithms import REDQSACAgent, SpinupSacAgent
 
-        memory = GenericTorchMemory(memory_size=1e6, batch_size=BATCH, nb_steps=1, device="cpu")
+        memory = GenericTorchMemory(memory_size=1e6, batch_size=BATCH, nb_steps=1, device=device)
         cls = SpinupSacAgent if algo == "sac" else REDQSACAgent
-        agent = cls(observation_space=obs_space, action_space=act_space, device="cpu")
+        agent = cls(observation_space=obs_space, action_space=act_space, device=device)
         memory_name = "tmrl 0.7.1 GenericTorchMemory"
     else:
         from tmrl.algorithms import REDQSACAgent, SACAgent
@@ -104,14 +112,14 @@ def _build(side: str, algo: str, variant: str = ""):
         from tmrl.models import MLPActorCritic, REDQMLPActorCritic
         from tmrl.util import partial
 
-        memory = GenericTorchMemory(device="cpu", nb_steps=1, memory_size=1_000_000, batch_size=BATCH)
+        memory = GenericTorchMemory(device=device, nb_steps=1, memory_size=1_000_000, batch_size=BATCH)
         cls = SACAgent if algo == "sac" else REDQSACAgent
         model = MLPActorCritic if algo == "sac" else REDQMLPActorCritic
         critic_dtype = "bfloat16" if variant == "bf16" else None
         agent = cls(
             observation_space=obs_space,
             action_space=act_space,
-            device="cpu",
+            device=device,
             model_cls=partial(model, critic_dtype=critic_dtype),
         )
         memory_name = "tmrl.memory.GenericTorchMemory"
@@ -197,8 +205,9 @@ def _tm_samples(case: str, n: int, compressor, seed: int = 0) -> list:
     return out
 
 
-def _tm_memory(side: str, case: str, memory_size: int):
-    """Each side's memory for ``case``, built as its pipeline builds it, and its compressor."""
+def _tm_memory(side: str, case: str, memory_size: int, device: str = "cpu"):
+    """Each side's memory for ``case``, built as its pipeline builds it (its batches collated on
+    ``device``), and its compressor."""
     if side == "tmrl":
         from tmrl.custom import custom_memories as cm
 
@@ -208,32 +217,32 @@ def _tm_memory(side: str, case: str, memory_size: int):
             else (cm.MemoryTMLidar, cm.get_local_buffer_sample_lidar)
         )
         memory = cls(memory_size=memory_size, batch_size=BATCH, dataset_path="", imgs_obs=TM_HIST,
-                     act_buf_len=TM_ACT_BUF, nb_steps=1, sample_preprocessor=None, crc_debug=False, device="cpu")
+                     act_buf_len=TM_ACT_BUF, nb_steps=1, sample_preprocessor=None, crc_debug=False, device=device)
         return memory, compressor, f"tmrl 0.7.1 {cls.__name__}"
     from tmrl.sim.interfaces import pipeline_parts
 
     parts = pipeline_parts("TM20FULL" if case == "tmfull" else "TM20LIDAR")
     memory = parts["memory_cls"](hist_len=TM_HIST, act_buf_len=TM_ACT_BUF, memory_size=memory_size,
-                                 batch_size=BATCH, device="cpu", nb_steps=1)
+                                 batch_size=BATCH, device=device, nb_steps=1)
     return memory, parts["sample_compressor"], f"tmrl.driving.memories.{type(memory).__name__}"
 
 
-def _build_tm(side: str, case: str):
+def _build_tm(side: str, case: str, device: str = "cpu"):
     obs_space, act_space = _tm_spaces(case)
-    memory, compressor, memory_name = _tm_memory(side, case, 1_000_000)
+    memory, compressor, memory_name = _tm_memory(side, case, 1_000_000, device)
     if side == "tmrl":
         from tmrl.custom.custom_algorithms import SpinupSacAgent
         from tmrl.custom.custom_models import MLPActorCritic, VanillaCNNActorCritic
 
         model = VanillaCNNActorCritic if case == "tmfull" else MLPActorCritic
-        agent = SpinupSacAgent(observation_space=obs_space, action_space=act_space, device="cpu",
+        agent = SpinupSacAgent(observation_space=obs_space, action_space=act_space, device=device,
                                model_cls=model, **TM_ALG)
     else:
         from tmrl.algorithms.sac import SACAgent
         from tmrl.sim.interfaces import pipeline_parts
 
         parts = pipeline_parts("TM20FULL" if case == "tmfull" else "TM20LIDAR")
-        agent = SACAgent(observation_space=obs_space, action_space=act_space, device="cpu",
+        agent = SACAgent(observation_space=obs_space, action_space=act_space, device=device,
                          model_cls=parts["model_cls"], **TM_ALG)
     memory.append(_PlainBuffer(_tm_samples(case, TM_SAMPLES[case], compressor)))
     return memory, agent, memory_name
@@ -264,14 +273,27 @@ def _tm_memory_bytes(side: str, case: str, n: int) -> dict[str, Any]:
     return {"bytes_per_sample": held / n, "samples": n, "memory": name}
 
 
+def synchronizer(device: str):
+    """A function that waits for the work queued on ``device`` (``torch.cuda.synchronize`` on a
+    GPU, nothing on the CPU, where every call returns once its work is done)."""
+    if str(device).startswith("cuda"):
+        import torch
+
+        return lambda: torch.cuda.synchronize(device)
+    return lambda: None
+
+
 def _measure(step, seconds: float, warmup: int, min_updates: int, updates_per_step: int = 1,
-             sample=None) -> dict[str, Any]:
+             sample=None, device: str = "cpu") -> dict[str, Any]:
     """Call ``step()`` (``updates_per_step`` updates each) for ``seconds``; ``sample()``, when
-    given, is timed apart before each step (its share of the time is reported)."""
+    given, is timed apart before each step (its share of the time is reported: on a GPU, the
+    host's time in it). On a GPU the clock starts and stops with the queued work done."""
     import torch
 
+    sync = synchronizer(device)
     for _ in range(warmup):  # allocator, optimizer state
         step(sample() if sample else None)
+    sync()
     n = 0
     t_sample = 0.0
     cpu0 = time.process_time()
@@ -287,30 +309,34 @@ def _measure(step, seconds: float, warmup: int, min_updates: int, updates_per_st
         elapsed = time.perf_counter() - start
         if elapsed >= seconds and n >= min_updates:
             break
+    sync()
+    elapsed = time.perf_counter() - start
     return {"updates_per_s": n / elapsed, "sample_share": t_sample / elapsed,
             "cpu_ms_per_update": 1000 * (time.process_time() - cpu0) / n, "threads": torch.get_num_threads()}
 
 
-def _measure_agent(memory, agent, mode: str, seconds: float, slow: bool) -> dict[str, Any]:
+def _measure_agent(memory, agent, mode: str, seconds: float, slow: bool, device: str = "cpu") -> dict[str, Any]:
     fixed = memory.sample()
     if mode == "full":
-        return _measure(agent.train, seconds, 1 if slow else 3, 3 if slow else 5, sample=memory.sample)
-    return _measure(lambda _: agent.train(fixed), seconds, 1 if slow else 3, 3 if slow else 5)
+        return _measure(agent.train, seconds, 1 if slow else 3, 3 if slow else 5, sample=memory.sample,
+                        device=device)
+    return _measure(lambda _: agent.train(fixed), seconds, 1 if slow else 3, 3 if slow else 5, device=device)
 
 
 # --- Stable-Baselines3 ---------------------------------------------------------------------------
 
 
-def _sb3_model():
-    """SB3 SAC on Pendulum-v1 (MLP 256x256, batch 256), its replay buffer holding the same
-    synthetic samples as the others' memories (transitions rebuilt from the sample stream)."""
+def _sb3_model(device: str = "cpu"):
+    """SB3 SAC on Pendulum-v1 (MLP 256x256, batch 256) on ``device`` (its replay buffer samples
+    there too), the buffer holding the same synthetic samples as the others' memories
+    (transitions rebuilt from the sample stream)."""
     import gymnasium
     import numpy as np
     from stable_baselines3 import SAC
     from stable_baselines3.common.logger import configure
 
     env = gymnasium.make("Pendulum-v1")
-    model = SAC("MlpPolicy", env, batch_size=BATCH, buffer_size=N_SAMPLES, learning_starts=0, device="cpu",
+    model = SAC("MlpPolicy", env, batch_size=BATCH, buffer_size=N_SAMPLES, learning_starts=0, device=device,
                 policy_kwargs={"net_arch": [HIDDEN, HIDDEN]}, seed=0)
     model.set_logger(configure(None, []))  # train() records its losses in the logger
     prev = None
@@ -322,11 +348,11 @@ def _sb3_model():
     return model
 
 
-def _measure_sb3(model, seconds: float) -> dict[str, Any]:
+def _measure_sb3(model, seconds: float, device: str = "cpu") -> dict[str, Any]:
     # 8 gradient steps per call: SB3's per-call overhead (learning-rate update, logging) is
     # spread as it is in its own training loop (gradient_steps=-1 or a train_freq > 1).
     return _measure(lambda _: model.train(gradient_steps=8, batch_size=BATCH), seconds, 1, 16,
-                    updates_per_step=8)
+                    updates_per_step=8, device=device)
 
 
 # --- the floor: the matrix products of one update -----------------------------------------------
@@ -367,25 +393,30 @@ def update_products(obs_dim: int, act_dim: int, hidden: int, batch: int, n_criti
     )
 
 
-def floor_ms(products: list[tuple[int, int, int, int]], seconds: float) -> float:
-    """Milliseconds that ``products`` take back to back, each group of the same shape as one
-    ``torch.bmm`` (one ``torch.mm`` when alone), into preallocated outputs (no allocation, no
-    autograd, no other work): the median of repeated timings of the whole list."""
+def floor_ms(products: list[tuple[int, int, int, int]], seconds: float, device: str = "cpu") -> float:
+    """Milliseconds that ``products`` take back to back on ``device``, each group of the same
+    shape as one ``torch.bmm`` (one ``torch.mm`` when alone), into preallocated outputs (no
+    allocation, no autograd, no other work): the median of repeated timings of the whole list
+    (on a GPU, from the first launch to the end of the last product)."""
     import statistics
 
     import torch
 
     gen = torch.Generator().manual_seed(0)
+    sync = synchronizer(device)
     operands = []
     for count, m, k, n in products:
         shape = (count,) if count > 1 else ()
-        operands.append((torch.bmm if count > 1 else torch.mm, torch.randn(*shape, m, k, generator=gen),
-                         torch.randn(*shape, k, n, generator=gen), torch.empty(*shape, m, n)))
+        operands.append((torch.bmm if count > 1 else torch.mm, torch.randn(*shape, m, k, generator=gen).to(device),
+                         torch.randn(*shape, k, n, generator=gen).to(device),
+                         torch.empty(*shape, m, n, device=device)))
 
     def once() -> float:
+        sync()
         t0 = time.perf_counter()
         for product, a, b, out in operands:
             product(a, b, out=out)
+        sync()
         return time.perf_counter() - t0
 
     for _ in range(20):
@@ -416,6 +447,7 @@ def child_main(argv: list[str]) -> None:
     parser.add_argument("--side", required=True)
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--glibc-defaults", action="store_true")
+    parser.add_argument("--device", default="cpu", help="resolved by the parent: cpu, cuda or cuda:N")
     args = parser.parse_args(argv)
     import torch
 
@@ -425,7 +457,22 @@ def child_main(argv: list[str]) -> None:
         # What our trainer does when TorchTrainingOffline is built, given to every side.
         _reuse_freed_memory()
     torch.manual_seed(0)
+    device = args.device
     built: dict[str, Any] = {}
+    failed: dict[str, str] = {}
+
+    def measure(req: dict[str, Any], case: str, algo: str, key: str) -> dict[str, Any]:
+        if args.side == "sb3":
+            if key not in built:
+                built[key] = _sb3_model(device)
+            return _measure_sb3(built[key], req["seconds"], device)
+        if key not in built:
+            built[key] = (_build(args.side, algo, req.get("variant", ""), device) if case == "pendulum"
+                          else _build_tm(args.side, case, device))
+        memory, agent, memory_name = built[key]
+        res = _measure_agent(memory, agent, req["mode"], req["seconds"], slow=case == "tmfull", device=device)
+        res["memory"] = memory_name
+        return res
 
     def handle(req: dict[str, Any]) -> dict[str, Any]:
         case, algo = req.get("case", "pendulum"), req.get("algo", "sac")
@@ -433,19 +480,16 @@ def child_main(argv: list[str]) -> None:
             return _tm_memory_bytes(args.side, case, int(req["memory_bytes"]))
         if "floor" in req:
             shapes = req["floor"]
-            return {"floor_ms": floor_ms(update_products(hidden=HIDDEN, batch=BATCH, **shapes), req["seconds"])}
+            return {"floor_ms": floor_ms(update_products(hidden=HIDDEN, batch=BATCH, **shapes), req["seconds"],
+                                         device)}
         key = f"{case}:{algo}:{req.get('variant', '')}"
-        if args.side == "sb3":
-            if key not in built:
-                built[key] = _sb3_model()
-            return _measure_sb3(built[key], req["seconds"])
-        if key not in built:
-            built[key] = (_build(args.side, algo, req.get("variant", "")) if case == "pendulum"
-                          else _build_tm(args.side, case))
-        memory, agent, memory_name = built[key]
-        res = _measure_agent(memory, agent, req["mode"], req["seconds"], slow=case == "tmfull")
-        res["memory"] = memory_name
-        return res
+        if key not in failed:
+            try:
+                return measure(req, case, algo, key)
+            except Exception as e:  # noqa: BLE001 (a side that fails on this device is a figure: "-", and why)
+                failed[key] = " ".join(f"{type(e).__name__}: {e}".split())[:300]
+                built.pop(key, None)
+        return {"error": failed[key]}
 
     harness.serve(handle)
 
@@ -478,8 +522,8 @@ def _jobs(cases: list[str], algos: list[str], modes: list[str]) -> list[tuple[st
     return jobs
 
 
-def _workers(args: argparse.Namespace) -> dict[str, harness.ChildWorker]:
-    common = ["--threads", str(args.threads)] if args.threads else []
+def _workers(args: argparse.Namespace, device: str = "cpu") -> dict[str, harness.ChildWorker]:
+    common = (["--threads", str(args.threads)] if args.threads else []) + ["--device", device]
     workers = {}
     for side in harness.sides_from_args(args):
         code = "ours" if side.name == "before" else side.name  # an earlier commit of ours runs our code path
@@ -504,16 +548,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--memory-bytes", type=int, default=0, metavar="N",
                         help="also the bytes per stored sample of each side's memory, over N samples (TM cases)")
     harness.add_side_arguments(parser, tmrl=True, sb3=True)
+    harness.add_device_argument(parser, "cpu")
     args = parser.parse_args(argv)
+    device = harness.resolve_device(parser, args.device)
     cases = [c for c in args.cases.split(",") if c]
     if set(cases) - set(CASES):
         parser.error(f"unknown case(s) {sorted(set(cases) - set(CASES))}: use {', '.join(CASES)}")
     jobs = _jobs(cases, args.algos.split(","), [m for m in args.modes.split(",") if m])
     settings = {"batch": BATCH, "hidden": [HIDDEN, HIDDEN], "samples_in_memory": N_SAMPLES,
                 "threads": args.threads or "torch default", "allocator": "reuse_freed_memory on every side",
-                "seconds": args.seconds, "rounds": args.rounds, "tm_alg": TM_ALG}
+                "seconds": args.seconds, "rounds": args.rounds, "tm_alg": TM_ALG, **harness.device_settings(device)}
     rec = harness.Recorder("trainer_speed", settings)
-    workers = _workers(args)
+    workers = _workers(args, device)
     try:
         if args.memory_bytes:
             for case in (c for c in cases if c != "pendulum"):
@@ -545,7 +591,13 @@ def _run_rounds(args: argparse.Namespace, jobs: list[tuple[str, str, str]],
             for name, variant in runs if rnd % 2 == 0 else runs[::-1]:
                 res = workers[name].ask({"case": case, "algo": algo, "mode": mode, "seconds": args.seconds,
                                          "variant": variant})
-                rec.add(f"{figure} {mode}", "updates_per_s", f"{name} {variant}".strip(), res["updates_per_s"],
+                label = f"{name} {variant}".strip()
+                if "error" in res:  # this side fails on this device: no figure, and why
+                    rec.add(f"{figure} {mode}", "updates_per_s", label, None, round=rnd, unit="1/s",
+                            error=res["error"])
+                    print(f"    {label} failed: {res['error']}", flush=True)
+                    continue
+                rec.add(f"{figure} {mode}", "updates_per_s", label, res["updates_per_s"],
                         round=rnd, unit="1/s", cpu_ms_per_update=res["cpu_ms_per_update"],
                         sample_share=res["sample_share"], threads=res["threads"], memory=res.get("memory"))
             shapes = _floor_case(case, algo)

@@ -20,6 +20,22 @@ if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
 pytest_plugins = ["ci_skips"]
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    # Tests marked gpu (tests/test_gpu.py) run where PyTorch sees a CUDA GPU and skip elsewhere
+    # with GPU_SKIP_REASON, the reason CI allows (tests/ci_skips.py); torch is imported only when
+    # such a test was collected.
+    marked = [item for item in items if item.get_closest_marker("gpu") is not None]
+    if not marked:
+        return
+    import torch
+    from ci_skips import GPU_SKIP_REASON  # loaded above as a plugin (pytest_plugins)
+
+    if torch.cuda.is_available():
+        return
+    for item in marked:
+        item.add_marker(pytest.mark.skip(reason=GPU_SKIP_REASON))
+
+
 @pytest.fixture(autouse=True)
 def _isolated_data_folder(tmp_path, monkeypatch):
     data = tmp_path / "TmrlData"

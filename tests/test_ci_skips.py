@@ -8,8 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
-
-from ci_skips import ALLOWED_SKIPS_IN_CI
+from ci_skips import ALLOWED_SKIP_MARKERS, ALLOWED_SKIPS_IN_CI
 
 TESTS = Path(__file__).resolve().parent
 
@@ -60,3 +59,41 @@ def test_every_allowed_skip_names_an_existing_test_and_a_reason():
         path, name = node.split("::")
         assert f"def {name}(" in (TESTS.parent / path).read_text(encoding="utf-8"), node
         assert len(reason) > 20, node
+
+
+MARKED = '''
+import pytest
+
+@pytest.mark.gpu
+def test_on_a_gpu():
+    pytest.skip("needs a CUDA GPU")
+
+@pytest.mark.gpu
+def test_on_a_gpu_that_skips_for_another_reason():
+    pytest.skip("an optional package is missing")
+
+def test_unmarked_with_the_gpu_reason():
+    pytest.skip("needs a CUDA GPU")
+'''
+
+
+def test_a_gpu_test_may_skip_in_ci_for_the_gpu_reason_only(tmp_path):
+    (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers =\n    gpu: needs a CUDA GPU\n")
+    (tmp_path / "test_tiny.py").write_text(MARKED)
+    env = {k: v for k, v in os.environ.items() if k != "CI"}
+    env.update(PYTHONPATH=str(TESTS), CI="true")
+    out = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-ra", "-p", "ci_skips", "-p", "no:cacheprovider", "test_tiny.py"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert out.returncode == 1, out.stdout
+    assert "2 failed, 1 skipped" in out.stdout
+    assert "needs a CUDA GPU (allowed in CI: CI machines have no GPU" in out.stdout
+    assert "skipped in CI (an optional package is missing)" in out.stdout  # the marker allows one reason
+    assert "test_unmarked_with_the_gpu_reason - skipped in CI (needs a CUDA GPU)" in out.stdout  # and one marker
+
+
+def test_every_allowed_marker_is_registered_with_pytest():
+    text = (TESTS.parent / "pyproject.toml").read_text(encoding="utf-8")
+    for marker in ALLOWED_SKIP_MARKERS:
+        assert f'"{marker}: ' in text, marker

@@ -29,6 +29,7 @@ __all__ = [
     "RateLimitedLog",
     "last_true_in_list",
     "show_progress_on_console",
+    "resolve_device",
 ]
 
 
@@ -309,6 +310,45 @@ def reuse_freed_memory() -> bool:
     mallopt.restype = ctypes.c_int
     _malloc_tuned = all(mallopt(param, value) == 1 for param, value in _MALLOC_SETTINGS)
     return _malloc_tuned
+
+
+DEVICE_CHOICES = ("auto", "cpu", "cuda", "cuda:N")
+"""What :func:`resolve_device` accepts (``N``: a GPU's index)."""
+
+
+def resolve_device(device: str, option: str = "--device") -> str:
+    """The torch device a ``--device`` option (or a setting) names, checked against this machine.
+
+    Args:
+        device: ``"auto"`` (``"cuda"`` when PyTorch sees a CUDA GPU, else ``"cpu"``), ``"cpu"``,
+            ``"cuda"`` or ``"cuda:N"``.
+        option: the option or setting the value came from, named in the error.
+
+    Returns:
+        ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
+
+    Raises:
+        UserError: the value is none of these, or names a GPU that PyTorch does not see.
+    """
+    from tmrl.errors import UserError
+
+    name = str(device).strip().lower()
+    if name not in ("auto", "cpu", "cuda") and not (name.startswith("cuda:") and name[5:].isdigit()):
+        raise UserError(f"{option} {device!r} is not a device: use {', '.join(DEVICE_CHOICES)}")
+    if name == "cpu":
+        return name
+    import torch
+
+    available = torch.cuda.is_available()
+    if name == "auto":
+        return "cuda" if available else "cpu"
+    count = torch.cuda.device_count() if available else 0
+    index = int(name[5:]) if ":" in name else 0
+    if index >= count:
+        seen = f"it sees {count} GPU{'' if count == 1 else 's'}" if count else "it sees no CUDA GPU"
+        raise UserError(f"{option} {device}: PyTorch {torch.__version__} cannot use it ({seen}); "
+                        f"use {option} cpu, or {option} auto to take a GPU only when there is one")
+    return name
 
 
 class RateLimitedLog:
