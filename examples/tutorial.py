@@ -12,7 +12,8 @@ parts: a Server, a Trainer and a RolloutWorker. docs/tutorial.md walks through i
     python examples/tutorial.py --check              # only check the interface
 
 The trainer resumes from its checkpoint (in the data folder: ``$TMRL_DATA`` or ``~/TmrlData``);
-``--fresh`` deletes it first. Stop any part with Ctrl-C.
+``--fresh`` deletes it first. Stop any part with Ctrl-C (exit code 130; the run in one process
+still prints its summary and draws its plot).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import logging
 import math
 import os
 import shutil
+import sys
 import threading
 import time
 from pathlib import Path
@@ -42,6 +44,7 @@ from tmrl.metrics import MetricsLogger
 from tmrl.models import EnsembleQFunction, flatten_obs, mlp, space_dim
 from tmrl.networking import RolloutWorker, Server, Trainer
 from tmrl.realtime import DEFAULT_CONFIG_DICT, DummyRCDrone, RealTimeGymInterface, check_realtime_interface
+from tmrl.realtime.timeouts import summarised_timeouts
 from tmrl.training_offline import TorchTrainingOffline, TrainingCallback
 from tmrl.util import partial
 
@@ -333,28 +336,43 @@ def fly(worker: RolloutWorker, stop: threading.Event, returns: list[float]) -> N
 
 
 # --8<-- [start:all_in_one]
-def all_in_one(net: dict, minutes: float, time_step: float) -> list[float]:
-    """The three parts in one process: the server's relay, the worker in a thread, the trainer here."""
+def all_in_one(net: dict, minutes: float, time_step: float) -> tuple[list[float], bool]:
+    """The three parts in one process: the server's relay, the worker in a thread, the trainer here.
+    Returns the episodes' returns and whether Ctrl-C ended the run (what ran is kept)."""
     torch.set_num_threads(1)  # the trainer and the worker share this process's cores
     returns: list[float] = []
     stop = threading.Event()
+    interrupted = False
     with make_server(net), make_worker(net, time_step) as worker:
         flight = threading.Thread(target=fly, args=(worker, stop, returns), daemon=True)
         flight.start()
         try:
             make_trainer(net, minutes).run()  # returns when the time budget is spent
+        except KeyboardInterrupt:
+            interrupted = True  # Ctrl-C: the summary and the plot show what ran
         finally:
             stop.set()
             flight.join(timeout=10.0)
             worker.env.close()
-    return returns
+    return returns, interrupted
 
 
 def summary(returns: list[float]) -> str:
+    if not returns:
+        return "summary: no episode finished"
     k = max(1, min(20, len(returns) // 4))
     first, last = float(np.mean(returns[:k])), float(np.mean(returns[-k:]))
     return f"summary: {len(returns)} episodes; mean return of the first {k} {first:.2f}, of the last {k} {last:.2f}"
 # --8<-- [end:all_in_one]
+
+
+def require_matplotlib() -> None:
+    """``--plot`` needs matplotlib: say so in one line before the run, not after it."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        print("tutorial.py: --plot needs matplotlib, which is not installed: pip install matplotlib", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def plot(returns: list[float], path: str) -> None:
@@ -380,7 +398,7 @@ def plot(returns: list[float], path: str) -> None:
 
 
 # --8<-- [start:main]
-def main() -> None:
+def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     role = ap.add_mutually_exclusive_group()
     for name in ("server", "trainer", "worker", "check"):
@@ -394,6 +412,8 @@ def main() -> None:
     ap.add_argument("--fresh", action="store_true", help="delete the checkpoint and weights first")
     ap.add_argument("--plot", metavar="FILE", help="all in one: draw the returns into FILE (PNG)")
     args = ap.parse_args()
+    if args.plot:
+        require_matplotlib()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     net = {
         "server_ip": args.server_ip,
@@ -405,31 +425,39 @@ def main() -> None:
         shutil.rmtree(CHECKPOINT, ignore_errors=True)
         for path in (WORKER_WEIGHTS, TRAINER_WEIGHTS):
             path.unlink(missing_ok=True)
-    try:
-        if args.role == "check":
-            raise SystemExit(0 if check_interface(args.time_step) else 1)
-        if args.role == "server":
-            with make_server(net):
-                threading.Event().wait()  # relay until Ctrl-C
-        elif args.role == "trainer":
-            make_trainer(net, args.minutes).run()
-            print(f"trainer done: weights in {TRAINER_WEIGHTS}, checkpoint in {CHECKPOINT}")
-        elif args.role == "worker":
-            with make_worker(net, args.time_step) as worker:
-                try:
-                    fly(worker, threading.Event(), [])
-                finally:
-                    worker.env.close()
-        else:
-            check_interface(args.time_step)
-            returns = all_in_one(net, args.minutes, args.time_step)
-            print(summary(returns))
-            if args.plot:
-                plot(returns, args.plot)
-    except KeyboardInterrupt:
-        print("stopped (Ctrl-C)")
+    # Under load, time steps run late: one line per 10 s says how many, instead of two per step.
+    with summarised_timeouts(interval=10.0) as timeouts:
+        try:
+            if args.role == "check":
+                return 0 if check_interface(args.time_step) else 1
+            if args.role == "server":
+                with make_server(net):
+                    threading.Event().wait()  # relay until Ctrl-C
+            elif args.role == "trainer":
+                make_trainer(net, args.minutes).run()
+                print(f"trainer done: weights in {TRAINER_WEIGHTS}, checkpoint in {CHECKPOINT}")
+            elif args.role == "worker":
+                with make_worker(net, args.time_step) as worker:
+                    try:
+                        fly(worker, threading.Event(), [])
+                    finally:
+                        worker.env.close()
+            else:
+                check_interface(args.time_step)
+                returns, interrupted = all_in_one(net, args.minutes, args.time_step)
+                timeouts.flush()  # the last late time steps, before the summary
+                if interrupted:  # Ctrl-C during the run: its summary and plot all the same
+                    print(f"stopped (Ctrl-C) after {len(returns)} episodes")
+                print(summary(returns))
+                if args.plot and returns:
+                    plot(returns, args.plot)
+                return 130 if interrupted else 0
+        except KeyboardInterrupt:
+            print("stopped (Ctrl-C)")
+            return 130  # 128 + SIGINT, as python -m tmrl
+    return 0
 # --8<-- [end:main]
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -137,12 +137,12 @@ def test_three_parts_as_three_processes(tmp_path):
         assert "trainer done" in ok(trainer)
         assert (data / "weights" / "tutorial_drone_trainer.json").is_file()
         w_out, w_err = stop(worker)
-        assert worker.returncode == 0 and "stopped (Ctrl-C)" in w_out, w_err[-3000:]
+        assert worker.returncode == 130 and "stopped (Ctrl-C)" in w_out, w_err[-3000:]
         episodes = EPISODE.findall(w_out)
         assert episodes and max(int(v) for *_, v in episodes) >= 1, w_out[-2000:]
         assert (data / "weights" / "tutorial_drone_worker.json").is_file()  # the weights it received
         s_out, s_err = stop(server)
-        assert server.returncode == 0 and "stopped (Ctrl-C)" in s_out, s_err[-3000:]
+        assert server.returncode == 130 and "stopped (Ctrl-C)" in s_out, s_err[-3000:]
     finally:
         for proc in (server, worker):
             if proc is not None and proc.poll() is None:

@@ -25,13 +25,13 @@ __all__ = [
     "THREADS_ENV",
     "WORKER_MODES",
     "configured_actor",
+    "role_threads",
     "run_benchmark",
     "run_export_weights",
     "run_import_weights",
     "run_server",
     "run_trainer",
     "run_worker",
-    "role_threads",
     "size_threads",
 ]
 
@@ -352,13 +352,17 @@ def run_worker(cfg: Mapping[str, Any] | None = None, mode: str = "train", standa
     _interrupt_on_sigterm()
     size_threads("worker")
     worker = worker_from_config(standalone=mode == "test" if standalone is None else standalone)
+    from tmrl.realtime.timeouts import summarised_timeouts
+
     try:
-        if mode == "train":
-            worker.run()
-        elif mode == "expert":
-            worker.run(expert=True)
-        else:
-            worker.run_episodes(10_000)
+        # a real-time environment under load: one line per 10 s about late time steps, not two per step
+        with summarised_timeouts():
+            if mode == "train":
+                worker.run()
+            elif mode == "expert":
+                worker.run(expert=True)
+            else:
+                worker.run_episodes(10_000)
     except KeyboardInterrupt as err:
         worker.close(STOP_TIMEOUT)
         return _stopped("worker", err, "" if mode == "test" else "; samples already sent are kept")

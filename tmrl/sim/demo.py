@@ -298,11 +298,11 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _wait_listening(port: int, timeout: float, proc: subprocess.Popen, logs_dir: Path) -> None:
+def _wait_listening(port: int, timeout: float, proc: subprocess.Popen, logs_dir: Path | None = None) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise RuntimeError(f"the demo server exited at start; see server.log in {logs_dir}")
+            raise RuntimeError(f"the demo server exited at start; see server.log in {logs_dir or 'the run folder'}")
         try:
             with socket.create_connection(("127.0.0.1", port), timeout=0.5):
                 return
@@ -419,6 +419,7 @@ def _role_main(args: argparse.Namespace) -> int:
     """A role's process (``--role``): it stops on the parent's SIGINT, on SIGTERM or SIGHUP, and
     when its parent dies (even by SIGKILL); then, with the parent gone, it removes the run folder,
     which nobody else will."""
+    from tmrl.realtime.timeouts import summarised_timeouts
     from tmrl.sim.lifeline import die_with_parent, parent_gone, stop_on_signals
 
     workdir = Path(args.workdir)
@@ -431,7 +432,7 @@ def _role_main(args: argparse.Namespace) -> int:
     try:
         # stop_on_signals: SIGINT raises KeyboardInterrupt even when a shell started the demo with
         # it ignored (`nohup ... &`), SIGTERM and SIGHUP raise a KeyboardInterrupt too.
-        with stop_on_signals(force_sigint=True):
+        with stop_on_signals(force_sigint=True), summarised_timeouts():  # --realtime: one line per 10 s
             _run_role(args.role, args.interface, args.track, workdir, args.port,
                       os.environ.get("TMRL_DEMO_PASSWORD", ""), args.realtime)
     except KeyboardInterrupt:  # the parent stops its roles with SIGINT: a normal end
