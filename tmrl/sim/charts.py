@@ -16,7 +16,7 @@ import numpy as np
 from tmrl.sim.render import _polyline
 
 __all__ = ["Series", "draw_label", "lap_chart", "lap_image", "learning_curve_chart", "learning_curve_image",
-           "text_width"]
+           "return_note", "text_width"]
 
 Colour = tuple[int, int, int]
 
@@ -103,14 +103,32 @@ def draw_label(img: np.ndarray, text: str, row: int, col: int, scale: int = 2, c
         img[r0:r1, c0:c1][mask[r0 - row: r1 - row, c0 - col: c1 - col]] = colour
 
 
-def _nice_ticks(lo: float, hi: float, count: int = 5) -> list[float]:
-    """Round tick values covering ``[lo, hi]`` (steps of 1, 2 or 5 times a power of ten)."""
+def _nice_ticks(lo: float, hi: float, count: int = 5, minimum: int = 3, integer: bool = False) -> list[float]:
+    """Round tick values covering ``[lo, hi]`` (steps of 1, 2 or 5 times a power of ten): about
+    ``count`` of them, at least ``minimum`` (a single tick says nothing about the scale), whole
+    numbers only when ``integer`` (episodes)."""
     span = max(hi - lo, 1e-9)
     raw = span / max(count - 1, 1)
     power = 10.0 ** np.floor(np.log10(raw))
     step = next(m * power for m in (1.0, 2.0, 5.0, 10.0) if m * power >= raw)
-    first = np.ceil(lo / step) * step
-    return [float(v) for v in np.arange(first, hi + step * 0.5, step) if lo - 1e-9 <= v <= hi + 1e-9]
+    if integer:
+        step = max(step, 1.0)
+
+    def ticks(step: float) -> list[float]:
+        first = np.ceil(lo / step - 1e-9) * step + 0.0  # + 0.0: never a "-0" tick
+        return [float(v) for v in np.arange(first, hi + step * 0.5, step) if lo - 1e-9 <= v <= hi + 1e-9]
+
+    out = ticks(step)
+    for _ in range(6):  # a finer step while too few ticks show: 5 -> 2 -> 1 -> 0.5 ...
+        if len(out) >= minimum:
+            break
+        exponent = np.floor(np.log10(step) + 1e-9)
+        mantissa = round(step / 10.0 ** exponent)
+        finer = {1: 0.5, 2: 1.0, 5: 2.0}.get(mantissa, 1.0) * 10.0 ** exponent
+        if integer and finer < 1.0:
+            break
+        step, out = finer, ticks(finer)
+    return out
 
 
 def _tick_label(v: float) -> str:
@@ -131,10 +149,11 @@ class Series:
 
 
 def learning_curve_chart(series: Sequence[Series], title: str, x_title: str, y_title: str,
-                         notes: Sequence[str] = (), width: int = 800, height: int = 480) -> np.ndarray:
+                         notes: Sequence[str] = (), width: int = 800, height: int = 480,
+                         x_integer: bool = False) -> np.ndarray:
     """An RGB line chart: title and notes (key figures) at the top, both axes with ticks and
     titles (units belong in the titles, e.g. ``"RETURN"``, ``"TRAINING TIME (S)"``), and a legend
-    when there is more than one line."""
+    when there is more than one line. ``x_integer``: whole-number ticks on the x axis (episodes)."""
     img = np.full((height, width, 3), 255, dtype=np.uint8)
     legend = len(series) > 1
     top = 22 + 18 * (1 + len(notes)) + (20 if legend else 0)
@@ -159,7 +178,7 @@ def learning_curve_chart(series: Sequence[Series], title: str, x_title: str, y_t
         img[r, left:left + plot_w] = 230 if v else 180
         label = _tick_label(v)
         draw_label(img, label, r - 7, left - 8 - text_width(label), colour=(80, 80, 80))
-    for v in _nice_ticks(x0, x1):
+    for v in _nice_ticks(x0, x1, integer=x_integer):
         c = int(round(to_px(np.array(v), np.array(y0))[1]))
         img[top + plot_h: top + plot_h + 5, c] = 120
         label = _tick_label(v)
@@ -209,15 +228,31 @@ def lap_chart(topdown: np.ndarray, path_px: np.ndarray, title: str, notes: Seque
     return img
 
 
-def learning_curve_image(returns: Sequence[float], title: str, notes: Sequence[str]) -> np.ndarray:
-    """A learning curve: the return of every episode and its running mean, against episodes."""
+def return_note(lap_bonus: float = 100.0) -> str:
+    """What the return of a driving episode counts, for a chart: the trajectory reward gives 1 per
+    10 m along the track, and ``lap_bonus`` (``REWARD_CONFIG.END_OF_TRACK``) for a completed lap."""
+    return f"RETURN: 1 PER 10 M DRIVEN ALONG THE TRACK, +{lap_bonus:g} PER LAP"
+
+
+def learning_curve_image(returns: Sequence[float], title: str, notes: Sequence[str],
+                         explain: str | None = None) -> np.ndarray:
+    """A learning curve: the return of every episode and its running mean, against episodes.
+
+    Args:
+        returns: each episode's return, in order.
+        title: the chart's title.
+        notes: key figures, one line each under the title.
+        explain: what a return counts (default :func:`return_note`), a line under the notes.
+    """
     y = np.asarray(returns, dtype=np.float64)
     x = np.arange(1, len(y) + 1)
     k = max(1, min(20, len(y) // 5))
     mean = np.convolve(y, np.ones(k) / k, mode="valid") if len(y) >= k else y
-    series = [Series(x, y, (150, 180, 230), "EACH EPISODE", 1),
-              Series(x[len(x) - len(mean):], mean, (20, 60, 180), f"MEAN OF {k} EPISODES", 3)]
-    return learning_curve_chart(series, title, "EPISODE", "RETURN", notes)
+    series = [Series(x, y, (150, 180, 230), "EACH EPISODE", 1)]
+    if k > 1:  # under 10 episodes, the mean of one would only draw the same line again
+        series.append(Series(x[len(x) - len(mean):], mean, (20, 60, 180), f"MEAN OF {k} EPISODES", 3))
+    lines = [*notes, return_note() if explain is None else explain]
+    return learning_curve_chart(series, title, "EPISODE", "RETURN", lines, x_integer=True)
 
 
 def lap_image(track: Any, path: np.ndarray, title: str, notes: Sequence[str], size: int = 800) -> np.ndarray:

@@ -349,8 +349,10 @@ def _versus_reference(track: str, best: float) -> str:
     return f" = {best / ref:.2f} x reference {ref:.2f} s"
 
 
-def _finish(workdir: Path, out: Path, track: str, interface: str, worker: dict[str, Any]) -> dict[str, Path]:
-    from tmrl.sim.charts import lap_image, learning_curve_image
+def _finish(workdir: Path, out: Path, track: str, interface: str, worker: dict[str, Any],
+            config_path: str | None = None) -> dict[str, Path]:
+    from tmrl.driving.reward import DEFAULT_REWARD_CONFIG
+    from tmrl.sim.charts import lap_image, learning_curve_image, return_note
     from tmrl.sim.render import write_png
     from tmrl.sim.track import make_track
 
@@ -361,8 +363,10 @@ def _finish(workdir: Path, out: Path, track: str, interface: str, worker: dict[s
         paths["weights"] = out / "weights.safetensors"
         atomic_write_bytes(paths["weights"], weights.read_bytes())
     paths["curve"] = out / "learning_curve.png"
+    rewards = {**DEFAULT_REWARD_CONFIG, **(_demo_config(interface, track, config_path)["ENV"].get("REWARD_CONFIG") or {})}
     write_png(paths["curve"], learning_curve_image(worker.get("returns") or [],
-                                                   f"TMRL DEMO: {interface} ON TRACK {track}", [_key_figures(worker)]))
+                                                   f"TMRL DEMO: {interface} ON TRACK {track}", [_key_figures(worker)],
+                                                   return_note(float(rewards["END_OF_TRACK"]))))
     path = np.zeros((0, 2))
     try:
         path = np.load(workdir / "best_path.npy", allow_pickle=False)
@@ -545,7 +549,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 _detach_from_terminal()  # the terminal is gone: the outputs are still written
             _say("" if tty else None)
             worker = _read_json(workdir / "worker.json") or worker
-            paths = _finish(workdir, out, args.track, args.interface, worker)
+            paths = _finish(workdir, out, args.track, args.interface, worker, args.config)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
     returns = worker.get("returns") or []
