@@ -16,5 +16,6 @@ BENCHMARKS = (
     "memory_speed",
     "sim_speed",
     "realtime_jitter",
+    "first_lap",
 )
 """The benchmarks, as modules of this package with a ``main(argv)``."""
