@@ -30,6 +30,8 @@ get there within the profile's timeout (``--timeout``) counts as not reached.
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import shutil
 import tempfile
 import time
@@ -76,15 +78,29 @@ def _seed(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+class _RunningCount:
+    """A running count that the driver and the evaluator read (:func:`harness.read_int`), rewritten
+    in place every ``every`` counts, at a fixed width (a file renamed over the old one cost the
+    worker about 5% of its time: ext4 writes a renamed file out at once)."""
+
+    def __init__(self, path: Path, every: int) -> None:
+        self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self.every = every
+        self.n = 0
+
+    def add(self) -> None:
+        self.n += 1
+        if self.n % self.every == 0:
+            os.pwrite(self.fd, b"%20d\n" % self.n, 0)
+
+
 def _counting_env(env: Any, steps_file: Path) -> Any:
     """``env`` whose ``step`` writes its running count to ``steps_file`` every 50 steps."""
     step = env.step
-    count = [0]
+    count = _RunningCount(steps_file, 50)
 
     def counted(action: Any) -> Any:
-        count[0] += 1
-        if count[0] % 50 == 0:
-            harness.write_atomic(steps_file, str(count[0]))
+        count.add()
         return step(action)
 
     env.step = counted
@@ -96,13 +112,11 @@ def _count_updates(agent_cls: type, updates_file: Path) -> None:
     class itself is patched, in the trainer process only, so that the original's pickled
     checkpoints still find it by name)."""
     train = agent_cls.train
-    count = [0]
+    count = _RunningCount(updates_file, 20)
 
     def counted(self: Any, batch: Any) -> Any:
         out = train(self, batch)
-        count[0] += 1
-        if count[0] % 20 == 0:
-            harness.write_atomic(updates_file, str(count[0]))
+        count.add()
         return out
 
     agent_cls.train = counted
@@ -246,9 +260,114 @@ def child_main(argv: list[str]) -> None:
 # --- driver ---------------------------------------------------------------------------------------
 
 
+def _cpu_seconds(pid: int) -> float:
+    """CPU time (user + system) of process ``pid`` so far, 0 when it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _spy(roles: dict[str, Any], out: Path, label: str, duration: float, rate: int) -> None:
+    """Record each role process and each process it started (our network processes, the
+    original's tlspyo processes) with ``py-spy record`` for ``duration`` seconds, idle stacks and
+    threads included (py-spy pauses a process for each sample: keep ``rate`` low): raw stacks go
+    to ``out/<label>-<role>.txt``; the CPU seconds each process used per second of that window to
+    ``out/<label>-cpu.json``."""
+    import subprocess
+
+    out.mkdir(parents=True, exist_ok=True)
+    targets = {}
+    for role, proc in roles.items():
+        if proc.poll() is not None:
+            continue
+        targets[role] = proc.pid
+        try:
+            children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+        except OSError:
+            children = []
+        for k, child in enumerate(children):
+            targets[f"{role}-child{k}"] = int(child)
+    cpu0 = {name: _cpu_seconds(pid) for name, pid in targets.items()}
+    t0 = time.monotonic()
+    spies = [subprocess.Popen(["py-spy", "record", "--pid", str(pid), "--idle", "--threads", "--rate", str(rate),
+                               "--duration", str(max(1, int(duration))), "--format", "raw",
+                               "--output", str(out / f"{label}-{name}.txt")],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+             for name, pid in targets.items()]
+    time.sleep(max(1, int(duration)))
+    cpu = {name: round((_cpu_seconds(pid) - cpu0[name]) / (time.monotonic() - t0), 3) for name, pid in targets.items()}
+    for spy in spies:
+        spy.wait()
+    (out / f"{label}-cpu.json").write_text(json.dumps({"cpu_per_s": cpu, "load": harness.load_average()}))
+
+
+_CATEGORIES: dict[str, list[tuple[str, tuple[str, ...]]]] = {
+    "trainer": [
+        ("checkpoint", ("dump_run_instance", "checkpoint.py")),
+        ("update (agent.train)", ("Agent.train (", "SACUpdate", "_count_updates")),
+        ("weights publish", ("broadcast_model", "ensure_finite", "TrainingOffline._broadcast")),
+        ("receive and ingest samples", ("update_buffer", "retrieve_buffer")),
+        ("batch sampling", ("Memory.__iter__", "Memory.sample", "collate")),
+        ("wait for samples (ratio)", ("check_ratio",)),
+    ],
+    "worker": [
+        ("test episodes", ("run_episode",)),
+        ("bench step counter", ("write_atomic", "_RunningCount")),
+        ("wait for weights", ("Condition.wait", "latest_weights", "receive_all (")),
+        ("install weights", ("update_actor_weights", "_load_weights")),
+        ("actor inference", (".act_ (", ".act (")),
+        ("environment step", ("Env.step", "Wrapper.step", "Pendulum")),
+        ("send samples", ("send_and_clear_buffer",)),
+        ("record sample", ("_record", "append_sample", ".step (")),
+        ("reset", ("reset",)),
+    ],
+}
+
+
+def _main_thread(stack: str) -> bool:
+    return "<module> (bench/_child.py" in stack and "Thread._bootstrap" not in stack \
+        and "BaseProcess._bootstrap" not in stack
+
+
+def spy_summary(folder: str) -> None:
+    """Print, per side and role, where the main thread of each recorded role spent its wall time
+    (shares of py-spy's samples, idle included, by the categories of ``_CATEGORIES``) and the
+    CPU each process used."""
+    files = sorted(Path(folder).glob("*-*-seed*-*.txt"))
+    shares: dict[tuple[str, str], dict[str, float]] = {}
+    for f in files:
+        side, _profile, _seed, role = f.stem.split("-", 3)
+        if role not in _CATEGORIES:
+            continue
+        counts: dict[str, int] = {}
+        for line in f.read_text().splitlines():
+            stack, _, n = line.rpartition(" ")
+            if not _main_thread(stack):
+                continue
+            label = next((c for c, keys in _CATEGORIES[role] if any(k in stack for k in keys)), "other")
+            counts[label] = counts.get(label, 0) + int(n)
+        total = sum(counts.values()) or 1
+        acc = shares.setdefault((side, role), {})
+        for label, n in counts.items():
+            acc[label] = acc.get(label, 0.0) + n / total / len([g for g in files if g.stem.startswith(side)
+                                                                 and g.stem.endswith("-" + role)])
+    for role, cats in _CATEGORIES.items():
+        sides = sorted({s for s, r in shares if r == role})
+        print(f"\n{role} main thread, share of wall time | " + " | ".join(sides))
+        for label in [c for c, _ in cats] + ["other"]:
+            print(f"  {label:28s} | " + " | ".join(f"{shares[(s, role)].get(label, 0.0):6.1%}" for s in sides))
+    for f in sorted(Path(folder).glob("*-cpu.json")):
+        rec = json.loads(f.read_text())
+        print(f"\n{f.stem}: CPU s/s {rec['cpu_per_s']} (load {rec['load']:.2f})")
+
+
 def run_once(side: harness.Side, profile: str, seed: int, timeout: float, eval_episodes: int,
-             eval_every: float, keep: bool) -> dict[str, Any]:
-    """One pipeline run; returns the evaluations and, when reached, time, steps and updates."""
+             eval_every: float, keep: bool, spy: dict[str, Any] | None = None) -> dict[str, Any]:
+    """One pipeline run; returns the evaluations and, when reached, time, steps and updates.
+    With ``spy`` (``dir``, ``after``, ``duration``, ``rate``), py-spy records every role from
+    ``after`` seconds on (see :func:`_spy`)."""
     workdir = Path(tempfile.mkdtemp(prefix=f"pendulum-{side.name}-"))
     port = harness.free_port()
     env = dict(side.env, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
@@ -270,6 +389,15 @@ def run_once(side: harness.Side, profile: str, seed: int, timeout: float, eval_e
         ev = harness.start_group(side.command("pendulum_pipeline", "--role", "eval", *common), side,
                                  workdir / "eval.log", stdout=-1, env=env, cwd=str(workdir))
         procs.append(ev)
+        if spy is not None:
+            import threading
+
+            roles = dict(zip(("server", "trainer", "worker", "eval"), procs))
+            timer = threading.Timer(max(0.0, spy["after"] - (time.monotonic() - t0)), _spy,
+                                    (roles, Path(spy["dir"]), f"{side.name}-{profile}-seed{seed}", spy["duration"],
+                                     spy["rate"]))
+            timer.daemon = True
+            timer.start()
         for rec in harness.JsonLines(ev).wait(max(0.0, timeout - (time.monotonic() - t0)), interval=0.2):
             result["evals"].append(rec)
             if rec["ret"] > THRESHOLD:
@@ -280,6 +408,10 @@ def run_once(side: harness.Side, profile: str, seed: int, timeout: float, eval_e
                 keep = True
                 break
     finally:
+        if spy is not None:
+            timer.cancel()
+            if timer.is_alive():  # recording: let it end before the processes stop
+                timer.join()
         harness.stop_groups(procs)
         if keep:
             print(f"  [{side.name}] logs kept in {workdir}")
@@ -298,8 +430,20 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--eval-episodes", type=int, default=10)
     ap.add_argument("--eval-every", type=float, default=2.0, help="seconds between two evaluations, at least")
     ap.add_argument("--keep", action="store_true", help="keep the work folders and logs")
+    ap.add_argument("--py-spy", metavar="DIR", default=None,
+                    help="record every role (and its network processes) with py-spy into DIR, raw stacks "
+                    "(needs py-spy and the right to trace; `python -m bench pendulum_pipeline --spy-summary DIR` "
+                    "sums them up)")
+    ap.add_argument("--py-spy-after", type=float, default=15.0, help="seconds after launch the recording starts")
+    ap.add_argument("--py-spy-for", type=float, default=20.0, help="seconds recorded")
+    ap.add_argument("--py-spy-rate", type=int, default=100, help="samples per second")
     harness.add_side_arguments(ap, tmrl=True)
+    ap.add_argument("--spy-summary", metavar="DIR", default=None,
+                    help="only print the summary of the recordings in DIR (made with --py-spy)")
     args = ap.parse_args(argv)
+    if args.spy_summary:
+        spy_summary(args.spy_summary)
+        return
     profiles = [p for p in args.profiles.split(",") if p]
     if set(profiles) - set(PROFILES):
         ap.error(f"unknown profile(s) {sorted(set(profiles) - set(PROFILES))}: use {', '.join(PROFILES)}")
@@ -312,7 +456,10 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{len(profiles) * len(sides) * args.seeds} runs, {most:.0f} min at most", flush=True)
     for profile in profiles:
         for seed, side in harness.alternate(sides, args.seeds):
-            res = run_once(side, profile, seed, timeouts[profile], args.eval_episodes, args.eval_every, args.keep)
+            spy = None if args.py_spy is None else {"dir": args.py_spy, "after": args.py_spy_after,
+                                                    "duration": args.py_spy_for, "rate": args.py_spy_rate}
+            res = run_once(side, profile, seed, timeouts[profile], args.eval_episodes, args.eval_every, args.keep,
+                           spy)
             last = res["evals"][-1] if res["evals"] else {}
             extra = {"last_eval": last, "evaluations": len(res["evals"])}
             for metric, unit in (("wall_s", "s"), ("steps", "steps"), ("updates", "updates")):

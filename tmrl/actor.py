@@ -169,13 +169,18 @@ class TorchActorModule(ActorModule, torch.nn.Module):
             return self.act(batch, test=test)
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the state dict to ``path`` as safetensors, atomically."""
+        """Write the state dict to ``path`` as safetensors (:meth:`to_bytes`), atomically."""
+        atomic_write_bytes(path, self.to_bytes())
+
+    def to_bytes(self) -> bytes:
+        """The bytes :meth:`save` writes: the state dict as safetensors. The trainer broadcasts
+        them without a file in between when ``save`` is this class's own."""
         from safetensors.torch import save
 
         # Clone: safetensors refuses tensors that share storage, and parameters handed out by
         # copy_shared or fused optimizers may.
         tensors = {k: v.detach().to("cpu", copy=True).contiguous() for k, v in self.state_dict().items()}
-        atomic_write_bytes(path, save(tensors))
+        return save(tensors)
 
     def load(self, path: str | os.PathLike[str], device: Any) -> TorchActorModule:
         """Load weights written by :meth:`save` into this module, move it to ``device``.

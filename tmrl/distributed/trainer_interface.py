@@ -5,6 +5,7 @@ checks them against the run's schema, drops second copies and batches of other r
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import os
 import tempfile
@@ -16,7 +17,7 @@ from typing import Any
 from tmrl.config.settings import NetSettings
 from tmrl.distributed._common import FROM_CONFIG, LOGGER_NAME, _given, _make_link, _settings
 from tmrl.distributed.buffer import Buffer, unpack_buffer
-from tmrl.distributed.weights import _weights_problem, pack_weights
+from tmrl.distributed.weights import _weights_problem, pack_weights, replace_file
 from tmrl.spaces import SampleRejected, SampleSchema, describe_spaces
 from tmrl.util import RateLimitedLog
 from tmrl.wire_buffers import PayloadError
@@ -80,6 +81,25 @@ class PayloadOrder:
         self.duplicates += 1
         logger.debug("worker %s: dropped a second copy of payload %d", src, seq)
         return False
+
+
+def _actor_bytes(model: Any, model_path: Path) -> bytes:
+    """The bytes ``model.save`` writes: in memory when that ``save`` is
+    :class:`~tmrl.actor.TorchActorModule`'s (:meth:`~tmrl.actor.TorchActorModule.to_bytes`), else
+    through a temporary file next to ``model_path`` (an actor with a ``save`` of its own, such as
+    a tmrl 0.7 script's ``ActorModule``)."""
+    from tmrl.actor import TorchActorModule
+
+    if getattr(type(model), "save", None) is TorchActorModule.save:
+        return model.to_bytes()
+    fd, tmp = tempfile.mkstemp(prefix=f".{model_path.name}.", suffix=".tmp", dir=model_path.parent)
+    os.close(fd)
+    try:
+        model.save(tmp)
+        return Path(tmp).read_bytes()
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
 
 
 class TrainerInterface:
@@ -283,30 +303,22 @@ class TrainerInterface:
     def broadcast_model(self, model: Any) -> None:
         """Send ``model``'s weights (an ``ActorModule``) to every worker.
 
-        The actor saves itself to a temporary file next to ``model_path``, which then replaces
-        ``model_path`` (the trainer keeps a local copy) and whose bytes are broadcast, stamped
-        with :attr:`run_id` and signed with the trainer key. Weights that hold a non-finite
-        value are neither kept nor sent (logged, counted in ``skipped_broadcasts``).
+        The actor's file (what ``model.save`` writes, made in memory when that ``save`` is
+        :class:`~tmrl.actor.TorchActorModule`'s) replaces ``model_path`` (the trainer keeps a
+        local copy, not synced to disk: see :func:`~tmrl.distributed.weights.replace_file`) and is
+        broadcast, stamped with :attr:`run_id` and signed with the trainer key. Weights that hold
+        a non-finite value are neither kept nor sent (logged, counted in ``skipped_broadcasts``).
         """
         self.model_path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(
-            prefix=f".{self.model_path.name}.", suffix=".tmp", dir=self.model_path.parent
-        )
-        os.close(fd)
-        try:
-            model.save(tmp)
-            data = Path(tmp).read_bytes()
-            problem = _weights_problem(None, data)
-            if problem is not None:
-                self.skipped_broadcasts += 1
-                logger.error(
-                    "did not broadcast the actor's weights: %s (%d broadcasts skipped)", problem, self.skipped_broadcasts
-                )
-                return
-            os.replace(tmp, self.model_path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+        data = _actor_bytes(model, self.model_path)
+        problem = _weights_problem(None, data)
+        if problem is not None:
+            self.skipped_broadcasts += 1
+            logger.error(
+                "did not broadcast the actor's weights: %s (%d broadcasts skipped)", problem, self.skipped_broadcasts
+            )
+            return
+        replace_file(self.model_path, data)
         obs_space = getattr(model, "observation_space", None)
         act_space = getattr(model, "action_space", None)
         spaces = (

@@ -1,0 +1,254 @@
+"""The weights' way from the trainer's agent to a worker's actor, at every broadcast (issue 41:
+on the tutorial's settings, one broadcast per update, it took three quarters of the trainer's
+time): what it still does at each broadcast, and what it no longer does.
+
+Real parts: a relay on 127.0.0.1, the Trainer's interface, a RolloutWorker, the SAC agent and
+the training loop.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+import pytest
+import torch
+
+from tmrl.distributed import weights as weights_mod
+from tmrl.distributed.weights import WeightsInstaller, move_over, replace_file
+from tmrl.networking import RolloutWorker
+from tmrl.spaces import describe_spaces
+from tmrl.transport import credentials
+from tmrl.transport.credentials import TRAINER_PUBLIC_KEY_FILE, ensure_trainer_key
+from tmrl.util import partial
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_networking import JsonActor
+from test_security import PW, closing, make_trainer, relay, sac_training  # noqa: F401 (closing: a fixture)
+from test_training_offline import FakeInterface, make_training
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _pendulum() -> Any:
+    return gymnasium.make("Pendulum-v1")
+
+
+def _actor_cls() -> Any:
+    from tmrl.models import SquashedGaussianMLPActor
+
+    return partial(SquashedGaussianMLPActor, hidden_sizes=(16, 16))
+
+
+def _no_sync(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Make any sync to disk in this process fail the test (the calls are also recorded)."""
+    calls: list[int] = []
+
+    def refuse(fd: int) -> None:
+        calls.append(fd)
+        raise AssertionError("synced to disk on the broadcast path")
+
+    monkeypatch.setattr(os, "fsync", refuse)
+    return calls
+
+
+# --- 1. the trainer's side and the worker's side sync nothing -------------------------------------
+
+
+def test_a_broadcast_and_its_install_never_sync_to_disk(tmp_path, port_factory, closing, monkeypatch):
+    port = port_factory()
+    closing.append(relay(port))
+    env = _pendulum()
+    trainer = make_trainer(tmp_path, port, sac_training(spaces=(env.observation_space, env.action_space)))
+    closing.append(trainer.interface)
+    run = trainer._load_or_create()  # announces the initial actor
+    worker = RolloutWorker(env_cls=_pendulum, actor_module_cls=_actor_cls(), server_ip="127.0.0.1",
+                           server_port=port, password=PW, security=None, header_size=10,
+                           keys_dir=str(tmp_path / "credentials"), model_path=str(tmp_path / "w.tmod"),
+                           model_history=0)
+    closing.append(worker)
+    assert worker.update_actor_weights(verbose=False, blocking=True) == 1
+    _no_sync(monkeypatch)
+    actor = run.agent.get_actor()
+    with torch.no_grad():
+        next(actor.parameters()).add_(0.5)  # new weights, as after an update
+    trainer.interface.broadcast_model(actor)
+    assert worker.update_actor_weights(verbose=False, blocking=True) == 1
+    expected = actor.to_bytes()
+    assert (tmp_path / "trainer.tmod").read_bytes() == expected  # the trainer's copy
+    assert (tmp_path / "w.tmod").read_bytes() == expected  # the worker's copy
+    for mine, theirs in zip(worker.actor.state_dict().values(), actor.state_dict().values()):
+        assert torch.equal(mine, theirs)
+    leftovers = [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
+    assert leftovers == []  # no temporary file left behind
+
+
+def test_the_trainer_broadcasts_the_bytes_that_save_writes(tmp_path, port_factory, closing):
+    """In memory for a TorchActorModule that keeps its own save; through save's file for an actor
+    with a save of its own (tmrl 0.7's scripts)."""
+    port = port_factory()
+    closing.append(relay(port))
+    env = _pendulum()
+    trainer = make_trainer(tmp_path, port, sac_training(spaces=(env.observation_space, env.action_space)))
+    closing.append(trainer.interface)
+    run = trainer._load_or_create()
+    actor = run.agent.get_actor()
+    actor.save(tmp_path / "saved.tmod")
+    assert (tmp_path / "trainer.tmod").read_bytes() == (tmp_path / "saved.tmod").read_bytes()
+    json_actor = JsonActor(env.observation_space, env.action_space)
+    json_actor.bias = 0.25
+    trainer.interface.broadcast_model(json_actor)
+    assert (tmp_path / "trainer.tmod").read_text() == '{"bias": 0.25}'
+
+
+def test_a_file_is_moved_to_a_free_name_never_renamed_over_another(tmp_path, monkeypatch):
+    """A rename over an existing file makes ext4 write the new one out at once (about a
+    millisecond per broadcast on a busy disk): the old file is removed first."""
+    renames: list[bool] = []
+    real_rename = os.rename
+
+    def rename(src: Any, dst: Any) -> None:
+        renames.append(os.path.exists(dst))
+        real_rename(src, dst)
+
+    def replace(src: Any, dst: Any) -> None:
+        raise AssertionError("os.replace renames over the old file")
+
+    monkeypatch.setattr(os, "rename", rename)
+    monkeypatch.setattr(os, "replace", replace)
+    target = tmp_path / "model.tmod"
+    for k in range(3):
+        replace_file(target, b"weights %d" % k)
+        assert target.read_bytes() == b"weights %d" % k
+    (tmp_path / "incoming").write_bytes(b"new")
+    move_over(tmp_path / "incoming", target)
+    assert target.read_bytes() == b"new" and not (tmp_path / "incoming").exists()
+    assert renames == [False] * 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.tmod"]
+
+
+# --- 2. the worker reads the pinned key again only when the file changed -------------------------
+
+
+def test_the_pinned_key_is_read_again_only_when_its_file_changed(tmp_path, monkeypatch):
+    env = _pendulum()
+    keys = tmp_path / "credentials"
+    keys.mkdir()
+    installer = WeightsInstaller(describe_spaces(env.observation_space, env.action_space), "cpu",
+                                 tmp_path / "w.tmod", str(tmp_path / "hist"), 0, keys)
+    reads: list[Any] = []
+    real = credentials.load_trainer_public_key
+
+    def counting(directory: Any) -> Any:
+        reads.append(directory)
+        return real(directory)
+
+    monkeypatch.setattr(credentials, "load_trainer_public_key", counting)
+    assert installer.pinned_key() is None  # nothing pinned yet
+    first = ensure_trainer_key(tmp_path / "k1").public_pem
+    (keys / TRAINER_PUBLIC_KEY_FILE).write_bytes(first)  # pinned while the worker runs
+    assert installer.pinned_key() == first
+    n = len(reads)
+    for _ in range(5):
+        assert installer.pinned_key() == first
+    assert len(reads) == n  # unchanged: not read again
+    second = ensure_trainer_key(tmp_path / "k2").public_pem
+    tmp = keys / "new.pem"
+    tmp.write_bytes(second)
+    os.replace(tmp, keys / TRAINER_PUBLIC_KEY_FILE)  # replaced: read again
+    assert installer.pinned_key() == second
+    (keys / TRAINER_PUBLIC_KEY_FILE).unlink()  # removed: no key
+    assert installer.pinned_key() is None
+
+
+# --- 3. the training loop checks the actor at every broadcast, the whole state less often ---------
+
+
+class TwoPartAgent:
+    """An actor and a critic with losses of their own: a NaN in one leaves the other finite."""
+
+    def __init__(self, observation_space: Any, action_space: Any, device: Any) -> None:
+        obs_dim = sum(int(np.prod(s.shape)) for s in observation_space)
+        self.actor = torch.nn.Linear(obs_dim, action_space.shape[0])
+        self.critic = torch.nn.Linear(obs_dim + action_space.shape[0], 1)
+        self.optimizer = torch.optim.SGD([*self.actor.parameters(), *self.critic.parameters()], lr=1e-3)
+
+    def train(self, batch: Any) -> dict[str, Any]:
+        o, a, r, _, _, _ = batch
+        obs = torch.cat(list(o), -1)
+        loss_critic = ((self.critic(torch.cat([obs, a], -1)).squeeze(-1) - r) ** 2).mean()
+        loss_actor = (self.actor(obs) ** 2).mean()
+        self.optimizer.zero_grad()
+        (loss_critic + loss_actor).backward()
+        self.optimizer.step()
+        return {}
+
+    def get_actor(self) -> torch.nn.Module:
+        return self.actor
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"actor": self.actor.state_dict(), "critic": self.critic.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+
+
+class Broadcasts(FakeInterface):
+    """Records, at every broadcast, the update count and whether the actor sent was finite;
+    ``poison`` (update count -> module name) puts a NaN into that module after that update."""
+
+    def __init__(self, poison: dict[int, str]) -> None:
+        super().__init__(endless=10)
+        self.poison = poison
+        self.sent: list[tuple[int, bool]] = []
+
+    def broadcast_model(self, actor: Any) -> None:
+        updates = self.training.total_updates
+        self.sent.append((updates, all(bool(torch.isfinite(p).all()) for p in actor.parameters())))
+        name = self.poison.get(updates)
+        if name is not None:
+            with torch.no_grad():
+                getattr(self.training.agent, name).weight[0, 0] = float("nan")
+
+
+def _run(poison: dict[int, str], monkeypatch: pytest.MonkeyPatch, interval: int = 10) -> tuple[Any, Broadcasts]:
+    monkeypatch.setattr(type(make_training(training_agent_cls=TwoPartAgent)), "FULL_CHECK_INTERVAL", interval)
+    training = make_training(training_agent_cls=TwoPartAgent, epochs=1, rounds=1, steps=50,
+                             update_model_interval=1, update_buffer_interval=1, start_training=10)
+    checks: list[int] = []
+    real = training.ensure_finite
+
+    def counted() -> bool:
+        checks.append(training.total_updates)
+        return real()
+
+    training.ensure_finite = counted
+    interface = Broadcasts(poison)
+    interface.training = training
+    training.run_epoch(interface)
+    training.checks = checks
+    return training, interface
+
+
+def test_the_whole_state_is_checked_once_per_interval_not_at_every_broadcast(monkeypatch):
+    training, interface = _run({}, monkeypatch)
+    assert len(interface.sent) == 50  # a broadcast after every update
+    assert training.checks == [1, 11, 21, 31, 41]
+
+
+def test_an_actor_that_is_not_finite_is_restored_before_it_is_sent(monkeypatch):
+    training, interface = _run({5: "actor"}, monkeypatch)
+    assert all(finite for _, finite in interface.sent)
+    assert training.restored_states == 1 and 6 in training.checks  # at once, not at update 11
+
+
+def test_a_critic_that_is_not_finite_is_restored_at_the_next_full_check(monkeypatch):
+    training, interface = _run({15: "critic"}, monkeypatch)
+    assert training.restored_states == 1
+    assert torch.isfinite(training.agent.critic.weight).all()
+    assert training.checks == [1, 11, 21, 31, 41]  # the check after update 15 (at 21) restored it
