@@ -374,6 +374,7 @@ def run_worker(cfg: Mapping[str, Any] | None = None, mode: str = "train", standa
 def run_benchmark(cfg: Mapping[str, Any] | None = None, nb_steps: int = 1000) -> int:
     """Benchmark the configured environment (``--benchmark``): a standalone worker steps it
     ``nb_steps`` times and the environment's timing figures are printed. Returns the exit code."""
+    _interrupt_on_sigterm()
     size_threads("worker")
     worker = worker_from_config(standalone=True)
     try:

@@ -98,7 +98,8 @@ _CLOSE_JOIN_TIMEOUT = 10.0
 class TimeStepTimeoutWarning(UserWarning):
     """``step()`` came too late: the elastic clock restarted from now.
 
-    Attributes:
+    Args:
+        message: what happened, in one line (the warning's text).
         late: seconds after the end of the time step when ``step()`` or ``reset()`` came.
         allowed: the seconds allowed (``time_step_duration * time_step_timeout_factor``).
 
