@@ -17,5 +17,6 @@ BENCHMARKS = (
     "sim_speed",
     "realtime_jitter",
     "first_lap",
+    "chaos",
 )
 """The benchmarks, as modules of this package with a ``main(argv)``."""

@@ -818,7 +818,7 @@ class Chaos:
         if kind == "disk_full":
             return self.mounted
         if kind == "kill_server":
-            return "server" in self.roles or self.cfg.nats_nodes == 3
+            return "server" in self.roles  # a NATS cluster has no tmrl server: kill_nats_node kills a node
         return True
 
     def inject(self, kind: str) -> Fault:
@@ -986,6 +986,8 @@ class Chaos:
             yield from kinds
             return
         end = time.monotonic() + self.cfg.minutes * 60
+        if not kinds:  # a run without faults: as long, for comparison
+            self.stop_event.wait(self.cfg.minutes * 60)
         while kinds and time.monotonic() < end:
             cycle = list(kinds)
             self.rng.shuffle(cycle)
@@ -1214,3 +1216,142 @@ def run_chaos(cfg: ChaosConfig, keep: bool = False) -> dict[str, Any]:
         chaos.cleanup(keep=keep or failed)
         if failed:
             cfg.log(f"  logs kept in {chaos.workdir}")
+
+
+# ================================================================================================
+# the command
+
+
+def _fmt_s(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f}"
+
+
+def _rows(results: dict[str, dict[str, Any]]) -> list[tuple[str, list[str]]]:
+    """The table: one row per figure, one column per backend."""
+    backends = list(results)
+
+    def row(label: str, fn: Callable[[dict[str, Any]], Any]) -> tuple[str, list[str]]:
+        cells = []
+        for b in backends:
+            try:
+                v = fn(results[b])
+            except (KeyError, TypeError, ZeroDivisionError):
+                v = None
+            cells.append("-" if v is None else (harness.fmt(v) if isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                 else str(v)))
+        return label, cells
+
+    rows = [
+        row("faults injected", lambda r: len(r["faults"])),
+        row("  not recovered", lambda r: sum(k["not_recovered"] for k in r["recovery"].values())),
+        row("load average (start / end)", lambda r: f"{r['load_start']:.1f} / {r['load_end']:.1f}"),
+        row("samples produced", lambda r: r["produced"]),
+        row("  acknowledged by the stream", lambda r: r["acknowledged"]),
+        row("  received by a trainer", lambda r: r["received"]),
+        row("  stored (final trainer's memory)", lambda r: r["stored"]),
+        row("lost: acknowledged, never received", lambda r: r["lost_acknowledged"]),
+        row("lost: unexplained", lambda r: r["lost_unexplained"]),
+        row("lost: with a killed worker (unsent)", lambda r: r["lost_with_killed_workers"]),
+        row("lost: held by a killed server", lambda r: r["lost_with_killed_servers"]),
+        row("lost: in a killed trainer's link", lambda r: r["lost_in_killed_trainer_links"]),
+        row("lost: received, not checkpointed", lambda r: r["lost_with_killed_trainers"]),
+        row("worker links: batches dropped", lambda r: r["worker_link_dropped"]),
+        row("trainer: lost / duplicate payloads", lambda r: f"{r['trainer_lost_payloads']} / "
+                                                            f"{r['trainer_duplicate_payloads']}"),
+    ]
+    kinds = [k for k in FAULT_KINDS if any(k in r["recovery"] for r in results.values())]
+    for kind in kinds:
+        rows.append(row(f"recovery {kind} (n): samples median / max s",
+                        lambda r, k=kind: f"({r['recovery'][k]['n']}) {_fmt_s(r['recovery'][k]['flow_median_s'])} / "
+                                          f"{_fmt_s(r['recovery'][k]['flow_max_s'])}"
+                        + (f" [{r['recovery'][k]['not_recovered']} not]" if r['recovery'][k]['not_recovered'] else "")))
+        rows.append(row("    weights median / max s",
+                        lambda r, k=kind: f"{_fmt_s(r['recovery'][k]['weights_median_s'])} / "
+                                          f"{_fmt_s(r['recovery'][k]['weights_max_s'])}"))
+    roles = sorted({n for r in results.values() for n in r["rss_start_mib"]})
+    for name in roles:
+        def rss(r: dict[str, Any], n: str = name) -> str | None:
+            a, b = r["rss_start_mib"].get(n), r["rss_end_mib"].get(n)
+            if a is None or b is None:
+                return None
+            return f"{a:.0f} -> {b:.0f} ({100 * (b - a) / a:+.1f} %)"
+        rows.append(row(f"RSS MiB {name} (start -> end)", rss))
+    rows += [
+        row("restarts (trainer / server / workers)",
+            lambda r: f"{r['restarts'].get('trainer', 0)} / "
+                      f"{sum(v for k, v in r['restarts'].items() if not k.startswith(('trainer', 'worker')))} / "
+                      f"{sum(v for k, v in r['restarts'].items() if k.startswith('worker'))}"),
+        row("stopped by SIGTERM", lambda r: f"{sum(r['stopped_cleanly'].values())} of {len(r['stopped_cleanly'])}"),
+        row("processes left", lambda r: r["processes_left"]),
+        row(f"Pendulum test return (> {THRESHOLD:g}?)",
+            lambda r: None if r["test_return"] is None else f"{r['test_return']:.0f} "
+                                                           f"({'yes' if r['test_return'] > THRESHOLD else 'no'})"),
+    ]
+    return rows
+
+
+def print_table(results: dict[str, dict[str, Any]]) -> None:
+    rows = _rows(results)
+    width = max(len(label) for label, _ in rows)
+    cols = [max(len(b), *(len(cells[i]) for _, cells in rows)) for i, b in enumerate(results)]
+    print()
+    print(f"{'':{width}}  " + "  ".join(f"{b:>{w}}" for b, w in zip(results, cols)))
+    for label, cells in rows:
+        print(f"{label:{width}}  " + "  ".join(f"{c:>{w}}" for c, w in zip(cells, cols)))
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m bench chaos", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--minutes", type=float, default=10.0, help="minutes of faults per backend (default 10)")
+    ap.add_argument("--quick", action="store_true", help="2 minutes per backend")
+    ap.add_argument("--backends", default="tlspyo,nats", help="comma-separated: tlspyo, nats")
+    ap.add_argument("--workers", type=int, default=4)
+    ap.add_argument("--nats-nodes", type=int, choices=(1, 3), default=3,
+                    help="3: a NATS cluster on 127.0.0.1 run by this command; 1: tmrl's supervised nats-server")
+    ap.add_argument("--seed", type=int, default=0, help="draws the fault schedule (and seeds the roles)")
+    ap.add_argument("--faults", default=",".join(FAULT_KINDS), help=f"among {', '.join(FAULT_KINDS)}")
+    ap.add_argument("--no-faults", action="store_true", help="the same run without faults (a reference)")
+    ap.add_argument("--eval-episodes", type=int, default=10, help="Pendulum test episodes at the end")
+    ap.add_argument("--recovery-timeout", type=float, default=60.0)
+    ap.add_argument("--keep", action="store_true", help="keep the work folders (logs, events.jsonl)")
+    args = ap.parse_args(argv)
+    minutes = 2.0 if args.quick else args.minutes
+    backends = [b for b in args.backends.split(",") if b]
+    if set(backends) - {"tlspyo", "nats"}:
+        ap.error(f"unknown backend(s) {sorted(set(backends) - {'tlspyo', 'nats'})}")
+    faults = () if args.no_faults else tuple(k for k in args.faults.split(",") if k)
+    if set(faults) - set(FAULT_KINDS):
+        ap.error(f"unknown fault kind(s) {sorted(set(faults) - set(FAULT_KINDS))}")
+    settings = {"minutes": minutes, "workers": args.workers, "nats_nodes": args.nats_nodes, "seed": args.seed,
+                "faults": list(faults), "profile": PROFILES["bench"], "durations": DURATIONS,
+                "recovery_timeout_s": args.recovery_timeout, "eval_episodes": args.eval_episodes}
+    rec = harness.Recorder("chaos", settings)
+    results: dict[str, dict[str, Any]] = {}
+    for backend in backends:
+        cfg = ChaosConfig(backend=backend, workers=args.workers, faults=faults, minutes=minutes, seed=args.seed,
+                          profile="bench", nats_nodes=args.nats_nodes, recovery_timeout=args.recovery_timeout,
+                          evaluate=args.eval_episodes)
+        load_start = harness.load_average()
+        print(f"{backend}: {minutes:g} min, {args.workers} workers"
+              + (f", NATS nodes {args.nats_nodes}" if backend == "nats" else "") + f", load {load_start:.2f}",
+              flush=True)
+        res = run_chaos(cfg, keep=args.keep)
+        res.update(load_start=load_start, load_end=harness.load_average())
+        results[backend] = res
+        for key in ("produced", "acknowledged", "received", "stored", "lost_acknowledged", "lost_unexplained",
+                    "lost_with_killed_workers", "lost_with_killed_servers", "lost_in_killed_trainer_links",
+                    "lost_with_killed_trainers", "worker_link_dropped", "processes_left", "test_return"):
+            rec.add(backend, key, "ours", res.get(key), echo=False)
+        for kind, r in res["recovery"].items():
+            for metric in ("flow_median_s", "flow_max_s", "weights_median_s", "weights_max_s"):
+                rec.add(f"{backend} {kind}", metric, "ours", r[metric], higher_is_better=False, unit="s", echo=False)
+        for name, mib in res["rss_end_mib"].items():
+            start = res["rss_start_mib"].get(name)
+            rec.add(f"{backend} {name}", "rss_growth_pct", "ours",
+                    None if not start or mib is None else 100 * (mib - start) / start, higher_is_better=False,
+                    unit="%", echo=False)
+        rec.add(backend, "result", "ours", None, echo=False, detail=res)
+        for note in res["notes"]:
+            print(f"  note: {note}")
+    print_table(results)
+    rec.close()
