@@ -148,7 +148,8 @@ NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIG
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGKILL],
                          ids=lambda s: signal.Signals(s).name)
 def test_the_demo_and_all_its_processes_stop_and_leave_no_run_folder(sig, run, tmp_path):
-    demo = run.start("--demo", "--minutes", "30", "--out", str(tmp_path / "out"))
+    threads = ["--threads", "2"] if sig == signal.SIGINT else []  # the demo's --threads reaches its roles
+    demo = run.start("--demo", "--minutes", "30", "--out", str(tmp_path / "out"), *threads)
     # up: the run folder exists and each of the three roles has started its network process
     run.wait_until("the demo's three roles up",
                    lambda: len(network_processes(run.marker)) == 3 and any(run.tmpdir.glob("tmrl-demo-*")))
@@ -160,7 +161,13 @@ def test_the_demo_and_all_its_processes_stop_and_leave_no_run_folder(sig, run, t
         out = run.text(demo)
         assert f"tmrl demo stopped ({NAMES[sig]})" in out, out[-3000:]
         assert "Traceback" not in out, out[-3000:]
-        assert (tmp_path / "out" / "logs" / "worker.log").exists()  # the logs are kept with the outputs
+        logs = tmp_path / "out" / "logs"  # the logs are kept with the outputs
+        assert (logs / "worker.log").exists()
+        expected = "2 PyTorch threads (TMRL_THREADS" if threads else "1 PyTorch thread (OMP_NUM_THREADS"
+        assert f"trainer: {expected}" in (logs / "trainer.log").read_text()
+        for role in ("server", "trainer", "worker"):  # each role stopped cleanly
+            text = (logs / f"{role}.log").read_text(errors="replace")
+            assert "Traceback" not in text and "Fatal Python error" not in text, f"{role}.log:\n{text[-3000:]}"
     print(f"[stop] --demo {signal.Signals(sig).name}: all gone in {took:.2f} s")
 
 

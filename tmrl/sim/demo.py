@@ -253,7 +253,9 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
     # KeyboardInterrupt (see main()): each role closes its network process within STOP_TIMEOUT.
     from tmrl.distributed import STOP_TIMEOUT, RolloutWorker, Server, Trainer
     from tmrl.roles import size_threads
+    from tmrl.util import show_progress_on_console
 
+    show_progress_on_console()  # the role's INFO lines go to its log (the parent keeps it)
     if role != "server":
         size_threads(role)  # 1 (the parent sets OMP_NUM_THREADS=1) unless TMRL_THREADS says otherwise
 
@@ -411,6 +413,8 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
                    help="environment steps collected before training starts (default 1000)")
     p.add_argument("--algorithm", type=str.upper, choices=ALGORITHMS, default=DEMO_SETTINGS["algorithm"],
                    help=f"training agent (default {DEMO_SETTINGS['algorithm']}); SIMFULL takes SAC or REDQSAC only")
+    p.add_argument("--threads", type=_number(int, 1, False),
+                   help="PyTorch threads of the trainer and the worker (default 1 each; TMRL_THREADS)")
     p.add_argument("--realtime", action="store_true",
                    help="run the simulator in real time through tmrl.realtime (20 steps/s) instead of fast mode")
     p.add_argument("--role", choices=("server", "trainer", "worker"), help=argparse.SUPPRESS)
@@ -488,6 +492,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                TMRL_DEMO_CONFIG=args.config or "")
     env.setdefault("TMRL_DATA", str(workdir / "TmrlData"))
     env[_PARENT_ENV] = str(os.getpid())
+    if args.threads:
+        env["TMRL_THREADS"] = str(args.threads)  # tmrl.roles.size_threads in each role
     procs: list[subprocess.Popen] = []
     logs = []
 
@@ -568,12 +574,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _stop_roles(procs: list[subprocess.Popen]) -> None:
-    """SIGINT to each role's process group (the role and its network process), newest first;
-    SIGKILL to the groups still there after :data:`_ROLES_GRACE` seconds, all roles together."""
+    """SIGINT to each role, newest first (a role closes its network process itself; a process
+    that is just starting would die of it with a traceback); SIGKILL to the roles' process groups
+    still there after :data:`_ROLES_GRACE` seconds, all roles together."""
     for p in reversed(procs):
         if p.poll() is None:
             try:
-                os.killpg(p.pid, signal.SIGINT)
+                p.send_signal(signal.SIGINT)
             except ProcessLookupError:
                 pass
     deadline = time.monotonic() + _ROLES_GRACE
