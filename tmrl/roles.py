@@ -192,8 +192,8 @@ def run_server(cfg: Mapping[str, Any] | None = None, stop_event: threading.Event
     _interrupt_on_sigterm()
     server = Server(settings=_settings())
     stop_event = stop_event or threading.Event()
-    logger.info("server running on port %d; Ctrl-C to stop", server.port)
-    try:
+    try:  # from here a stop signal says "server stopped", also right after the line below
+        logger.info("server running on port %d; Ctrl-C to stop", server.port)
         while not stop_event.wait(1.0):
             if not server.running:
                 _say(f"tmrl: the server on port {server.port} stopped unexpectedly")
