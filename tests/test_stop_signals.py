@@ -207,3 +207,30 @@ def test_the_three_command_line_roles_stop_on_every_signal(sig, run, port_factor
     assert "trainer: 2 PyTorch threads (TMRL_THREADS" in run.text(roles["trainer"])
     assert "worker: 1 PyTorch thread (" in run.text(roles["worker"]) and " cores;" in run.text(roles["worker"])
     print(f"[stop] --server/--trainer/--worker {signal.Signals(sig).name}: all gone in {took:.2f} s")
+
+
+# ------------------------------------------------------------------------------------------------
+# nohup: a SIGHUP ignored when the command starts stays ignored (the command outlives its terminal)
+
+
+def test_an_ignored_sighup_stays_ignored_and_the_handlers_come_back():
+    from tmrl.roles import _interrupt_on_sigterm
+    from tmrl.sim.lifeline import Stopped, stop_on_signals
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)  # what nohup does
+        with stop_on_signals():
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            assert callable(signal.getsignal(signal.SIGTERM))
+        _interrupt_on_sigterm()
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
+        with stop_on_signals():
+            with pytest.raises(Stopped) as stopped:
+                signal.raise_signal(signal.SIGHUP)
+            assert stopped.value.signum == signal.SIGHUP
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_DFL  # restored
+    finally:
+        for s, handler in saved.items():
+            signal.signal(s, handler)
