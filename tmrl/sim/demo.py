@@ -4,9 +4,11 @@ The demo starts a server, a trainer and a worker as three processes on localhost
 driving the built-in simulator (lidar observations, fast mode, the default track unless told
 otherwise). While it trains it shows a live status line: elapsed time, episodes, last and best
 return, laps completed, updates/s and samples/s. It stops at the end of its budget (time or
-environment steps) or on Ctrl-C, then writes to its output folder the trained weights, a
-learning-curve PNG and a top-down PNG of the best lap (or of the farthest run when no lap was
-completed), and prints a summary with the time to the first completed lap and the best lap time.
+environment steps) or on Ctrl-C, SIGTERM or SIGHUP (exit codes 130, 143, 129), then writes to its
+output folder the trained weights, a learning-curve PNG, a top-down PNG of the best lap (or of the
+farthest run when no lap was completed) and the roles' logs, removes its run folder, and prints a
+summary with the time to the first completed lap and the best lap time. Its roles also stop, and
+remove the run folder, when the demo itself dies (:mod:`tmrl.sim.lifeline`).
 
 The roles talk over plain TCP on 127.0.0.1 with a random password (nothing leaves the machine);
 each role runs ``python -m tmrl.sim.demo --role ...`` and reports through small JSON status files
