@@ -9,7 +9,10 @@ the training loop.
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -98,10 +101,12 @@ def test_the_trainer_broadcasts_the_bytes_that_save_writes(tmp_path, port_factor
     run = trainer._load_or_create()
     actor = run.agent.get_actor()
     actor.save(tmp_path / "saved.tmod")
+    assert trainer.interface.flush_broadcasts(30)
     assert (tmp_path / "trainer.tmod").read_bytes() == (tmp_path / "saved.tmod").read_bytes()
     json_actor = JsonActor(env.observation_space, env.action_space)
     json_actor.bias = 0.25
     trainer.interface.broadcast_model(json_actor)
+    assert trainer.interface.flush_broadcasts(30)
     assert (tmp_path / "trainer.tmod").read_text() == '{"bias": 0.25}'
 
 
@@ -131,7 +136,90 @@ def test_a_file_is_moved_to_a_free_name_never_renamed_over_another(tmp_path, mon
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.tmod"]
 
 
-# --- 2. the worker reads the pinned key again only when the file changed -------------------------
+# --- 2. the training thread never waits for the network ----------------------------------------
+
+
+def _big_training(env: Any) -> Any:
+    """A SAC training whose actor's file is about 1 MiB, the size of the link's pipe."""
+    from tmrl.algorithms.sac import SACAgent
+    from tmrl.models import MLPActorCritic
+
+    return sac_training(spaces=(env.observation_space, env.action_space),
+                        training_agent_cls=partial(SACAgent, model_cls=partial(MLPActorCritic, hidden_sizes=(512, 512))))
+
+
+def test_broadcasts_never_wait_for_the_network_and_the_newest_gets_through(tmp_path, port_factory, closing):
+    """The trainer's network process is stopped (a loaded machine, or a slow network): a
+    broadcast goes on at once, a newer one replaces a waiting one, and once the network process
+    runs again the workers get the newest, its version counting the ones replaced."""
+    port = port_factory()
+    closing.append(relay(port))
+    env = _pendulum()
+    trainer = make_trainer(tmp_path, port, _big_training(env))
+    closing.append(trainer.interface)
+    run = trainer._load_or_create()
+    worker = RolloutWorker(env_cls=_pendulum, actor_module_cls=partial(_actor_cls().func, hidden_sizes=(512, 512)),
+                           server_ip="127.0.0.1", server_port=port, password=PW, security=None, header_size=10,
+                           keys_dir=str(tmp_path / "credentials"), model_path=str(tmp_path / "w.tmod"),
+                           model_history=0)
+    closing.append(worker)
+    assert worker.update_actor_weights(verbose=False, blocking=True) == 1 and worker.weights_version == 1
+    actor = run.agent.get_actor()
+    assert len(actor.to_bytes()) > 1_000_000
+    net = trainer.interface._link._proc.proc
+    os.kill(net.pid, signal.SIGSTOP)
+    try:
+        def broadcast_ten() -> None:
+            for _ in range(10):
+                with torch.no_grad():
+                    next(actor.parameters()).add_(0.01)
+                trainer.interface.broadcast_model(actor)
+
+        thread = threading.Thread(target=broadcast_ten, daemon=True)
+        thread.start()
+        thread.join(20)
+        assert not thread.is_alive(), "a broadcast waited for the stopped network process"
+    finally:
+        os.kill(net.pid, signal.SIGCONT)
+    assert trainer.interface.flush_broadcasts(30)
+    assert trainer.interface._publisher.replaced >= 5  # waiting ones were replaced, not queued
+    newest = actor.to_bytes()
+    deadline = time.monotonic() + 30
+    while worker.weights_version < 11 and time.monotonic() < deadline:
+        worker.update_actor_weights(verbose=False, blocking=True)
+    assert worker.weights_version == 11  # the newest, and versions 2-10 count as received
+    assert (tmp_path / "w.tmod").read_bytes() == newest == (tmp_path / "trainer.tmod").read_bytes()
+
+
+def test_a_failed_send_is_raised_by_the_next_broadcast_and_close_sends_the_last(tmp_path, port_factory, closing):
+    port = port_factory()
+    closing.append(relay(port))
+    env = _pendulum()
+    trainer = make_trainer(tmp_path, port, sac_training(spaces=(env.observation_space, env.action_space)))
+    closing.append(trainer.interface)
+    run = trainer._load_or_create()
+    actor = run.agent.get_actor()
+    trainer.interface.broadcast_model(actor)
+    trainer.interface.close(10)  # sends what waits, then disconnects
+    late = RolloutWorker(env_cls=_pendulum, actor_module_cls=_actor_cls(), server_ip="127.0.0.1", server_port=port,
+                         password=PW, security=None, header_size=10, keys_dir=str(tmp_path / "credentials"),
+                         model_path=str(tmp_path / "late.tmod"), model_history=0)
+    closing.append(late)
+    assert late.update_actor_weights(verbose=False, blocking=True) == 1 and late.weights_version == 2
+    other = make_trainer(tmp_path / "b", port, sac_training(spaces=(env.observation_space, env.action_space)))
+    closing.append(other.interface)
+    run = other._load_or_create()
+    assert other.interface.flush_broadcasts(30)
+    net = other.interface._link._proc.proc
+    os.kill(net.pid, signal.SIGKILL)
+    net.wait(10)
+    other.interface.broadcast_model(run.agent.get_actor())  # handed over: fails on the publishing thread
+    assert other.interface.flush_broadcasts(30)
+    with pytest.raises(ConnectionError, match="network process is gone"):
+        other.interface.broadcast_model(run.agent.get_actor())
+
+
+# --- 3. the worker reads the pinned key again only when the file changed -------------------------
 
 
 def test_the_pinned_key_is_read_again_only_when_its_file_changed(tmp_path, monkeypatch):
@@ -165,7 +253,7 @@ def test_the_pinned_key_is_read_again_only_when_its_file_changed(tmp_path, monke
     assert installer.pinned_key() is None
 
 
-# --- 3. the training loop checks the actor at every broadcast, the whole state less often ---------
+# --- 4. the training loop checks the actor at every broadcast, the whole state less often ---------
 
 
 class TwoPartAgent:
