@@ -89,12 +89,24 @@ def usage_error(result: subprocess.CompletedProcess) -> list[str]:
     (["--worker", "--env", "simlidar"], "--env goes with --install", None),
     (["--demo", "--minutes", "-1"], "argument --minutes: must be above 0, got -1", "--demo --help"),
     (["--demo", "--minute", "3"], "unrecognized arguments: --minute 3", "did you mean --minutes?"),
+    (["--demo", "--device", "gpu"], "--device 'gpu' is not a device: use auto, cpu, cuda, cuda:N", None),
 ])
 def test_argument_mistakes_are_one_line_with_a_hint_when_it_helps(tmrl_env, args, first, hint):
     lines = usage_error(tmrl(tmrl_env, *args))
     assert first in lines[0]
     assert (hint is None and len(lines) == 1) or (hint is not None and hint in lines[1])
     assert not tmrl_env["data"].exists()  # a mistake creates nothing
+
+
+def test_demo_on_a_gpu_this_machine_lacks_is_one_line_and_starts_nothing(tmrl_env):
+    pytest.importorskip("torch")
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA GPU: --device cuda is valid here")
+    lines = usage_error(tmrl(tmrl_env, "--demo", "--device", "cuda"))
+    assert "--device cuda: PyTorch" in lines[0] and "sees no CUDA GPU" in lines[0] and "--device auto" in lines[0]
+    assert not tmrl_env["data"].exists()
 
 
 def test_demo_help_creates_nothing(tmrl_env):

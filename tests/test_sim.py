@@ -445,6 +445,10 @@ def test_demo_runs_end_to_end_with_a_tiny_budget(tmp_path):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "updates/s" in proc.stdout and "samples/s" in proc.stdout
     assert "tmrl demo finished" in proc.stdout
+    import torch
+
+    expected = "cuda" if torch.cuda.is_available() else "cpu"  # --device auto, the default
+    assert f"trainer on {expected})" in proc.stdout.splitlines()[0], proc.stdout.splitlines()[0]
     w, h = _png_size(out / "learning_curve.png")
     assert (w, h) == (800, 480)
     w, h = _png_size(out / "best_lap.png")

@@ -223,7 +223,7 @@ def _agent_cls(interface: str, algorithm: str, realtime: bool = False) -> Any:
                    learn_entropy_coef=s[mode + "learn_entropy_coef"], target_entropy=None)
 
 
-def _training_cls(interface: str, track: str, workdir: Path, realtime: bool = False) -> Any:
+def _training_cls(interface: str, track: str, workdir: Path, realtime: bool = False, device: str = "cpu") -> Any:
     from tmrl.training_offline import TorchTrainingOffline
     from tmrl.util import partial
 
@@ -244,13 +244,13 @@ def _training_cls(interface: str, track: str, workdir: Path, realtime: bool = Fa
         update_buffer_interval=s["update_buffer_interval"], update_model_interval=s["update_model_interval"],
         max_training_steps_per_env_step=s["realtime_max_training_steps_per_env_step" if realtime
                                           else "max_training_steps_per_env_step"],
-        start_training=s["start_training"], device="cpu",
+        start_training=s["start_training"], device=device,
         max_env_steps_per_training_step=s["max_env_steps_per_training_step"],
     )
 
 
 def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, password: str,
-              realtime: bool = False) -> None:
+              realtime: bool = False, device: str = "cpu") -> None:
     # Stop signals (the parent's SIGINT, or SIGTERM when the parent died) arrive as
     # KeyboardInterrupt (see main()): each role closes its network process within STOP_TIMEOUT.
     from tmrl.distributed import STOP_TIMEOUT, RolloutWorker, Server, Trainer
@@ -270,7 +270,7 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
         finally:
             server.stop(STOP_TIMEOUT)
     elif role == "trainer":
-        trainer = Trainer(training_cls=_training_cls(interface, track, workdir, realtime), server_ip="127.0.0.1",
+        trainer = Trainer(training_cls=_training_cls(interface, track, workdir, realtime, device), server_ip="127.0.0.1",
                           server_port=port, model_path=str(workdir / "weights.tmod"), checkpoint_path=None, **common)
         try:
             trainer.run()
@@ -417,6 +417,9 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
                    help=f"training agent (default {DEMO_SETTINGS['algorithm']}); SIMFULL takes SAC or REDQSAC only")
     p.add_argument("--threads", type=_number(int, 1, False),
                    help="PyTorch threads of the trainer and the worker (default 1 each; TMRL_THREADS)")
+    p.add_argument("--device", default="auto",
+                   help="where the trainer trains: auto (a CUDA GPU when PyTorch sees one, else the CPU; the "
+                        "default), cpu, cuda, cuda:N; the worker always acts on the CPU")
     p.add_argument("--realtime", action="store_true",
                    help="run the simulator in real time through tmrl.realtime (20 steps/s) instead of fast mode")
     p.add_argument("--role", choices=("server", "trainer", "worker"), help=argparse.SUPPRESS)
@@ -444,7 +447,7 @@ def _role_main(args: argparse.Namespace) -> int:
         # it ignored (`nohup ... &`), SIGTERM and SIGHUP raise a KeyboardInterrupt too.
         with stop_on_signals(force_sigint=True), summarised_timeouts():  # --realtime: one line per 10 s
             _run_role(args.role, args.interface, args.track, workdir, args.port,
-                      os.environ.get("TMRL_DEMO_PASSWORD", ""), args.realtime)
+                      os.environ.get("TMRL_DEMO_PASSWORD", ""), args.realtime, args.device)
     except KeyboardInterrupt:  # the parent stops its roles with SIGINT: a normal end
         pass
     finally:
@@ -485,6 +488,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from tmrl.config.loader import ensure_data_folder, load_config
     from tmrl.sim.lifeline import exit_code, ignore_stop_signals, signal_name, stop_on_signals
 
+    from tmrl.util import resolve_device
+
+    device = resolve_device(args.device, "--device")  # a device this machine lacks: one line, nothing started
     load_config()  # a configuration mistake is reported before anything is created
     ensure_data_folder()  # before the demo starts its processes, which read it
     out = Path(args.out).resolve()
@@ -504,7 +510,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         logs.append(log)
         cmd = [sys.executable, "-m", "tmrl.sim.demo", "--role", role, "--interface", args.interface,
                "--track", str(args.track), "--workdir", str(workdir), "--port", str(port),
-               "--start-training", str(args.start_training), "--algorithm", args.algorithm]
+               "--start-training", str(args.start_training), "--algorithm", args.algorithm, "--device", device]
         cmd += ["--realtime"] if args.realtime else []
         # A session of its own: Ctrl-C in the terminal reaches the demo only, which stops the roles
         # in order. The role stops by itself when the demo dies (tmrl.sim.lifeline).
@@ -514,7 +520,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     budget = args.minutes * 60.0
     tty = sys.stdout.isatty()
-    print(f"tmrl demo: {args.interface} on track {args.track} ({'real time' if args.realtime else 'fast mode'}, {args.algorithm}), budget {args.minutes:g} min"
+    print(f"tmrl demo: {args.interface} on track {args.track} ({'real time' if args.realtime else 'fast mode'}, {args.algorithm}, "
+          f"trainer on {device}), budget {args.minutes:g} min"
           f"{f' or {args.steps} steps' if args.steps else ''}; Ctrl-C stops early. Run folder: {workdir}", flush=True)
     t0 = time.monotonic()
     stopped: KeyboardInterrupt | None = None
