@@ -373,7 +373,7 @@ def test_tls_with_a_foreign_certificate_does_not_connect(net, tmp_path, credenti
     _wait_for(lambda: "check that certificate.pem is the server's" in _log_text(caplog), what="a TLS failure")
     assert not worker.connected
     assert any(
-        r.levelno == logging.WARNING and "cannot reach the relay" in r.getMessage() for r in caplog.records
+        r.levelno == logging.WARNING and "cannot reach the server" in r.getMessage() for r in caplog.records
     )
 
 

@@ -143,7 +143,7 @@ class LinkState:
             self.store_bytes -= len(old)
             self.dropped += 1
             self.drop_log(
-                "not connected to the relay at %s: dropped the oldest unsent object (%d dropped so far)",
+                "not connected to the server at %s: dropped the oldest unsent object (%d dropped so far)",
                 self.where,
                 self.dropped,
             )
@@ -169,7 +169,7 @@ class LinkState:
     def connected(self, proto: LinkProtocol) -> None:
         self.proto = proto
         self.last_failure = None
-        log_link.info("connected to the relay at %s (%s)", self.where, "/".join(self.groups))
+        log_link.info("connected to the server at %s (%s)", self.where, "/".join(self.groups))
         last = self.last_broadcast_sent
         if last is not None and not any(item[3] == last[3] for item in self.store):
             proto.send_object(last[0], last[1], last[3])
@@ -196,7 +196,7 @@ class LinkState:
         self.unacked_bytes = 0
         self.writable.set()  # objects now go to the bounded store instead of blocking
         if was and not self.closing:
-            log_link.warning("lost the connection to the relay at %s; reconnecting", self.where)
+            log_link.warning("lost the connection to the server at %s; reconnecting", self.where)
             self.status(connected=False, refused=None)
         if self.closing and not self.store:
             stop_reactor()
@@ -321,7 +321,7 @@ class LinkProtocol(TlspyoClientProtocol):
             )
 
     def _abort(self, reason: str) -> None:
-        log_link.error("closed the connection to the relay at %s: %s", self._client.where, reason)
+        log_link.error("closed the connection to the server at %s: %s", self._client.where, reason)
         self._state = _KILLED
         self.alive = False
         self.transport.abortConnection()
@@ -365,7 +365,7 @@ class LinkProtocol(TlspyoClientProtocol):
                 self._client.last_refusal = reason
                 hint = " (check the password on both machines)" if reason == "wrong password" else ""
                 log_link.error(
-                    "the relay at %s refused this %s: %s%s",
+                    "the server at %s refused this %s: %s%s",
                     self._client.where,
                     _role_of(self._client.groups),
                     reason,
@@ -442,7 +442,7 @@ class LinkFactory(TlspyoClientFactory):
             tls = any(w in msg.lower() for w in ("ssl", "certificate", "tls", "handshake"))
             log_link.log(
                 logging.WARNING if tls else logging.INFO,
-                "cannot reach the relay at %s (%s); retrying%s",
+                "cannot reach the server at %s (%s); retrying%s",
                 self._state.where,
                 msg,
                 " (check that certificate.pem is the server's)" if tls else "",
