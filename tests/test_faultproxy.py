@@ -77,6 +77,14 @@ def echoes(s: socket.socket, data: bytes) -> bool:
     return recv_exactly(s, len(data)) == data
 
 
+def wait_until(cond, timeout: float = 10.0) -> None:
+    """Poll the proxy's own state (it changes on its thread)."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.01)
+
+
 def is_cut(s: socket.socket, timeout: float = 10.0) -> bool:
     """Whether the connection is closed by the other end (reset or end of stream)."""
     s.settimeout(timeout)
@@ -139,20 +147,21 @@ def test_a_cut_partition_cuts_holds_new_connections_and_heals_on_time(proxy):
     assert is_cut(old)
     held = connect(proxy)  # accepted, never forwarded
     held.sendall(b"lost?")
+    wait_until(lambda: proxy.stats.held == 1)
     held.settimeout(0.5)
     with pytest.raises(socket.timeout):
         held.recv(1)
-    assert proxy.stats.held == 1 and proxy.partitioned
+    assert proxy.partitioned
     proxy.heal()
     assert is_cut(held)  # the held ones are cut at the heal: the client connects again
     with connect(proxy) as s:
         assert echoes(s, b"after")
     # healed by itself after the given time
-    proxy.partition(0.3)
+    proxy.partition(1.0)
     t0 = time.monotonic()
     with connect(proxy) as s:  # held, then cut at the heal
         assert is_cut(s)
-        assert time.monotonic() - t0 >= 0.25
+        assert time.monotonic() - t0 >= 0.9
     assert not proxy.partitioned
     with connect(proxy) as s:
         assert echoes(s, b"again")
@@ -208,3 +217,21 @@ def test_a_schedule_applies_its_steps_in_time(proxy):
     assert [what for _, what in proxy.stats.events] == ["partition refuse", "healed", "cleared"]
     with pytest.raises(ValueError):
         proxy.schedule([(1.0, "close", {})])
+
+
+def test_an_armed_partition_starts_with_a_large_chunk_and_loses_it(proxy):
+    s = connect(proxy)
+    proxy.partition(mode="cut", on_chunk_bytes=1000)
+    assert not proxy.partitioned  # armed: small chunks still pass
+    assert echoes(s, b"small")
+    s.sendall(b"x" * 5000)  # the trigger: lost with the connection
+    assert is_cut(s)
+    assert proxy.stats.lost_chunks == 1 and proxy.stats.bytes_up == 5 and proxy.partitioned
+    held = connect(proxy)
+    wait_until(lambda: proxy.stats.held == 1)  # the proxy's own count: accepted and held
+    proxy.heal()
+    assert is_cut(held)
+    with connect(proxy) as after:
+        assert echoes(after, b"after")
+    s.close()
+    held.close()
