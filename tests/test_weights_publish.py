@@ -340,3 +340,37 @@ def test_a_critic_that_is_not_finite_is_restored_at_the_next_full_check(monkeypa
     assert training.restored_states == 1
     assert torch.isfinite(training.agent.critic.weight).all()
     assert training.checks == [1, 11, 21, 31, 41]  # the check after update 15 (at 21) restored it
+
+
+# --- 5. a round's metrics are averaged in one pass per metric --------------------------------------
+
+
+def test_the_round_means_of_scalar_tensors_are_those_of_each_value_and_cost_one_pass(monkeypatch):
+    """The built-in agents return 0-dim tensors: they are stacked at once (a round of 1000 updates
+    spent 0.2 to 0.5 s averaging them one by one), with the same means as value by value:
+    non-finite values skipped, any dtype, other values and shapes as before."""
+    import math
+
+    from tmrl.training_offline import _mean_rows
+
+    rows = [{"loss": torch.tensor(float(i)), "alpha": torch.tensor(i, dtype=torch.int64),
+             "q": torch.tensor(0.1 * i, dtype=torch.float64), "bad": torch.tensor(math.nan if i % 2 else 1.0),
+             "vec": torch.full((3,), float(i)) if i else torch.tensor(0.0), "plain": 0.5 * i} for i in range(1000)]
+    one_by_one = {key: float(np.mean([float(r[key].float().mean()) if torch.is_tensor(r[key]) else r[key]
+                                      for r in rows if not (torch.is_tensor(r[key]) and r[key].isnan().any())]))
+                  for key in rows[0]}
+    means = _mean_rows(rows)
+    assert means.keys() == one_by_one.keys()
+    for key, value in one_by_one.items():
+        assert means[key] == pytest.approx(value, rel=1e-6), key
+    calls: list[int] = []
+    real_float = torch.Tensor.float
+
+    def counting_float(self: torch.Tensor, *args: Any, **kwargs: Any) -> torch.Tensor:
+        calls.append(1)
+        return real_float(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.Tensor, "float", counting_float)
+    scalars = [{"loss": torch.tensor(float(i)), "q": torch.tensor(1.0)} for i in range(1000)]
+    assert _mean_rows(scalars) == {"loss": 499.5, "q": 1.0}
+    assert len(calls) <= 2  # once per metric, not once per value (2000)

@@ -47,9 +47,11 @@ def _mean_rows(rows: list[dict[str, Any]]) -> dict[str, float]:
                 values.setdefault(key, []).append(value)
     out: dict[str, float] = {}
     for key, vals in values.items():
-        tensors = [v.detach().float().mean() for v in vals if isinstance(v, torch.Tensor) and v.numel() > 0]
-        if tensors:
-            stacked = torch.stack(tensors)
+        stacked = _stack_scalars(vals)
+        tensors = [] if stacked is not None else [
+            v.detach().float().mean() for v in vals if isinstance(v, torch.Tensor) and v.numel() > 0]
+        if stacked is not None or tensors:
+            stacked = torch.stack(tensors) if stacked is None else stacked
             finite = stacked[torch.isfinite(stacked)]
             out[key] = float(finite.mean().item()) if finite.numel() else math.nan
             continue
@@ -64,6 +66,21 @@ def _mean_rows(rows: list[dict[str, Any]]) -> dict[str, float]:
         if nums:
             out[key] = sum(nums) / len(nums)
     return out
+
+
+def _stack_scalars(vals: list[Any]) -> torch.Tensor | None:
+    """``vals`` as one float tensor when they are all 0-dim tensors on one device (what the
+    built-in agents return), in one call instead of three per value (a round of 1000 updates
+    spent 0.2 to 0.5 s here); ``None`` otherwise."""
+    first = vals[0]
+    if not isinstance(first, torch.Tensor):
+        return None
+    device = first.device
+    for v in vals:
+        if not isinstance(v, torch.Tensor) or v.dim() != 0 or v.device != device:
+            return None
+    with torch.no_grad():
+        return torch.stack(vals).float()
 
 
 @dataclass
