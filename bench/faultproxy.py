@@ -118,7 +118,7 @@ class FaultProxy:
         self._bandwidth: float | None = None
         self._mode: str | None = None  # the partition's mode while partitioned
         self._heal_handle: asyncio.TimerHandle | None = None
-        self._armed: tuple[int, float | None, str, bool] | None = None
+        self._armed: tuple[int, float | None, str, bool, bytes | None] | None = None
         self._conns: set[_Conn] = set()
         self._held: set[_Conn] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -246,11 +246,12 @@ class FaultProxy:
         return self._call(apply)
 
     def partition(self, seconds: float | None = None, mode: str = "cut", on_chunk_bytes: int | None = None,
-                  direction: str = "up") -> None:
+                  direction: str = "up", on_chunk_holding: bytes | None = None) -> None:
         """Partition the link (see the module's docstring for ``mode``), healed after ``seconds``
         (``None``: until :meth:`heal`); with ``on_chunk_bytes``, only once a chunk of at least
         that many bytes is read, from a client (``direction`` ``"up"``) or from the target
-        (``"down"``): that chunk is lost; :attr:`partitioned` tells when."""
+        (``"down"``), and that holds ``on_chunk_holding`` when given (a protocol's marker, such as
+        a subject): that chunk is lost; :attr:`partitioned` tells when."""
         if direction not in ("up", "down"):
             raise ValueError(f"direction {direction!r} is not up or down")
         if mode not in MODES:
@@ -258,7 +259,7 @@ class FaultProxy:
         if on_chunk_bytes is not None:
 
             def arm() -> None:
-                self._armed = (int(on_chunk_bytes), seconds, mode, direction == "up")
+                self._armed = (int(on_chunk_bytes), seconds, mode, direction == "up", on_chunk_holding)
                 self._note(f"armed {mode} on a chunk of {on_chunk_bytes} bytes")
 
             self._call(arm)
@@ -388,8 +389,10 @@ class FaultProxy:
                 data = await src.read(CHUNK)
                 if not data:
                     break
-                if self._armed is not None and self._armed[3] == up and len(data) >= self._armed[0]:
-                    _, seconds, mode, _ = self._armed
+                armed = self._armed
+                if (armed is not None and armed[3] == up and len(data) >= armed[0]
+                        and (armed[4] is None or armed[4] in data)):
+                    _, seconds, mode, _, _ = armed
                     self._armed = None
                     self.stats.lost_chunks += 1
                     sender.cancel()

@@ -235,3 +235,13 @@ def test_an_armed_partition_starts_with_a_large_chunk_and_loses_it(proxy):
         assert echoes(after, b"after")
     s.close()
     held.close()
+
+
+def test_an_armed_partition_can_wait_for_a_marker_in_the_chunk(proxy):
+    s = connect(proxy)
+    proxy.partition(mode="cut", on_chunk_bytes=100, on_chunk_holding=b"PUB samples")
+    assert echoes(s, b"y" * 2000)  # large, without the marker: passes
+    s.sendall(b"PUB samples " + b"z" * 200)
+    assert is_cut(s) and proxy.partitioned and proxy.stats.lost_chunks == 1
+    proxy.heal()
+    s.close()
