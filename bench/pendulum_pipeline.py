@@ -4,6 +4,8 @@ exceeds -200.
 
     python -m bench pendulum_pipeline                              # both profiles, 5 seeds per side
     python -m bench pendulum_pipeline --profiles recommended --seeds 3 --timeout 300
+    python -m bench pendulum_pipeline --profiles tutorial --seeds 1 --py-spy /tmp/spy   # where the time goes
+    python -m bench pendulum_pipeline --spy-summary /tmp/spy
 
 Two profiles, each one settings dict applied to both sides (the original accepts every one of
 those arguments, ``hidden_sizes`` included):
@@ -16,15 +18,25 @@ those arguments, ``hidden_sizes`` included):
   1000/40/False).
 
 Both sides checkpoint at the end of every epoch (the original always does) and load weights the
-same way. Seeds alternate the order of the sides (ours, tmrl, then tmrl, ours...).
+same way. Seeds alternate the order of the sides (ours, tmrl, then tmrl, ours...). Our SAC runs
+its default update order (the actor loss reads the critics before their step);
+``--update-order sequential`` gives it the original's (after their step).
 
 How it measures: a fourth process (the evaluator, the same code on both sides) reloads the
 trainer's weights file when it changed, at most every ``--eval-every`` seconds (a failed load is
-retried 50 ms later: the original writes that file in place), and runs ``--eval-episodes``
-deterministic episodes; the worker's environment writes its step count to a file, the trainer
+retried 50 ms later: the original writes that file in place, ours moves a new one there), and
+runs ``--eval-episodes`` deterministic episodes; the worker's environment writes its step count to a file, the trainer
 its update count. The clock starts when the processes are launched (start-up, imports and
 connection included) and stops at the first evaluation above the threshold; a run that does not
-get there within the profile's timeout (``--timeout``) counts as not reached.
+get there within the profile's timeout (``--timeout``) counts as not reached, and is listed with
+its last evaluation at the end. Each side's rates over the run (environment steps and updates
+per second, at its last evaluation) are printed beside the figures.
+
+Where the time goes: ``--py-spy DIR`` records every role process and the processes it started
+(network processes) with py-spy, from ``--py-spy-after`` seconds for ``--py-spy-for`` seconds, and
+their CPU use; ``--spy-summary DIR`` prints, per side and role, the share of the main thread's
+wall time in each part (the update, the weights publish, the samples' ingest; the worker's
+environment step, actor inference, weights install...) and each process's CPU seconds per second.
 """
 
 from __future__ import annotations
@@ -60,8 +72,11 @@ PROFILES: dict[str, dict[str, Any]] = {
 }
 """Each profile is applied to both sides."""
 
-TIMEOUTS = {"tutorial": 90.0, "recommended": 50.0}
-"""Default seconds per run, per profile: both profiles, 5 seeds per side, fit in 25 minutes."""
+TIMEOUTS = {"tutorial": 300.0, "recommended": 120.0}
+"""Default seconds per run, per profile: long enough for every run of both sides to get there on a
+loaded 2-core machine (tmrl 0.7.1 took up to 117 s on the tutorial's settings at load 6), so that
+a run that does not is a result, not a cut. Typically both profiles, 5 seeds per side, take about
+15 minutes."""
 
 
 # --- inside the role processes (either interpreter) ---------------------------------------------
@@ -145,12 +160,13 @@ def _imports(impl: str) -> dict[str, Any]:
                 Server=Server, Trainer=Trainer, TorchTrainingOffline=TorchTrainingOffline, partial=partial)
 
 
-def _trainer(impl: str, s: dict[str, Any], workdir: Path, port: int) -> None:
+def _trainer(impl: str, s: dict[str, Any], workdir: Path, port: int, update_order: str | None = None) -> None:
     import gymnasium
 
     m = _imports(impl)
     partial = m["partial"]
     _count_updates(m["SACAgent"], workdir / "updates")
+    order = {} if update_order is None or impl == "tmrl" else {"update_order": update_order}
     env = gymnasium.make("Pendulum-v1")
     training_cls = partial(
         m["TorchTrainingOffline"],
@@ -160,7 +176,7 @@ def _trainer(impl: str, s: dict[str, Any], workdir: Path, port: int) -> None:
         training_agent_cls=partial(
             m["SACAgent"], model_cls=partial(m["MLPActorCritic"], hidden_sizes=tuple(s["hidden_sizes"])),
             gamma=s["gamma"], polyak=s["polyak"], alpha=s["alpha"], lr_actor=s["lr"], lr_critic=s["lr"],
-            lr_entropy=s["lr"], learn_entropy_coef=True, target_entropy=None,
+            lr_entropy=s["lr"], learn_entropy_coef=True, target_entropy=None, **order,
         ),
         epochs=1000, rounds=s["rounds"], steps=s["steps_per_round"],
         update_buffer_interval=s["update_buffer_interval"], update_model_interval=s["update_model_interval"],
@@ -205,6 +221,7 @@ def _evaluate(impl: str, s: dict[str, Any], workdir: Path, episodes: int, every:
             if mtime == last_mtime:
                 time.sleep(0.05)
                 continue
+            t_read = time.monotonic() - t0
             steps, updates = harness.read_int(workdir / "steps"), harness.read_int(workdir / "updates")
             actor = actor.load(str(path), device="cpu")
             last_mtime, next_eval = mtime, time.monotonic() + every
@@ -224,7 +241,7 @@ def _evaluate(impl: str, s: dict[str, Any], workdir: Path, episodes: int, every:
                 ret += float(rew)
                 done = terminated or truncated
             returns.append(ret)
-        harness.print_json({"t": time.monotonic() - t0, "steps": steps, "updates": updates,
+        harness.print_json({"t": time.monotonic() - t0, "t_read": t_read, "steps": steps, "updates": updates,
                              "ret": sum(returns) / len(returns)})
 
 
@@ -238,6 +255,7 @@ def child_main(argv: list[str]) -> None:
     p.add_argument("--eval-episodes", type=int, default=10)
     p.add_argument("--eval-every", type=float, default=2.0)
     p.add_argument("--t0", type=float, default=0.0)
+    p.add_argument("--update-order", default=None)
     args = p.parse_args(argv)
     s, workdir = PROFILES[args.profile], Path(args.workdir)
     _seed(args.seed * 10 + ("server", "trainer", "worker", "eval").index(args.role))
@@ -250,7 +268,7 @@ def child_main(argv: list[str]) -> None:
             if hasattr(server, "stop"):
                 server.stop()
     elif args.role == "trainer":
-        _trainer(args.impl, s, workdir, args.port)
+        _trainer(args.impl, s, workdir, args.port, args.update_order)
     elif args.role == "worker":
         _worker(args.impl, s, workdir, args.port)
     else:
@@ -364,7 +382,8 @@ def spy_summary(folder: str) -> None:
 
 
 def run_once(side: harness.Side, profile: str, seed: int, timeout: float, eval_episodes: int,
-             eval_every: float, keep: bool, spy: dict[str, Any] | None = None) -> dict[str, Any]:
+             eval_every: float, keep: bool, spy: dict[str, Any] | None = None,
+             update_order: str | None = None) -> dict[str, Any]:
     """One pipeline run; returns the evaluations and, when reached, time, steps and updates.
     With ``spy`` (``dir``, ``after``, ``duration``, ``rate``), py-spy records every role from
     ``after`` seconds on (see :func:`_spy`)."""
@@ -376,7 +395,7 @@ def run_once(side: harness.Side, profile: str, seed: int, timeout: float, eval_e
     t0 = time.monotonic()
     common = ["--impl", side.name, "--profile", profile, "--workdir", str(workdir), "--port", str(port),
               "--seed", str(seed), "--eval-episodes", str(eval_episodes), "--eval-every", str(eval_every),
-              "--t0", repr(t0)]
+              "--t0", repr(t0)] + ([] if update_order is None else ["--update-order", update_order])
     procs = []
     result: dict[str, Any] = {"reached": False, "evals": []}
     try:
@@ -430,6 +449,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--eval-episodes", type=int, default=10)
     ap.add_argument("--eval-every", type=float, default=2.0, help="seconds between two evaluations, at least")
     ap.add_argument("--keep", action="store_true", help="keep the work folders and logs")
+    ap.add_argument("--update-order", choices=("simultaneous", "sequential"), default=None,
+                    help="our SAC's update order (default: the library's, simultaneous); sequential is the "
+                    "original's (its actor loss reads the critics after their step); tmrl 0.7.1 always does that")
     ap.add_argument("--py-spy", metavar="DIR", default=None,
                     help="record every role (and its network processes) with py-spy into DIR, raw stacks "
                     "(needs py-spy and the right to trace; `python -m bench pendulum_pipeline --spy-summary DIR` "
@@ -451,20 +473,32 @@ def main(argv: list[str] | None = None) -> None:
     timeouts = {p: args.timeout or TIMEOUTS[p] for p in profiles}
     rec = harness.Recorder("pendulum_pipeline", {p: PROFILES[p] for p in profiles} | {
         "seeds": args.seeds, "timeout_s": timeouts, "eval_episodes": args.eval_episodes,
-        "eval_every_s": args.eval_every, "threshold": THRESHOLD, "checkpoint": "every epoch, both sides"})
+        "eval_every_s": args.eval_every, "threshold": THRESHOLD, "checkpoint": "every epoch, both sides",
+        "update_order_ours": args.update_order or "simultaneous (library default)"})
     most = sum(len(sides) * args.seeds * (timeouts[p] + 8) for p in profiles) / 60
     print(f"{len(profiles) * len(sides) * args.seeds} runs, {most:.0f} min at most", flush=True)
+    missed: list[str] = []
     for profile in profiles:
         for seed, side in harness.alternate(sides, args.seeds):
             spy = None if args.py_spy is None else {"dir": args.py_spy, "after": args.py_spy_after,
                                                     "duration": args.py_spy_for, "rate": args.py_spy_rate}
             res = run_once(side, profile, seed, timeouts[profile], args.eval_episodes, args.eval_every, args.keep,
-                           spy)
+                           spy, args.update_order)
             last = res["evals"][-1] if res["evals"] else {}
             extra = {"last_eval": last, "evaluations": len(res["evals"])}
             for metric, unit in (("wall_s", "s"), ("steps", "steps"), ("updates", "updates")):
                 rec.add(f"{profile} to {THRESHOLD:g}", metric, side.name, res.get(metric), round=seed,
                         higher_is_better=False, unit=unit, echo=metric == "wall_s", **extra)
+            # rates over the whole run, reached or not: counts when the last evaluation read them
+            t_read = last.get("t_read") or 0.0
+            for metric, key, unit in (("steps_per_s", "steps", "steps/s"), ("updates_per_s", "updates", "upd/s")):
+                rec.add(f"{profile} rates", metric, side.name, last[key] / t_read if t_read > 0 else None,
+                        round=seed, unit=unit, echo=False, **extra)
+            if not res["reached"]:
+                missed.append(f"{profile} {side.name} seed {seed}: not reached in {timeouts[profile]:g} s; last "
+                              f"evaluation {last.get('ret', float('nan')):.1f} at {last.get('t', 0.0):.1f} s "
+                              f"({last.get('steps', 0)} steps, {last.get('updates', 0)} updates)")
     rec.print_table()
     print(f"(n = runs that reached {THRESHOLD:g} within the timeout, {timeouts}, of {args.seeds} per side)")
+    print("every run reached it" if not missed else "runs that did not reach it:\n  " + "\n  ".join(missed))
     rec.close()

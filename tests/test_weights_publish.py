@@ -374,3 +374,68 @@ def test_the_round_means_of_scalar_tensors_are_those_of_each_value_and_cost_one_
     scalars = [{"loss": torch.tensor(float(i)), "q": torch.tensor(1.0)} for i in range(1000)]
     assert _mean_rows(scalars) == {"loss": 499.5, "q": 1.0}
     assert len(calls) <= 2  # once per metric, not once per value (2000)
+
+
+# --- 6. the worker starts each episode with the newest weights it received --------------------------
+
+
+def _json_setup(tmp_path: Path, port: int, closing: list) -> tuple[Any, Any, Any]:
+    from test_networking import CountingEnv
+
+    from tmrl.networking import TrainerInterface
+
+    closing.append(relay(port))
+    iface = TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PW, security=None, header_size=10,
+                             keys_dir=str(tmp_path / "credentials"), model_path=str(tmp_path / "t.json"))
+    closing.append(iface)
+    worker = RolloutWorker(env_cls=CountingEnv, actor_module_cls=JsonActor, server_ip="127.0.0.1",
+                           server_port=port, password=PW, security=None, header_size=10,
+                           keys_dir=str(tmp_path / "credentials"), model_path=str(tmp_path / "w.json"),
+                           model_history=0, max_samples_per_episode=1000)
+    closing.append(worker)
+    actor = JsonActor(CountingEnv().observation_space, CountingEnv().action_space)
+    return iface, worker, actor
+
+
+def _broadcast_until_held(iface: Any, worker: Any, actor: Any, biases: list[float]) -> None:
+    """Broadcast one version per bias and wait until the worker's link holds the last one."""
+    from tmrl.distributed.weights import unpack_weights
+
+    for bias in biases:
+        actor.bias = bias
+        iface.broadcast_model(actor)
+    assert iface.flush_broadcasts(30)
+    link = worker._link
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        with link._weights_cv:
+            held = link._weights
+            if held is not None and unpack_weights(held)[0]["version"] == iface.weights_version:
+                return
+            link._weights_cv.wait(0.5)
+    raise AssertionError("the worker's link never got the last broadcast")
+
+
+@pytest.mark.parametrize("newest", [True, False])
+def test_each_episode_starts_with_the_newest_weights_received(tmp_path, port_factory, closing, newest):
+    """A worker ahead of its budget never has to wait for weights (here the budget is unbounded):
+    tmrl 0.7 then acts with the weights it had; ours takes the newest at each episode's start."""
+    iface, worker, actor = _json_setup(tmp_path, port_factory(), closing)
+    assert worker.wait_connected(30)
+    _broadcast_until_held(iface, worker, actor, [1.0, 2.0])
+    worker.run_synchronous(nb_steps=50, initial_steps=1, newest_each_episode=newest)
+    if newest:
+        assert worker.weights_version == 2 and worker.actor.bias == 2.0
+    else:
+        assert worker.weights_version == 0 and worker.actor.bias == 0.0
+
+
+def test_the_newest_weights_count_every_version_they_stand_for(tmp_path, port_factory, closing):
+    """The pace is unchanged: weights taken at an episode's start count as the models received
+    since the worker's current ones, as when it waits for them."""
+    iface, worker, actor = _json_setup(tmp_path, port_factory(), closing)
+    _broadcast_until_held(iface, worker, actor, [1.0])
+    assert worker._take_newest(verbose=False) == 1 and worker.weights_version == 1
+    _broadcast_until_held(iface, worker, actor, [2.0, 3.0, 4.0])
+    assert worker._take_newest(verbose=False) == 3 and worker.actor.bias == 4.0
+    assert worker._take_newest(verbose=False) == 0  # nothing newer

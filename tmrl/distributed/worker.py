@@ -516,6 +516,8 @@ class RolloutWorker:
         max_steps_per_update: float = math.inf,
         end_episodes: bool = True,
         verbose: bool = False,
+        *,
+        newest_each_episode: bool = True,
     ) -> None:
         """Collect ``nb_steps`` steps while keeping pace with the trainer: at most
         ``max_steps_per_update`` environment steps per model received (for environments that can
@@ -529,6 +531,10 @@ class RolloutWorker:
             max_steps_per_update: most environment steps per received model (may be fractional).
             end_episodes: only pause (send and wait for a model) between episodes.
             verbose: log at INFO level.
+            newest_each_episode: start every episode with the newest weights received, if newer
+                ones came. ``False`` is tmrl 0.7's behaviour: weights are loaded only when the
+                worker has to wait for them, so a worker ahead of its budget acts with older ones.
+                Either way the models are counted when received, so the pace is the same.
         """
         log = logger.info if verbose else logger.debug
         iteration, obs, done = self._collect_initial_samples(initial_steps, end_episodes, log)
@@ -536,6 +542,8 @@ class RolloutWorker:
         iteration, episode, steps, ret = 0, 0, 0, 0.0
         while iteration < nb_steps:
             if done:
+                if newest_each_episode:
+                    models += self._take_newest(verbose)
                 if test_episode_interval > 0 and episode % test_episode_interval == 0 and end_episodes:
                     log("running a test episode")
                     self.run_episode(self.max_samples_per_episode, train=False)
@@ -582,6 +590,14 @@ class RolloutWorker:
             log("sending %d initial samples", len(self.buffer))
             self.send_and_clear_buffer()
         return iteration, obs, done
+
+    def _take_newest(self, verbose: bool) -> int:
+        """Load the newest weights received, if any; returns how many models they stand for
+        (the versions since the current ones: only the newest broadcast is kept)."""
+        before = self.weights_version
+        if self.update_actor_weights(verbose=verbose, blocking=False):
+            return max(1, self.weights_version - before)
+        return 0
 
     def _wait_for_models(self, steps_done: int, models: int, limit: float, send: bool, verbose: bool) -> int:
         """While more than ``limit`` environment steps were taken per model received, send the
