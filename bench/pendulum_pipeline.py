@@ -20,7 +20,9 @@ those arguments, ``hidden_sizes`` included):
 Both sides checkpoint at the end of every epoch (the original always does) and load weights the
 same way. Seeds alternate the order of the sides (ours, tmrl, then tmrl, ours...). Our SAC runs
 its default update order (the actor loss reads the critics before their step);
-``--update-order sequential`` gives it the original's (after their step).
+``--update-order sequential`` gives it the original's (after their step). Our worker starts
+every episode with the newest weights it received; ``--weights-when-waiting-only`` gives it the
+original's behaviour (weights loaded only when the worker has to wait for them).
 
 How it measures: a fourth process (the evaluator, the same code on both sides) reloads the
 trainer's weights file when it changed, at most every ``--eval-every`` seconds (a failed load is
@@ -188,8 +190,9 @@ def _trainer(impl: str, s: dict[str, Any], workdir: Path, port: int, update_orde
                  security=None).run()
 
 
-def _worker(impl: str, s: dict[str, Any], workdir: Path, port: int) -> None:
+def _worker(impl: str, s: dict[str, Any], workdir: Path, port: int, newest: bool = True) -> None:
     m = _imports(impl)
+    pickup = {} if newest or impl == "tmrl" else {"newest_each_episode": False}
     worker = m["RolloutWorker"](
         env_cls=lambda: _counting_env(m["GenericGymEnv"](id="Pendulum-v1", gym_kwargs={"render_mode": None}),
                                       workdir / "steps"),
@@ -199,7 +202,7 @@ def _worker(impl: str, s: dict[str, Any], workdir: Path, port: int) -> None:
         model_history=0, crc_debug=False, security=None,
     )
     worker.run_synchronous(test_episode_interval=s["test_episode_interval"], initial_steps=s["initial_steps"],
-                           max_steps_per_update=s["max_steps_per_update"], end_episodes=s["end_episodes"])
+                           max_steps_per_update=s["max_steps_per_update"], end_episodes=s["end_episodes"], **pickup)
 
 
 def _evaluate(impl: str, s: dict[str, Any], workdir: Path, episodes: int, every: float, t0: float) -> None:
@@ -256,6 +259,7 @@ def child_main(argv: list[str]) -> None:
     p.add_argument("--eval-every", type=float, default=2.0)
     p.add_argument("--t0", type=float, default=0.0)
     p.add_argument("--update-order", default=None)
+    p.add_argument("--weights-when-waiting-only", action="store_true")
     args = p.parse_args(argv)
     s, workdir = PROFILES[args.profile], Path(args.workdir)
     _seed(args.seed * 10 + ("server", "trainer", "worker", "eval").index(args.role))
@@ -270,7 +274,7 @@ def child_main(argv: list[str]) -> None:
     elif args.role == "trainer":
         _trainer(args.impl, s, workdir, args.port, args.update_order)
     elif args.role == "worker":
-        _worker(args.impl, s, workdir, args.port)
+        _worker(args.impl, s, workdir, args.port, not args.weights_when_waiting_only)
     else:
         _evaluate(args.impl, s, workdir, args.eval_episodes, args.eval_every, args.t0)
 
@@ -383,7 +387,7 @@ def spy_summary(folder: str) -> None:
 
 def run_once(side: harness.Side, profile: str, seed: int, timeout: float, eval_episodes: int,
              eval_every: float, keep: bool, spy: dict[str, Any] | None = None,
-             update_order: str | None = None) -> dict[str, Any]:
+             update_order: str | None = None, weights_when_waiting_only: bool = False) -> dict[str, Any]:
     """One pipeline run; returns the evaluations and, when reached, time, steps and updates.
     With ``spy`` (``dir``, ``after``, ``duration``, ``rate``), py-spy records every role from
     ``after`` seconds on (see :func:`_spy`)."""
@@ -395,7 +399,8 @@ def run_once(side: harness.Side, profile: str, seed: int, timeout: float, eval_e
     t0 = time.monotonic()
     common = ["--impl", side.name, "--profile", profile, "--workdir", str(workdir), "--port", str(port),
               "--seed", str(seed), "--eval-episodes", str(eval_episodes), "--eval-every", str(eval_every),
-              "--t0", repr(t0)] + ([] if update_order is None else ["--update-order", update_order])
+              "--t0", repr(t0)] + ([] if update_order is None else ["--update-order", update_order]) \
+        + (["--weights-when-waiting-only"] if weights_when_waiting_only else [])
     procs = []
     result: dict[str, Any] = {"reached": False, "evals": []}
     try:
@@ -452,6 +457,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--update-order", choices=("simultaneous", "sequential"), default=None,
                     help="our SAC's update order (default: the library's, simultaneous); sequential is the "
                     "original's (its actor loss reads the critics after their step); tmrl 0.7.1 always does that")
+    ap.add_argument("--weights-when-waiting-only", action="store_true",
+                    help="our worker loads weights only when it has to wait for them, as tmrl 0.7.1's does "
+                    "(run_synchronous(newest_each_episode=False)); by default it starts every episode with the "
+                    "newest it received")
     ap.add_argument("--py-spy", metavar="DIR", default=None,
                     help="record every role (and its network processes) with py-spy into DIR, raw stacks "
                     "(needs py-spy and the right to trace; `python -m bench pendulum_pipeline --spy-summary DIR` "
@@ -474,7 +483,8 @@ def main(argv: list[str] | None = None) -> None:
     rec = harness.Recorder("pendulum_pipeline", {p: PROFILES[p] for p in profiles} | {
         "seeds": args.seeds, "timeout_s": timeouts, "eval_episodes": args.eval_episodes,
         "eval_every_s": args.eval_every, "threshold": THRESHOLD, "checkpoint": "every epoch, both sides",
-        "update_order_ours": args.update_order or "simultaneous (library default)"})
+        "update_order_ours": args.update_order or "simultaneous (library default)",
+        "worker_weights_ours": "when waiting only" if args.weights_when_waiting_only else "newest each episode"})
     most = sum(len(sides) * args.seeds * (timeouts[p] + 8) for p in profiles) / 60
     print(f"{len(profiles) * len(sides) * args.seeds} runs, {most:.0f} min at most", flush=True)
     missed: list[str] = []
@@ -483,7 +493,7 @@ def main(argv: list[str] | None = None) -> None:
             spy = None if args.py_spy is None else {"dir": args.py_spy, "after": args.py_spy_after,
                                                     "duration": args.py_spy_for, "rate": args.py_spy_rate}
             res = run_once(side, profile, seed, timeouts[profile], args.eval_episodes, args.eval_every, args.keep,
-                           spy, args.update_order)
+                           spy, args.update_order, args.weights_when_waiting_only)
             last = res["evals"][-1] if res["evals"] else {}
             extra = {"last_eval": last, "evaluations": len(res["evals"])}
             for metric, unit in (("wall_s", "s"), ("steps", "steps"), ("updates", "updates")):
