@@ -1076,15 +1076,11 @@ class Chaos:
         was killed."""
         out: dict[tuple[int, int], dict[str, Any]] = {}
         acked: dict[int, int] = {}
-        killed: set[int] = set()
-        hellos = {(e["role"], e["inc"]): e["src"] for e in self.select("hello")}
         for e in self.select("sent") + self.select("final"):
             if e["role"].startswith("worker") and e.get("acked") is not None:
                 acked[e["src"]] = max(acked.get(e["src"], 0), e["acked"])
         finals = {e["src"] for e in self.select("final") if e["role"].startswith("worker")}
-        for (role, inc), src in hellos.items():
-            if src not in finals:
-                killed.add(src)
+        killed = {e["src"] for e in self.select("hello")} - finals  # no final event: killed
         for e in self.select("sent"):
             out[(e["src"], e["seq"])] = {"n": e["n"], "t": e["t_sent"], "acked": e["seq"] < acked.get(e["src"], 0),
                                          "killed": e["src"] in killed}

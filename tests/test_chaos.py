@@ -33,7 +33,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.chaos import ChaosConfig, marked_processes, run_chaos  # noqa: E402
+from bench.chaos import ChaosConfig, marked_processes, run_chaos
 
 HERE = Path(__file__).resolve().parent
 
