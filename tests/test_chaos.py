@@ -16,8 +16,8 @@ Asserted, from the events the roles print (never from sleeps):
   kill (the killed worker's unsent ones, what a killed server or trainer link held);
 - every role stops on SIGTERM, and no process of the run is left (its marker in /proc).
 
-Also here: a trainer whose checkpoint write fails (a full disk) should train on; it does not
-yet (xfail, strict).
+Also here, the two bugs the soak found, each fixed: a trainer whose checkpoint write fails (a
+full disk) trains on, and a NATS worker cut during a weights read gets the next weights soon.
 """
 
 from __future__ import annotations
@@ -100,10 +100,6 @@ def test_every_role_recovers_from_every_kind_of_fault_and_nothing_acknowledged_i
 
 
 @pytest.mark.timeout(120)
-@pytest.mark.xfail(strict=True, raises=OSError, reason=(
-    "a checkpoint write that fails (a full disk: ENOSPC) stops the trainer: Trainer._iterate_epochs lets the "
-    "OSError out of run(); it should log one line, keep the previous checkpoint and train on (the samples "
-    "received since, acknowledged with NATS, are lost with the process otherwise)"))
 def test_a_trainer_whose_checkpoint_write_fails_trains_on(tmp_path, port_factory):
     from functools import partial
 
@@ -164,11 +160,6 @@ def test_a_trainer_whose_checkpoint_write_fails_trains_on(tmp_path, port_factory
 
 
 @pytest.mark.timeout(120)
-@pytest.mark.xfail(strict=True, reason=(
-    "a NATS worker whose connection drops during a weights read waits for that read's 30 s bound "
-    "(tmrl/transport/jetstream/weights.py _read_weights: asyncio.wait_for(obs.get(...), 30 + size/1e6)) before "
-    "it reads the newest weights: the read should end with the connection (cancelled on disconnection, "
-    "then read again after the reconnection); the chaos soak saw 17-27 s weights recoveries after partitions"))
 def test_a_nats_worker_cut_during_a_weights_read_gets_the_next_weights_soon(tmp_path):
     import time
 

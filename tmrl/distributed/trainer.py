@@ -252,8 +252,12 @@ class Trainer:
                 logger.error("checkpoint not saved: the agent's parameters are not finite")
             elif self.checkpoint_path is not None:
                 t0 = time.perf_counter()
-                self.dump_run_instance_fn(run_instance, self.checkpoint_path)
-                logger.info("checkpoint saved in %.2f s", time.perf_counter() - t0)
+                try:
+                    self.dump_run_instance_fn(run_instance, self.checkpoint_path)
+                except OSError as err:  # a full disk, a folder gone: written atomically, the last one stands
+                    logger.error("checkpoint not saved (%s): the previous one is kept; training goes on", err)
+                else:
+                    logger.info("checkpoint saved in %.2f s", time.perf_counter() - t0)
             yield stats
 
     def run(self) -> None:

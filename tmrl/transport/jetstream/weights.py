@@ -101,6 +101,31 @@ class _WeightsReader(_NatsLink):
                 logger.debug("worker link: no weights read (%s: %s)", type(e).__name__, e)
                 kv = None
 
+    async def _while_connected(self, coro: Any, bound: float) -> Any:
+        """``await coro`` for at most ``bound`` seconds and no longer than the connection lasts.
+
+        Raises:
+            asyncio.TimeoutError: ``bound`` passed.
+            ConnectionError: the connection dropped first (``coro`` is cancelled either way).
+        """
+        import asyncio
+
+        loop = asyncio.get_running_loop()
+        task = asyncio.ensure_future(coro)
+        deadline = loop.time() + bound
+        try:
+            while not task.done():
+                if not self._is_connected:
+                    raise ConnectionError("the connection dropped during the read")
+                left = deadline - loop.time()
+                if left <= 0:
+                    raise asyncio.TimeoutError
+                await asyncio.wait({task}, timeout=min(0.2, left))
+            return task.result()
+        finally:
+            if not task.done():
+                task.cancel()
+
     async def _read_weights(self, kv: Any, obs: Any, epoch: str) -> None:
         import asyncio
 
@@ -119,10 +144,11 @@ class _WeightsReader(_NatsLink):
             logger.error("worker link: ignored a weights announcement that is not valid")
             return
         try:
-            # A get whose object is deleted meanwhile (two newer broadcasts) waits forever: bounded.
-            result = await asyncio.wait_for(obs.get(meta["name"]), 30.0 + meta["size"] / 1e6)
-        except (asyncio.TimeoutError, jse.NotFoundError):
-            self._weights_wake.set()
+            # A get whose object is deleted meanwhile (two newer broadcasts) waits forever: bounded,
+            # and ended with the connection (cut mid-read, it would wait out the whole bound).
+            result = await self._while_connected(obs.get(meta["name"]), 30.0 + meta["size"] / 1e6)
+        except (asyncio.TimeoutError, ConnectionError, jse.NotFoundError):
+            self._weights_wake.set()  # read again (once connected again)
             return
         if result.info.nuid != meta["nuid"]:
             return  # replaced meanwhile: its own announcement follows
