@@ -173,12 +173,12 @@ class _Publisher:
             return self._cv.wait_for(lambda: self._pending is None and not self._busy, timeout)
 
     def close(self, timeout: float) -> None:
-        """Send what is waiting (for at most ``timeout`` seconds), then end the thread."""
+        """Send what is waiting (for at most ``timeout`` seconds), then let the thread end (one
+        still writing to a network process that does not read ends when the link closes)."""
         self.flush(timeout)
         with self._cv:
             self._closed = True
             self._cv.notify_all()
-        self._thread.join(timeout)
 
 
 class TrainerInterface:
