@@ -14,16 +14,13 @@ million samples. Each round builds a fresh memory; the table gives medians over 
 from __future__ import annotations
 
 import argparse
-import importlib
-import importlib.util
 import json
 import shutil
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
-from types import ModuleType, SimpleNamespace
+from types import SimpleNamespace
 from typing import Any
 
 from bench import harness
@@ -79,28 +76,12 @@ def _timed(fn: Any, repeat: int = 1) -> float:
     return (time.perf_counter() - t0) / repeat
 
 
-def memory_module(path: str | None) -> ModuleType:
-    """``tmrl.memory``, or the memory module in the file ``path`` (a copy of an earlier
-    ``tmrl/memory.py``, loaded under another name so that both can be timed in one process)."""
-    if not path:
-        return importlib.import_module("tmrl.memory")
-    spec = importlib.util.spec_from_file_location("bench_reference_memory", path)
-    if spec is None or spec.loader is None:
-        raise SystemExit(f"--reference {path}: not a Python file")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the file runs
-    spec.loader.exec_module(module)
-    return module
-
-
-def one_round(args: argparse.Namespace, rnd: int, rec: harness.Recorder, side: str = "ours",
-              module: ModuleType | None = None) -> None:
+def one_round(args: argparse.Namespace, rnd: int, rec: harness.Recorder, side: str = "ours") -> None:
     import numpy as np
     import torch
 
+    import tmrl.memory as mod
     from tmrl.checkpoint import load_checkpoint, save_checkpoint
-
-    mod = module or memory_module(None)
 
     def make_memory() -> Any:
         if args.act_buf_len > 0:
@@ -172,26 +153,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--batch-size", type=int, default=256)
     ap.add_argument("--act-buf-len", type=int, default=2, help="0: GenericTorchMemory")
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--reference", metavar="FILE", default=None,
-                    help="a single-file memory module (tmrl/memory.py of a commit before the memory package) "
-                         "timed as side 'before' in this process, alternating with this checkout's in every round")
     ap.add_argument("--before", metavar="CHECKOUT", default=None,
-                    help="an earlier commit of this repository checked out there (git worktree add): each of its "
-                         "rounds runs in a child process on that tree (memory and checkpoint code), labelled before")
+                    help="an earlier commit of this repository checked out there (git worktree add): both sides "
+                         "then run each round in a fresh child process on their own tree, labelled ours and before")
     args = ap.parse_args(argv)
-    if args.reference and args.before:
-        raise SystemExit("--reference and --before both name the before side: give one")
     rec = harness.Recorder("memory_speed", vars(args))
-    sides: list[tuple[str, Any]] = [("ours", memory_module(None))]
-    if args.reference:
-        sides.append(("before", memory_module(args.reference)))
+    settings = argparse.Namespace(**{k: v for k, v in vars(args).items() if k != "before"})
     if args.before:  # both sides in fresh child processes, one per round: the same conditions
-        sides = [("ours", harness.ours_side()), ("before", harness.before_side(args.before))]
-    settings = argparse.Namespace(**{k: v for k, v in vars(args).items() if k not in ("reference", "before")})
-    for rnd, (side, how) in harness.alternate(sides, args.rounds):
-        if isinstance(how, harness.Side):
-            _round_in(how, settings, rnd, rec)
-        else:
-            one_round(args, rnd, rec, side, how)
-    rec.print_table(ratios=(("ours", "before"),) if len(sides) > 1 else ())
+        sides = [harness.ours_side(), harness.before_side(args.before)]
+        for rnd, side in harness.alternate(sides, args.rounds):
+            _round_in(side, settings, rnd, rec)
+    else:
+        for rnd in range(args.rounds):
+            one_round(args, rnd, rec)
+    rec.print_table(ratios=(("ours", "before"),) if args.before else ())
     rec.close()
