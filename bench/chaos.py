@@ -96,6 +96,12 @@ PARTITION_TRIGGER_BYTES = 500
 the test profile is about 2 kB; tlspyo's other messages are smaller; with NATS the chunk must
 also hold a publication on a samples subject)."""
 
+TLSPYO_LOSS_BOUNDS = {"server": 1000 + 64, "trainer_link": 64, "worker": 256}
+"""Payloads that one kill may lose with tlspyo (docs/reliability.md): a relay holds at most
+``max_consumables`` (1000) pending batches plus a trainer's credit window (64) sent and not
+acknowledged; a trainer's link process at most its credit window; a worker's link at most
+``max_store`` (256) unsent batches."""
+
 DURATIONS = {"stop_worker": (5.0, 10.0), "partition": (3.0, 10.0), "latency": (5.0, 10.0), "disk_full": (5.0, 10.0)}
 """Seconds a timed fault lasts (uniform in the range)."""
 
@@ -323,20 +329,13 @@ def _role_trainer(cfg: dict[str, Any]) -> None:
         _emit("final", **counters())
 
 
-def _role_eval(cfg: dict[str, Any]) -> None:
-    """Mean return of ``episodes`` deterministic Pendulum episodes of the trainer's last weights."""
-    import gymnasium
+def _test_return(actor: Any, env: Any, episodes: int) -> float:
+    """Mean return of ``episodes`` deterministic Pendulum episodes (fixed seeds) of ``actor``."""
     import numpy as np
     import torch
 
-    from tmrl.models import SquashedGaussianMLPActor
-
-    env = gymnasium.make("Pendulum-v1")
-    actor = SquashedGaussianMLPActor(env.observation_space, env.action_space,
-                                     hidden_sizes=tuple(cfg["profile"]["hidden_sizes"]))
-    actor = actor.load(str(Path(cfg["workdir"]) / "trainer.tmod"), device="cpu")
     returns = []
-    for i in range(cfg["episodes"]):
+    for i in range(episodes):
         obs, _ = env.reset(seed=10_000 + i)
         ret, done = 0.0, False
         while not done:
@@ -346,7 +345,54 @@ def _role_eval(cfg: dict[str, Any]) -> None:
             ret += float(rew)
             done = terminated or truncated
         returns.append(ret)
-    _emit("eval", ret=float(np.mean(returns)), episodes=len(returns))
+    return float(np.mean(returns))
+
+
+def _eval_actor(cfg: dict[str, Any]) -> tuple[Any, Any]:
+    import gymnasium
+
+    from tmrl.models import SquashedGaussianMLPActor
+
+    env = gymnasium.make("Pendulum-v1")
+    return env, SquashedGaussianMLPActor(env.observation_space, env.action_space,
+                                         hidden_sizes=tuple(cfg["profile"]["hidden_sizes"]))
+
+
+def _role_eval(cfg: dict[str, Any]) -> None:
+    """Mean return of ``episodes`` deterministic Pendulum episodes of the trainer's last weights."""
+    env, actor = _eval_actor(cfg)
+    actor = actor.load(str(Path(cfg["workdir"]) / "trainer.tmod"), device="cpu")
+    _emit("eval", ret=_test_return(actor, env, cfg["episodes"]), episodes=cfg["episodes"])
+
+
+def _role_evalloop(cfg: dict[str, Any]) -> None:
+    """While the faults run: evaluate the trainer's weights file whenever it changed, at most every
+    ``every`` seconds, until the test return first passes :data:`THRESHOLD` (then exit). Each
+    evaluation's event carries ``t_read``, when the weights were read: the orchestrator counts the
+    samples produced by then."""
+    import torch
+
+    torch.set_num_threads(1)
+    env, actor = _eval_actor(cfg)
+    path = Path(cfg["workdir"]) / "trainer.tmod"
+    last = None
+    while True:
+        try:
+            mtime = path.stat().st_mtime_ns
+            if mtime == last:
+                time.sleep(0.2)
+                continue
+            t_read = time.time()
+            actor = actor.load(str(path), device="cpu")
+        except Exception:  # noqa: BLE001 (not written yet, or replaced while read: try again soon)
+            time.sleep(0.2)
+            continue
+        last = mtime
+        ret = _test_return(actor, env, cfg["episodes"])
+        _emit("eval", ret=ret, t_read=t_read, episodes=cfg["episodes"])
+        if ret > THRESHOLD:
+            return
+        time.sleep(cfg["every"])
 
 
 def child_main(argv: list[str]) -> None:
@@ -361,7 +407,8 @@ def child_main(argv: list[str]) -> None:
     cfg["name"], cfg["incarnation"] = args.name, args.incarnation
     _stop_on_sigterm()
     _seed(cfg["seed"] * 1000 + cfg.get("incarnation", 0) * 10 + sum(args.name.encode()))
-    {"server": _role_server, "trainer": _role_trainer, "worker": _role_worker, "eval": _role_eval}[args.role](cfg)
+    {"server": _role_server, "trainer": _role_trainer, "worker": _role_worker, "eval": _role_eval,
+     "evalloop": _role_evalloop}[args.role](cfg)
 
 
 # ================================================================================================
@@ -387,7 +434,12 @@ class ChaosConfig:
         gap: seconds between a recovery and the next fault (low, high).
         recovery_timeout: seconds a recovery may take before the fault counts as not recovered.
         workdir: where logs, checkpoints and stores go (a new folder by default).
-        evaluate: evaluate the final weights on Pendulum (episodes; 0: not).
+        evaluate: evaluate the final weights on Pendulum (episodes; 0: not); with ``learning``,
+            also the trainer's weights while the faults run, until they first pass
+            :data:`THRESHOLD` (the samples produced by then are the learning figure).
+        learning: evaluate while the faults run (see ``evaluate``), at most every
+            ``eval_every`` seconds.
+        rss_every: seconds between two samples of every role's resident memory.
         disk_mib: size of the checkpoint tmpfs (``disk_full``).
         stop_on_unrecovered: end the faults at the first one not recovered from (a test).
     """
@@ -406,6 +458,9 @@ class ChaosConfig:
     warmup_timeout: float = 180.0
     workdir: str | None = None
     evaluate: int = 0
+    learning: bool = False
+    eval_every: float = 2.0
+    rss_every: float = 30.0
     disk_mib: int = 64
     stop_on_unrecovered: bool = False
     log: Callable[[str], None] = print
@@ -1055,7 +1110,41 @@ class Chaos:
     # --- the end ----------------------------------------------------------------------------------
 
     def rss(self) -> dict[str, float | None]:
-        return {name: tree_rss_mib(role.pid) for name, role in self.roles.items()}
+        return {name: tree_rss_mib(role.pid) for name, role in self.roles.items() if role.kind != "evalloop"}
+
+    def _sample_rss(self) -> None:
+        """Every ``rss_every`` seconds, every role's resident memory as an ``rss`` event."""
+        while not self.stop_event.wait(self.cfg.rss_every):
+            self.record({"ev": "rss", "role": "chaos", "t": time.time(), "mib": self.rss()})
+
+    def rss_figures(self, t_faults: float, t_end: float) -> dict[str, Any]:
+        """Each role's resident memory near the tenth minute of faults (a sixth of a shorter run)
+        and over the last two minutes: the peak of the samples in each window (a role restarted
+        just before a sample reads low until it has loaded its state, so the peak stands for the
+        role rather than for one of its processes)."""
+        mark = t_faults + min(600.0, (t_end - t_faults) / 6)
+        samples = self.select("rss")
+        out: dict[str, Any] = {"mark_s": mark - t_faults, "mid": {}, "end": {}, "samples": len(samples)}
+        for name in self.rss():
+            def peak(lo: float, hi: float, n: str = name) -> float | None:
+                vals = [e["mib"].get(n) for e in samples if lo <= e["t"] <= hi and e["mib"].get(n)]
+                return max(vals) if vals else None
+            out["mid"][name] = peak(mark - 60, mark + 60)
+            out["end"][name] = peak(t_end - 120, t_end + 1)
+        return out
+
+    def learning(self, t_warm: float) -> dict[str, Any]:
+        """The first evaluation during the faults that passed :data:`THRESHOLD`: samples produced
+        when its weights were read, and seconds since the roles were warm."""
+        evals = self.select("eval", "evaluator")
+        passed = next((e for e in evals if e["ret"] > THRESHOLD), None)
+        out: dict[str, Any] = {"evaluations": len(evals), "reached": passed is not None,
+                               "best": max((e["ret"] for e in evals), default=None)}
+        if passed is not None:
+            out["samples"] = sum(e["n"] for e in self.select("sent") if e["t_sent"] <= passed["t_read"])
+            out["s"] = passed["t_read"] - t_warm
+            out["faults_before"] = sum(1 for f in self.faults if f.t_start <= passed["t_read"])
+        return out
 
     def _missing(self) -> set[tuple[int, int]]:
         """Payloads that must still reach the trainer at the end: every acknowledged one (NATS),
@@ -1127,6 +1216,7 @@ class Chaos:
             recv_times.setdefault(e["src"], []).append((e["t"], e["seq"]))
         last_seq = {src: max(s for _, s in ts) for src, ts in recv_times.items()}
         lost_acked = lost_with_worker = lost_with_server = lost_in_trainer_link = unexplained = 0
+        per_kill: dict[tuple[str, Any], int] = {}  # payloads lost, by the kill that explains them
         lost_detail: list[dict[str, Any]] = []
 
         def held_at(t_kill: float, src: int, seq: int, t_sent: float) -> bool:
@@ -1144,14 +1234,21 @@ class Chaos:
                                                if abs(f.t_start - info["t"]) < 30]})
             elif info["killed"] and seq > last_seq.get(src, -1):
                 lost_with_worker += info["n"]
+                per_kill[("worker", src)] = per_kill.get(("worker", src), 0) + 1
             elif self.cfg.backend == "nats":
                 unexplained += info["n"]  # the stream keeps what it stored; a worker, what it did not
             elif any(held_at(tk, src, seq, info["t"]) for tk in server_kills):
                 lost_with_server += info["n"]
+                tk = next(tk for tk in server_kills if held_at(tk, src, seq, info["t"]))
+                per_kill[("server", tk)] = per_kill.get(("server", tk), 0) + 1
             elif any(held_at(tk, src, seq, info["t"]) for tk in trainer_deaths):
                 lost_in_trainer_link += info["n"]
+                tk = next(tk for tk in trainer_deaths if held_at(tk, src, seq, info["t"]))
+                per_kill[("trainer_link", tk)] = per_kill.get(("trainer_link", tk), 0) + 1
             else:
                 unexplained += info["n"]
+        worst = {kind: max((n for (k, _), n in per_kill.items() if k == kind), default=0)
+                 for kind in TLSPYO_LOSS_BOUNDS}
         finals = self.select("final", "trainer")
         last = finals[-1] if finals else {}
         rounds = self.select("round", "trainer")
@@ -1173,6 +1270,8 @@ class Chaos:
             "lost_with_killed_servers": lost_with_server,
             "lost_in_killed_trainer_links": lost_in_trainer_link,
             "lost_unexplained": unexplained,
+            "loss_worst_kill_payloads": worst,
+            "loss_within_bounds": all(worst[k] <= TLSPYO_LOSS_BOUNDS[k] for k in worst),
             "lost_with_killed_trainers": None if stored is None else got - stored,
             "trainer_lost_payloads": sum(e.get("lost_payloads") or 0 for e in per_inc.values()),
             "trainer_duplicate_payloads": sum(e.get("duplicate_payloads") or 0 for e in per_inc.values()),
@@ -1217,6 +1316,12 @@ class Chaos:
         self.say(f"warm: samples and weights flow after {warm:.1f} s; faults for {cfg.minutes:g} min"
                  if cfg.cycle else f"warm after {warm:.1f} s; {len(cfg.faults)} faults")
         rss_start = self.rss()
+        t_warm = t_faults = time.time()
+        threading.Thread(target=self._sample_rss, daemon=True, name="chaos-rss").start()
+        if cfg.evaluate and cfg.learning:
+            evaluator = self._add_role("evaluator", "evalloop", {"episodes": cfg.evaluate, "every": cfg.eval_every})
+            evaluator.restart_loop = False
+            evaluator.start()
         for kind in self.schedule():
             fault = self.inject(kind)
             self.measure(fault)
@@ -1226,6 +1331,11 @@ class Chaos:
             if cfg.gap[1] > 0:
                 self.stop_event.wait(self.rng.uniform(*cfg.gap))  # the calm between two faults
         rss_end = self.rss()
+        t_faults_end = time.time()
+        if "evaluator" in self.roles:
+            self.roles["evaluator"].stop(5.0)
+        rss_figures = self.rss_figures(t_faults, t_faults_end)
+        learning = self.learning(t_warm)
         end = self.drain_and_stop()
         figures = self.account()
         ret = self.evaluate()
@@ -1243,7 +1353,9 @@ class Chaos:
             "backend": cfg.backend, "workers": cfg.workers, "seed": cfg.seed, "profile": cfg.profile,
             "nats_nodes": cfg.nats_nodes if cfg.backend == "nats" else None, "marker": self.marker,
             "wall_s": time.time() - t0, "warmup_s": warm, **figures, **end,
-            "rss_start_mib": rss_start, "rss_end_mib": rss_end,
+            "rss_start_mib": rss_start, "rss_end_mib": rss_end, "rss_mid_mib": rss_figures["mid"],
+            "rss_peak_end_mib": rss_figures["end"], "rss_mark_s": rss_figures["mark_s"],
+            "learning": learning,
             "faults": [asdict(f) for f in self.faults],
             "recovery": {k: {"n": v["n"], "not_recovered": v["not_recovered"],
                              "flow_median_s": _median(v["flow"]), "flow_max_s": max(v["flow"], default=None),
@@ -1317,6 +1429,9 @@ def _rows(results: dict[str, dict[str, Any]]) -> list[tuple[str, list[str]]]:
         row("lost: held by a killed server", lambda r: r["lost_with_killed_servers"]),
         row("lost: in a killed trainer's link", lambda r: r["lost_in_killed_trainer_links"]),
         row("lost: received, not checkpointed", lambda r: r["lost_with_killed_trainers"]),
+        row("lost payloads, worst kill: server / trainer link / worker",
+            lambda r: " / ".join(f"{r['loss_worst_kill_payloads'][k]}" for k in TLSPYO_LOSS_BOUNDS)
+            + (" (within bounds)" if r["loss_within_bounds"] else " (OVER the bounds)")),
         row("worker links: batches dropped", lambda r: r["worker_link_dropped"]),
         row("trainer: lost / duplicate payloads", lambda r: f"{r['trainer_lost_payloads']} / "
                                                             f"{r['trainer_duplicate_payloads']}"),
@@ -1333,11 +1448,11 @@ def _rows(results: dict[str, dict[str, Any]]) -> list[tuple[str, list[str]]]:
     roles = sorted({n for r in results.values() for n in r["rss_start_mib"]})
     for name in roles:
         def rss(r: dict[str, Any], n: str = name) -> str | None:
-            a, b = r["rss_start_mib"].get(n), r["rss_end_mib"].get(n)
-            if a is None or b is None:
+            a, m, b = r["rss_start_mib"].get(n), r["rss_mid_mib"].get(n), r["rss_peak_end_mib"].get(n)
+            if a is None or m is None or b is None:
                 return None
-            return f"{a:.0f} -> {b:.0f} ({100 * (b - a) / a:+.1f} %)"
-        rows.append(row(f"RSS MiB {name} (start -> end)", rss))
+            return f"{a:.0f}, {m:.0f} -> {b:.0f} ({100 * (b - m) / m:+.1f} %)"
+        rows.append(row(f"RSS MiB {name} (start, mark -> end)", rss))
     rows += [
         row("restarts (trainer / server / workers)",
             lambda r: f"{r['restarts'].get('trainer', 0)} / "
@@ -1345,6 +1460,10 @@ def _rows(results: dict[str, dict[str, Any]]) -> list[tuple[str, list[str]]]:
                       f"{sum(v for k, v in r['restarts'].items() if k.startswith('worker'))}"),
         row("stopped by SIGTERM", lambda r: f"{sum(r['stopped_cleanly'].values())} of {len(r['stopped_cleanly'])}"),
         row("processes left", lambda r: r["processes_left"]),
+        row(f"learning: samples to a test return > {THRESHOLD:g} (s)",
+            lambda r: None if not r["learning"]["evaluations"] else
+            (f"{r['learning']['samples']:,} ({r['learning']['s']:.0f} s, after {r['learning']['faults_before']} faults)"
+             if r["learning"]["reached"] else f"not reached (best {r['learning']['best']:.0f})")),
         row(f"Pendulum test return (> {THRESHOLD:g}?)",
             lambda r: None if r["test_return"] is None else f"{r['test_return']:.0f} "
                                                            f"({'yes' if r['test_return'] > THRESHOLD else 'no'})"),
@@ -1375,6 +1494,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-faults", action="store_true", help="the same run without faults (a reference)")
     ap.add_argument("--eval-episodes", type=int, default=10, help="Pendulum test episodes at the end")
     ap.add_argument("--recovery-timeout", type=float, default=60.0)
+    ap.add_argument("--gap", default="2,5", help="seconds between a recovery and the next fault: LOW,HIGH")
+    ap.add_argument("--eval-every", type=float, default=2.0,
+                    help="seconds between two evaluations while the faults run (until the test return first "
+                         f"passes {THRESHOLD:g}); 0: evaluate only at the end")
     ap.add_argument("--keep", action="store_true", help="keep the work folders (logs, events.jsonl)")
     args = ap.parse_args(argv)
     minutes = 2.0 if args.quick else args.minutes
@@ -1384,7 +1507,13 @@ def main(argv: list[str] | None = None) -> None:
     faults = () if args.no_faults else tuple(k for k in args.faults.split(",") if k)
     if set(faults) - set(FAULT_KINDS):
         ap.error(f"unknown fault kind(s) {sorted(set(faults) - set(FAULT_KINDS))}")
-    settings = {"minutes": minutes, "workers": args.workers, "nats_nodes": args.nats_nodes, "seed": args.seed,
+    try:
+        gap = tuple(float(x) for x in args.gap.split(","))
+        if len(gap) != 2 or not 0 <= gap[0] <= gap[1]:
+            raise ValueError
+    except ValueError:
+        ap.error(f"--gap must be LOW,HIGH seconds (0 <= LOW <= HIGH), not {args.gap!r}")
+    settings = {"minutes": minutes, "gap_s": list(gap), "eval_every_s": args.eval_every, "workers": args.workers, "nats_nodes": args.nats_nodes, "seed": args.seed,
                 "faults": list(faults), "profile": PROFILES["bench"], "durations": DURATIONS,
                 "recovery_timeout_s": args.recovery_timeout, "eval_episodes": args.eval_episodes}
     rec = harness.Recorder("chaos", settings)
@@ -1392,7 +1521,8 @@ def main(argv: list[str] | None = None) -> None:
     for backend in backends:
         cfg = ChaosConfig(backend=backend, workers=args.workers, faults=faults, minutes=minutes, seed=args.seed,
                           profile="bench", nats_nodes=args.nats_nodes, recovery_timeout=args.recovery_timeout,
-                          evaluate=args.eval_episodes)
+                          evaluate=args.eval_episodes, learning=args.eval_every > 0,
+                          eval_every=max(args.eval_every, 0.0), gap=gap)
         load_start = harness.load_average()
         print(f"{backend}: {minutes:g} min, {args.workers} workers"
               + (f", NATS nodes {args.nats_nodes}" if backend == "nats" else "") + f", load {load_start:.2f}",
@@ -1404,13 +1534,15 @@ def main(argv: list[str] | None = None) -> None:
                     "lost_with_killed_workers", "lost_with_killed_servers", "lost_in_killed_trainer_links",
                     "lost_with_killed_trainers", "worker_link_dropped", "processes_left", "test_return"):
             rec.add(backend, key, "ours", res.get(key), echo=False)
+        rec.add(backend, "samples_to_threshold", "ours", res["learning"].get("samples"), higher_is_better=False,
+                echo=False)
         for kind, r in res["recovery"].items():
             for metric in ("flow_median_s", "flow_max_s", "weights_median_s", "weights_max_s"):
                 rec.add(f"{backend} {kind}", metric, "ours", r[metric], higher_is_better=False, unit="s", echo=False)
-        for name, mib in res["rss_end_mib"].items():
-            start = res["rss_start_mib"].get(name)
+        for name, mib in res["rss_peak_end_mib"].items():
+            mid = res["rss_mid_mib"].get(name)
             rec.add(f"{backend} {name}", "rss_growth_pct", "ours",
-                    None if not start or mib is None else 100 * (mib - start) / start, higher_is_better=False,
+                    None if not mid or mib is None else 100 * (mib - mid) / mid, higher_is_better=False,
                     unit="%", echo=False)
         rec.add(backend, "result", "ours", None, echo=False, detail=res)
         for note in res["notes"]:
