@@ -29,7 +29,12 @@ trainer's weights file when it changed, at most every ``--eval-every`` seconds (
 retried 50 ms later: the original writes that file in place, ours moves a new one there), and
 runs ``--eval-episodes`` deterministic episodes; the worker's environment writes its step count to a file, the trainer
 its update count. The clock starts when the processes are launched (start-up, imports and
-connection included) and stops at the first evaluation above the threshold; a run that does not
+connection included) and stops at the first evaluation above the threshold. The steps and
+updates to the threshold come from snapshots of the weights file taken every ``--grid``
+environment steps: once an evaluation passes, the snapshots made since the evaluation before it
+are evaluated in order and the first that passes gives the counts (the passing evaluation's own
+counts are kept as ``steps_eval``, ``updates_eval``): evaluations every 2 s would otherwise count
+against the side that steps faster, which takes more steps between two of them. A run that does not
 get there within the profile's timeout (``--timeout``) counts as not reached, and is listed with
 its last evaluation at the end. Each side's rates over the run (environment steps and updates
 per second, at its last evaluation) are printed beside the figures.
@@ -48,7 +53,9 @@ import json
 import os
 import shutil
 import tempfile
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -205,17 +212,110 @@ def _worker(impl: str, s: dict[str, Any], workdir: Path, port: int, newest: bool
                            max_steps_per_update=s["max_steps_per_update"], end_episodes=s["end_episodes"], **pickup)
 
 
-def _evaluate(impl: str, s: dict[str, Any], workdir: Path, episodes: int, every: float, t0: float) -> None:
-    """Evaluate the trainer's weights when its file changed, at most once every ``every`` seconds;
-    one JSON line per evaluation."""
-    import gymnasium
+def _test_return(actor: Any, env: Any, episodes: int, first_seed: int) -> float:
+    """Mean return of ``episodes`` deterministic episodes of ``actor``, seeds from ``first_seed``."""
     import numpy as np
+    import torch
+
+    returns = []
+    for i in range(episodes):
+        obs, _ = env.reset(seed=first_seed + i)
+        ret, done = 0.0, False
+        while not done:
+            with torch.no_grad():
+                act = actor.act_(np.asarray(obs, np.float32), test=True)
+            act = np.asarray(act, np.float32).reshape(env.action_space.shape)
+            obs, rew, terminated, truncated, _ = env.step(act)
+            ret += float(rew)
+            done = terminated or truncated
+        returns.append(ret)
+    return sum(returns) / len(returns)
+
+
+class _Snapshots(threading.Thread):
+    """Copies of the trainer's weights file on a grid of environment steps: each time the step
+    counter passes the next multiple of ``grid``, the file's bytes with the step and update counts
+    read then. The evaluator takes them in batches (:meth:`take`): those made since its last
+    evaluation, so that only a few seconds of them are ever kept."""
+
+    def __init__(self, path: Path, workdir: Path, t0: float, grid: int) -> None:
+        super().__init__(daemon=True, name="snapshots")
+        self.path, self.workdir, self.t0, self.grid = path, workdir, t0, grid
+        self.lock = threading.Lock()
+        self.taken: list[dict[str, Any]] = []
+
+        self.due = grid
+
+    def run(self) -> None:
+        while True:
+            time.sleep(0.01)
+            self.poll()
+
+    def poll(self) -> bool:
+        """Take a snapshot if the step counter passed the next grid line; whether one was taken."""
+        steps = harness.read_int(self.workdir / "steps")
+        if steps < self.due:
+            return False
+        try:
+            before = self.path.stat().st_mtime_ns
+            data = self.path.read_bytes()
+            if self.path.stat().st_mtime_ns != before:
+                return False  # written in place while read (the original's): again at the next poll
+        except OSError:
+            return False
+        snap = {"steps": steps, "updates": harness.read_int(self.workdir / "updates"),
+                "t_read": time.monotonic() - self.t0, "data": data}
+        with self.lock:
+            self.taken.append(snap)
+        self.due = (steps // self.grid + 1) * self.grid
+        return True
+
+    def take(self) -> list[dict[str, Any]]:
+        with self.lock:
+            out, self.taken = self.taken, []
+        return out
+
+
+def first_passing(window: list[dict[str, Any]], steps_now: int,
+                  test: Callable[[bytes], float | None]) -> tuple[dict[str, Any] | None, int]:
+    """The first snapshot of ``window`` (in order) taken before ``steps_now`` whose test return
+    passes :data:`THRESHOLD`, without its data and with its return; and how many were tested.
+    ``test`` returns None for a snapshot it cannot load (skipped)."""
+    tried = 0
+    for snap in window:
+        if snap["steps"] >= steps_now:
+            break
+        ret = test(snap["data"])
+        if ret is None:
+            continue
+        tried += 1
+        if ret > THRESHOLD:
+            return {k: v for k, v in snap.items() if k != "data"} | {"ret": ret}, tried
+    return None, tried
+
+
+def _evaluate(impl: str, s: dict[str, Any], workdir: Path, episodes: int, every: float, t0: float,
+              grid: int = 0) -> None:
+    """Evaluate the trainer's weights when its file changed, at most once every ``every`` seconds;
+    one JSON line per evaluation.
+
+    With ``grid`` (environment steps), an evaluation that passes :data:`THRESHOLD` is followed by
+    the evaluation, in order, of the snapshots made on that grid since the previous evaluation
+    (:class:`_Snapshots`); its line then carries ``first``: the first of them that passes, or this
+    evaluation itself. Steps and updates to the threshold then no longer depend on how fast a side
+    steps: with evaluations every ``every`` seconds, a side that takes more steps per second also
+    takes more steps between the moment its weights first pass and the next evaluation."""
+    import gymnasium
     import torch
 
     torch.set_num_threads(1)
     env = gymnasium.make("Pendulum-v1")
     actor = _imports(impl)["Actor"](env.observation_space, env.action_space, hidden_sizes=tuple(s["hidden_sizes"]))
     path = workdir / "model_trainer.tmod"
+    snapshots = None
+    if grid:
+        snapshots = _Snapshots(path, workdir, t0, grid)
+        snapshots.start()
     last_mtime, episode_seed, next_eval = None, 10_000, time.monotonic()
     while True:
         time.sleep(max(0.0, next_eval - time.monotonic()))
@@ -226,26 +326,34 @@ def _evaluate(impl: str, s: dict[str, Any], workdir: Path, episodes: int, every:
                 continue
             t_read = time.monotonic() - t0
             steps, updates = harness.read_int(workdir / "steps"), harness.read_int(workdir / "updates")
+            window = snapshots.take() if snapshots is not None else []
             actor = actor.load(str(path), device="cpu")
             last_mtime, next_eval = mtime, time.monotonic() + every
         except Exception:  # noqa: BLE001 (missing, or being written in place by the original: retry soon)
             time.sleep(0.05)
             continue
-        returns = []
-        for _ in range(episodes):
-            obs, _ = env.reset(seed=episode_seed)
-            episode_seed += 1
-            ret, done = 0.0, False
-            while not done:
-                with torch.no_grad():
-                    act = actor.act_(np.asarray(obs, np.float32), test=True)
-                act = np.asarray(act, np.float32).reshape(env.action_space.shape)
-                obs, rew, terminated, truncated, _ = env.step(act)
-                ret += float(rew)
-                done = terminated or truncated
-            returns.append(ret)
-        harness.print_json({"t": time.monotonic() - t0, "t_read": t_read, "steps": steps, "updates": updates,
-                             "ret": sum(returns) / len(returns)})
+        ret = _test_return(actor, env, episodes, episode_seed)
+        episode_seed += episodes
+        rec: dict[str, Any] = {"t": time.monotonic() - t0, "t_read": t_read, "steps": steps, "updates": updates,
+                               "ret": ret}
+        if ret > THRESHOLD and snapshots is not None:
+            snap_file = workdir / "snapshot.tmod"
+
+            def test(data: bytes, snap_file: Path = snap_file, actor: Any = actor) -> float | None:
+                nonlocal episode_seed
+                snap_file.write_bytes(data)
+                try:
+                    candidate = actor.load(str(snap_file), device="cpu")
+                except Exception:  # noqa: BLE001 (a copy of a file the original was writing: skipped)
+                    return None
+                episode_seed += episodes
+                return _test_return(candidate, env, episodes, episode_seed - episodes)
+
+            first, tried = first_passing(window, steps, test)
+            first = (dict(first, snapshot=True) if first is not None else
+                     {"steps": steps, "updates": updates, "t_read": t_read, "ret": ret, "snapshot": False})
+            rec["first"] = dict(first, snapshots=len(window), tried=tried)
+        harness.print_json(rec)
 
 
 def child_main(argv: list[str]) -> None:
@@ -258,6 +366,7 @@ def child_main(argv: list[str]) -> None:
     p.add_argument("--eval-episodes", type=int, default=10)
     p.add_argument("--eval-every", type=float, default=2.0)
     p.add_argument("--t0", type=float, default=0.0)
+    p.add_argument("--grid", type=int, default=0)
     p.add_argument("--update-order", default=None)
     p.add_argument("--weights-when-waiting-only", action="store_true")
     args = p.parse_args(argv)
@@ -276,7 +385,7 @@ def child_main(argv: list[str]) -> None:
     elif args.role == "worker":
         _worker(args.impl, s, workdir, args.port, not args.weights_when_waiting_only)
     else:
-        _evaluate(args.impl, s, workdir, args.eval_episodes, args.eval_every, args.t0)
+        _evaluate(args.impl, s, workdir, args.eval_episodes, args.eval_every, args.t0, args.grid)
 
 
 # --- driver ---------------------------------------------------------------------------------------
@@ -387,8 +496,11 @@ def spy_summary(folder: str) -> None:
 
 def run_once(side: harness.Side, profile: str, seed: int, timeout: float, eval_episodes: int,
              eval_every: float, keep: bool, spy: dict[str, Any] | None = None,
-             update_order: str | None = None, weights_when_waiting_only: bool = False) -> dict[str, Any]:
-    """One pipeline run; returns the evaluations and, when reached, time, steps and updates.
+             update_order: str | None = None, weights_when_waiting_only: bool = False,
+             grid: int = 0) -> dict[str, Any]:
+    """One pipeline run; returns the evaluations and, when reached, time, steps and updates (with
+    ``grid``, the steps and updates of the first snapshot that passed, see :func:`_evaluate`; the
+    passing evaluation's own counts as ``steps_eval`` and ``updates_eval``).
     With ``spy`` (``dir``, ``after``, ``duration``, ``rate``), py-spy records every role from
     ``after`` seconds on (see :func:`_spy`)."""
     workdir = Path(tempfile.mkdtemp(prefix=f"pendulum-{side.name}-"))
@@ -399,7 +511,7 @@ def run_once(side: harness.Side, profile: str, seed: int, timeout: float, eval_e
     t0 = time.monotonic()
     common = ["--impl", side.name, "--profile", profile, "--workdir", str(workdir), "--port", str(port),
               "--seed", str(seed), "--eval-episodes", str(eval_episodes), "--eval-every", str(eval_every),
-              "--t0", repr(t0)] + ([] if update_order is None else ["--update-order", update_order]) \
+              "--t0", repr(t0), "--grid", str(grid)] + ([] if update_order is None else ["--update-order", update_order]) \
         + (["--weights-when-waiting-only"] if weights_when_waiting_only else [])
     procs = []
     result: dict[str, Any] = {"reached": False, "evals": []}
@@ -414,8 +526,6 @@ def run_once(side: harness.Side, profile: str, seed: int, timeout: float, eval_e
                                  workdir / "eval.log", stdout=-1, env=env, cwd=str(workdir))
         procs.append(ev)
         if spy is not None:
-            import threading
-
             roles = dict(zip(("server", "trainer", "worker", "eval"), procs))
             timer = threading.Timer(max(0.0, spy["after"] - (time.monotonic() - t0)), _spy,
                                     (roles, Path(spy["dir"]), f"{side.name}-{profile}-seed{seed}", spy["duration"],
@@ -425,7 +535,9 @@ def run_once(side: harness.Side, profile: str, seed: int, timeout: float, eval_e
         for rec in harness.JsonLines(ev).wait(max(0.0, timeout - (time.monotonic() - t0)), interval=0.2):
             result["evals"].append(rec)
             if rec["ret"] > THRESHOLD:
-                result.update(reached=True, wall_s=rec["t"], steps=rec["steps"], updates=rec["updates"])
+                first = rec.get("first") or rec
+                result.update(reached=True, wall_s=rec["t"], steps=first["steps"], updates=first["updates"],
+                              steps_eval=rec["steps"], updates_eval=rec["updates"], first=rec.get("first"))
                 break
             if any(p.poll() is not None for p in procs):
                 print(f"  [{side.name}] a process exited early (logs in {workdir})", flush=True)
@@ -453,6 +565,10 @@ def main(argv: list[str] | None = None) -> None:
                     + ", ".join(f"{p} {t:g}" for p, t in TIMEOUTS.items()) + ")")
     ap.add_argument("--eval-episodes", type=int, default=10)
     ap.add_argument("--eval-every", type=float, default=2.0, help="seconds between two evaluations, at least")
+    ap.add_argument("--grid", type=int, default=1000,
+                    help="environment steps between two snapshots of the trainer's weights: once an evaluation "
+                    "passes the threshold, the snapshots since the one before are evaluated in order, and the "
+                    "steps and updates are those of the first that passes (0: those of the passing evaluation)")
     ap.add_argument("--keep", action="store_true", help="keep the work folders and logs")
     ap.add_argument("--update-order", choices=("simultaneous", "sequential"), default=None,
                     help="our SAC's update order (default: the library's, simultaneous); sequential is the "
@@ -482,7 +598,7 @@ def main(argv: list[str] | None = None) -> None:
     timeouts = {p: args.timeout or TIMEOUTS[p] for p in profiles}
     rec = harness.Recorder("pendulum_pipeline", {p: PROFILES[p] for p in profiles} | {
         "seeds": args.seeds, "timeout_s": timeouts, "eval_episodes": args.eval_episodes,
-        "eval_every_s": args.eval_every, "threshold": THRESHOLD, "checkpoint": "every epoch, both sides",
+        "eval_every_s": args.eval_every, "grid_steps": args.grid, "threshold": THRESHOLD, "checkpoint": "every epoch, both sides",
         "update_order_ours": args.update_order or "simultaneous (library default)",
         "worker_weights_ours": "when waiting only" if args.weights_when_waiting_only else "newest each episode"})
     most = sum(len(sides) * args.seeds * (timeouts[p] + 8) for p in profiles) / 60
@@ -493,10 +609,11 @@ def main(argv: list[str] | None = None) -> None:
             spy = None if args.py_spy is None else {"dir": args.py_spy, "after": args.py_spy_after,
                                                     "duration": args.py_spy_for, "rate": args.py_spy_rate}
             res = run_once(side, profile, seed, timeouts[profile], args.eval_episodes, args.eval_every, args.keep,
-                           spy, args.update_order, args.weights_when_waiting_only)
+                           spy, args.update_order, args.weights_when_waiting_only, args.grid)
             last = res["evals"][-1] if res["evals"] else {}
-            extra = {"last_eval": last, "evaluations": len(res["evals"])}
-            for metric, unit in (("wall_s", "s"), ("steps", "steps"), ("updates", "updates")):
+            extra = {"last_eval": last, "evaluations": len(res["evals"]), "first": res.get("first")}
+            for metric, unit in (("wall_s", "s"), ("steps", "steps"), ("updates", "updates"),
+                                 ("steps_eval", "steps"), ("updates_eval", "updates")):
                 rec.add(f"{profile} to {THRESHOLD:g}", metric, side.name, res.get(metric), round=seed,
                         higher_is_better=False, unit=unit, echo=metric == "wall_s", **extra)
             # rates over the whole run, reached or not: counts when the last evaluation read them
