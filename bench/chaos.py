@@ -1036,21 +1036,33 @@ class Chaos:
         filler = disk / "filler"
         seconds = self._duration("disk_full")
         written = 0
-        with open(filler, "wb") as f:
-            block = b"\0" * 2**20
-            try:
-                while True:
-                    f.write(block)
-                    f.flush()
-                    written += len(block)
-            except OSError as e:
-                if e.errno != errno.ENOSPC:
-                    raise
+        usage = shutil.disk_usage(disk)
+        fault.detail["used_before_mib"] = round((usage.total - usage.free) / 2**20, 1)
+        try:
+            with open(filler, "wb") as f:
+                block = b"\0" * 2**20
+                try:
+                    while True:
+                        f.write(block)
+                        f.flush()
+                        written += len(block)
+                except OSError as e:
+                    if e.errno != errno.ENOSPC:
+                        raise
+        except OSError as e:
+            if e.errno != errno.ENOSPC:
+                raise
+            # already full without the filler: say what fills it (the fault still lasts its time)
+            biggest = sorted(((f.stat().st_size, str(f.relative_to(disk))) for f in disk.rglob("*") if f.is_file()),
+                             reverse=True)[:5]
+            fault.detail["already_full"] = True
+            self.notes.append(f"the checkpoint disk was already full at a disk_full fault "
+                              f"({fault.detail['used_before_mib']} MiB used; biggest files: {biggest})")
         fault.detail["filled_mib"] = written // 2**20
         self.stop_event.wait(seconds)  # the fault's length
         fault.detail["trainer_exits_meanwhile"] = len([e for e in self.select("exit", "trainer", fault.t_start)])
         fault.detail["failed_checkpoints"] = len(self.select("ckpt_failed", "trainer", fault.t_start))
-        filler.unlink()
+        filler.unlink(missing_ok=True)
         fault.detail["seconds"] = seconds
 
     def measure(self, fault: Fault) -> None:
