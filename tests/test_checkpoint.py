@@ -460,3 +460,23 @@ def test_the_run_identity_is_kept_by_the_checkpoint(tmp_path):
     training.run_id = "0123456789abcdef"
     save_checkpoint(training, tmp_path / "c")
     assert load_checkpoint(tmp_path / "c", cls).run_id == "0123456789abcdef"
+
+
+def test_a_save_removes_the_temporaries_a_killed_save_left(tmp_path):
+    # a trainer killed while it saved leaves its temporaries: the segments' and the header's
+    # (atomic_write_text names it .checkpoint.json.<random>.tmp); the next save removes them,
+    # and nothing else (a user's own file in the folder stays)
+    training = trained(training_cls())
+    path = tmp_path / "ckpt"
+    save_checkpoint(training, path)
+    left = [path / ".checkpoint.json.k3x_9ab2.tmp", path / ".state-000002.pt.u7q1zz0a.tmp",
+            path / ".memory-000002.safetensors.p0o9i8u7.tmp"]
+    for f in left:
+        f.write_bytes(b"partial")
+    mine = [path / ".notes.tmp", path / "checkpoint.json.bak"]
+    for f in mine:
+        f.write_bytes(b"user")
+    save_checkpoint(training, path)
+    assert not any(f.exists() for f in left)
+    assert all(f.exists() for f in mine)
+    assert load_checkpoint(path, training_cls()).epoch == training.epoch

@@ -65,7 +65,9 @@ FORMAT = "tmrl-checkpoint"
 VERSION = 1
 HEADER = "checkpoint.json"
 _OWN_FILE = re.compile(r"^(state-\d+\.pt|memory-\d+\.safetensors|data-\d+\.wire)$")
-_TMP_FILE = re.compile(r"^\.(state|memory|data)-\d+\..*\.tmp$")
+_TMP_FILE = re.compile(r"^\.((state|memory|data)-\d+\..*|checkpoint\.json\.[^.]+)\.tmp$")
+"""Temporaries of an interrupted write (a process killed while saving): the segments' and the
+header's (``atomic_write_text`` names it ``.checkpoint.json.<random>.tmp``)."""
 
 _ST_DTYPES = {
     np.dtype(np.float64): "F64",

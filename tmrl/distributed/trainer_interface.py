@@ -17,7 +17,7 @@ from typing import Any
 from tmrl.config.settings import NetSettings
 from tmrl.distributed._common import FROM_CONFIG, LOGGER_NAME, _given, _make_link, _settings
 from tmrl.distributed.buffer import Buffer, unpack_buffer
-from tmrl.distributed.weights import _weights_problem, pack_weights, replace_file
+from tmrl.distributed.weights import _weights_problem, pack_weights, remove_stale_temporaries, replace_file
 from tmrl.spaces import SampleRejected, SampleSchema, describe_spaces
 from tmrl.util import RateLimitedLog
 from tmrl.wire_buffers import PayloadError
@@ -229,6 +229,9 @@ class TrainerInterface:
 
         cfg = _settings(settings)
         self.model_path = Path(_given(model_path, cfg.model_path_trainer))
+        if removed := remove_stale_temporaries(self.model_path):
+            logger.info("removed %d temporary weights files left by stopped processes beside %s", removed,
+                        self.model_path)
         self.server_ip = _given(server_ip, cfg.server_ip_for_trainer)
         self.maxlen = cfg.buffers_maxlen
         self.schema = schema

@@ -57,6 +57,46 @@ def replace_file(path: str | os.PathLike[str], data: bytes | memoryview) -> None
         raise
 
 
+def remove_stale_temporaries(path: str | os.PathLike[str]) -> int:
+    """Remove the temporary copies of ``path`` that a killed process left in its folder: the
+    ``.<name>.<pid>-<id>.tmp`` of :func:`replace_file` and the ``.<name>.<pid>-<id>.incoming`` of
+    :meth:`WeightsInstaller.install` whose process ``<pid>`` no longer runs. Only processes of
+    one machine share a ``model_path`` (workers of one machine may), so the pid tells. Returns
+    how many were removed."""
+    path = Path(path)
+    prefix = f".{path.name}."
+    removed = 0
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError:
+        return 0
+    for entry in entries:
+        name = entry.name
+        if not name.startswith(prefix) or not name.endswith((".tmp", ".incoming")):
+            continue
+        pid_text = name[len(prefix):].split("-", 1)[0]
+        if not pid_text.isdigit() or _pid_alive(int(pid_text)):
+            continue
+        with contextlib.suppress(OSError):
+            os.unlink(entry.path)
+            removed += 1
+    return removed
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine (True when that cannot be told: on Windows,
+    ``os.kill(pid, 0)`` would end the process instead of probing it)."""
+    if pid <= 0 or os.name != "posix":
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # PermissionError: someone else's process, alive
+        return True
+    return True
+
+
 def move_over(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> None:
     """Move ``src`` to ``dst``, removing ``dst`` first: a reader finds the old file, the new one,
     or for an instant none.
@@ -246,6 +286,9 @@ class WeightsInstaller:
         self._unsigned_warned = False
         self._key: bytes | None = None
         self._key_stamp: tuple[int, int, int] | None = None
+        if removed := remove_stale_temporaries(self.model_path):
+            logger.info("removed %d temporary weights files left by stopped processes beside %s", removed,
+                        self.model_path)
 
     def load_file(self, actor: Any) -> Any:
         """``actor`` with the weights of ``model_path`` (at start), or ``actor`` itself when the
