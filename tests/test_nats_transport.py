@@ -697,3 +697,54 @@ def test_a_three_node_cluster_keeps_samples_and_weights_flowing_when_a_node_is_k
             if p.poll() is None:
                 p.kill()
                 p.wait()
+
+
+def test_a_weights_read_ends_soon_once_its_object_is_deleted(made):
+    # Found by the chaos soak: a worker reading weights over a slow link (latency, a frozen
+    # worker) while the trainer broadcast newer ones read an object the trainer then deleted;
+    # nats-py's get then waits forever, and the read waited out its bound (up to 30 s) before
+    # the worker took the newest weights. The read now asks every second whether its object is
+    # still stored and ends when it is not.
+    import nats
+
+    from tmrl import wire
+    from tmrl.transport.jetstream.layout import DEFAULT_BUCKET, LATEST_KEY
+    from tmrl.transport.jetstream.weights import GONE_CHECK, _WeightsReader
+
+    relay = _relay(made)
+    trainer, worker = _trainer(made, relay.port), _worker(made, relay.port)
+    assert trainer.wait_connected(30) and worker.wait_connected(30)
+
+    async def latest_name(kv: Any) -> str:
+        return wire.decode(bytes((await kv.get(LATEST_KEY)).value))["name"]
+
+    async def check() -> None:
+        user, password = role_credentials("worker", PW)
+        nc = await nats.connect(f"nats://127.0.0.1:{relay.port}", user=user, password=password,
+                                inbox_prefix=INBOX["worker"], allow_reconnect=False)
+        try:
+            js = nc.jetstream(timeout=5)
+            kv, obs = await js.key_value(DEFAULT_BUCKET), await js.object_store(DEFAULT_BUCKET)
+            first = await latest_name(kv)
+            assert await _WeightsReader._object_exists(obs, first)
+            for k in range(2, 5):  # three newer objects (each received before the next is sent: none
+                # coalesced); the trainer keeps only the newest two
+                trainer.broadcast_weights(b"w%d" % k)
+                got: list[bytes] = []
+                await asyncio.to_thread(_wait_for, lambda k=k, got=got: got.append(
+                    worker.latest_weights(block=True, timeout=1.0) or b"") or got[-1] == b"w%d" % k, 30, "weights")
+            assert await latest_name(kv) != first
+            assert not await _WeightsReader._object_exists(obs, first)  # deleted: the read of it must end
+            loop = asyncio.get_running_loop()
+            never = loop.create_future()  # a get whose chunks never come
+            t0 = loop.time()
+            with pytest.raises(LookupError):
+                await worker._while_connected(never, 30.0, still_there=lambda: _WeightsReader._object_exists(obs, first))
+            assert loop.time() - t0 < 3 * GONE_CHECK + 2  # not the 30 s bound
+            assert never.cancelled()
+        finally:
+            await nc.close()
+
+    trainer.broadcast_weights(b"w1")
+    assert worker.latest_weights(block=True, timeout=30) == b"w1"
+    asyncio.run(check())

@@ -34,6 +34,8 @@ logger = logging.getLogger("tmrl.transport.nats")
 
 WEIGHTS_POLL = 2.0
 """Seconds between a worker's checks for new weights when it hears no announcement."""
+GONE_CHECK = 1.0
+"""Seconds between two checks, during a weights read, that the object read is still stored."""
 
 
 class _WeightsReader(_NatsLink):
@@ -101,18 +103,22 @@ class _WeightsReader(_NatsLink):
                 logger.debug("worker link: no weights read (%s: %s)", type(e).__name__, e)
                 kv = None
 
-    async def _while_connected(self, coro: Any, bound: float) -> Any:
-        """``await coro`` for at most ``bound`` seconds and no longer than the connection lasts.
+    async def _while_connected(self, coro: Any, bound: float, still_there: Any = None) -> Any:
+        """``await coro`` for at most ``bound`` seconds and no longer than the connection lasts;
+        with ``still_there`` (an async callable), no longer than it answers True either (asked
+        every :data:`GONE_CHECK` seconds).
 
         Raises:
             asyncio.TimeoutError: ``bound`` passed.
-            ConnectionError: the connection dropped first (``coro`` is cancelled either way).
+            ConnectionError: the connection dropped first.
+            LookupError: ``still_there`` answered False (``coro`` is cancelled in every case).
         """
         import asyncio
 
         loop = asyncio.get_running_loop()
         task = asyncio.ensure_future(coro)
         deadline = loop.time() + bound
+        next_check = loop.time() + GONE_CHECK
         try:
             while not task.done():
                 if not self._is_connected:
@@ -120,11 +126,31 @@ class _WeightsReader(_NatsLink):
                 left = deadline - loop.time()
                 if left <= 0:
                     raise asyncio.TimeoutError
+                if still_there is not None and loop.time() >= next_check:
+                    if not await still_there():
+                        raise LookupError("the object was deleted during the read")
+                    next_check = loop.time() + GONE_CHECK
+                    continue
                 await asyncio.wait({task}, timeout=min(0.2, left))
             return task.result()
         finally:
             if not task.done():
                 task.cancel()
+
+    @staticmethod
+    async def _object_exists(obs: Any, name: str) -> bool:
+        """Whether object ``name`` is still in the store (True when that cannot be told now)."""
+        import asyncio
+
+        import nats.js.errors as jse
+
+        try:
+            await asyncio.wait_for(obs.get_info(name), GONE_CHECK)
+        except jse.NotFoundError:  # ObjectNotFoundError: deleted (the trainer keeps the newest few)
+            return False
+        except Exception:  # noqa: BLE001 (a slow or failed answer says nothing: the read goes on)
+            return True
+        return True
 
     async def _read_weights(self, kv: Any, obs: Any, epoch: str) -> None:
         import asyncio
@@ -144,10 +170,14 @@ class _WeightsReader(_NatsLink):
             logger.error("worker link: ignored a weights announcement that is not valid")
             return
         try:
-            # A get whose object is deleted meanwhile (two newer broadcasts) waits forever: bounded,
-            # and ended with the connection (cut mid-read, it would wait out the whole bound).
-            result = await self._while_connected(obs.get(meta["name"]), 30.0 + meta["size"] / 1e6)
-        except (asyncio.TimeoutError, ConnectionError, jse.NotFoundError):
+            # A get whose object is deleted meanwhile (newer broadcasts while a slow link reads it)
+            # waits forever: bounded, ended with the connection (cut mid-read, it would wait out
+            # the whole bound), and ended as soon as the object is found gone (it waited out the
+            # bound, up to 30 s, after latency or a frozen worker: found by the chaos soak).
+            name = meta["name"]
+            result = await self._while_connected(obs.get(name), 30.0 + meta["size"] / 1e6,
+                                                 still_there=lambda: self._object_exists(obs, name))
+        except (asyncio.TimeoutError, ConnectionError, LookupError, jse.NotFoundError):
             self._weights_wake.set()  # read again (once connected again)
             return
         if result.info.nuid != meta["nuid"]:
