@@ -82,6 +82,9 @@ def test_every_role_recovers_from_every_kind_of_fault_and_nothing_acknowledged_i
                      if f["flow_s"] is None or f["weights_s"] is None]
     assert not not_recovered, not_recovered
     assert [f["kind"] for f in res["faults"]] == list(faults), res["notes"]
+    # a full checkpoint disk must not stop the trainer (the restart loop would hide it above)
+    stopped = [f["detail"] for f in res["faults"] if f["kind"] == "disk_full" and f["detail"]["trainer_exits_meanwhile"]]
+    assert not stopped, stopped
     # the restart loop brought back what was killed
     assert res["restarts"]["trainer"] >= 2 and res["restarts"]["server"] >= 1
     assert sum(n for name, n in res["restarts"].items() if name.startswith("worker")) >= 1
