@@ -6,10 +6,12 @@ produced, acknowledged, stored and lost, recovery times, memory and processes le
     python -m bench chaos --quick                 # 2 minutes per backend
     python -m bench chaos --minutes 60 --backends nats
     python -m bench chaos --quick --no-faults     # the same run without faults (a reference)
+    python -m bench chaos --env sim --minutes 3   # the built-in driving simulator instead of Pendulum
 
 What runs: the server (tmrl's relay, or for NATS ``--nats-nodes 1`` tmrl's supervised
 nats-server, ``--nats-nodes 3`` a three-node NATS cluster on 127.0.0.1), the trainer (SAC on
-Pendulum-v1, a checkpoint after every epoch) and ``--workers`` rollout workers, each a process
+Pendulum-v1, or with ``--env sim`` on the built-in simulator's lidar: :mod:`bench.chaos_env`, a
+checkpoint after every epoch) and ``--workers`` rollout workers, each a process
 of its own started by this command, which restarts any of them that exits (its restart loop).
 Every worker reaches the server through its own fault proxy (:mod:`bench.faultproxy`). The
 workers' environment is paced (``rate`` steps/s, like a real-time game), so that a fault's effect
@@ -66,12 +68,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bench import harness
+from bench import chaos_env, harness
 from bench.faultproxy import FaultProxy
 
 PW = "chaos-password"
-THRESHOLD = -200.0
-"""Pendulum's test return the learning figure compares with."""
+THRESHOLD = chaos_env.THRESHOLDS["pendulum"]
+"""Pendulum's test return the learning figure compares with (the simulator has none: its figure is
+how far its test return rose, :meth:`Chaos.learning`)."""
 
 FAULT_KINDS = ("kill_trainer", "kill_server", "kill_nats_node", "kill_worker", "stop_worker", "partition",
                "latency", "disk_full", "kill_mid_checkpoint")
@@ -170,39 +173,15 @@ def _role_server(cfg: dict[str, Any]) -> None:
         server.stop(5.0)
 
 
-def _paced(env: Any, rate: float) -> Any:
-    """``env`` stepped at most ``rate`` times a second (a real-time game: it never waits for the
-    trainer). Behind by more than a second (a frozen process), it starts again from now instead
-    of catching up."""
-    import gymnasium
-
-    class Paced(gymnasium.Wrapper):
-        period = 1.0 / rate
-        next_step: float | None = None
-
-        def step(self, action: Any) -> Any:
-            now = time.monotonic()
-            if self.next_step is None or now - self.next_step > 1.0:
-                self.next_step = now
-            elif self.next_step > now:
-                time.sleep(self.next_step - now)
-            self.next_step += self.period
-            return self.env.step(action)
-
-    return Paced(env)
-
-
 def _role_worker(cfg: dict[str, Any]) -> None:
-    from tmrl.envs import GenericGymEnv
-    from tmrl.models import SquashedGaussianMLPActor
+    """A rollout worker: its environment (paced: :func:`bench.chaos_env.paced`) and actor are the
+    run's ``env``'s; it sends what :func:`bench.chaos_env.collector` collects, then loads weights."""
     from tmrl.networking import RolloutWorker
-    from tmrl.util import partial
 
-    p = cfg["profile"]
+    env, p = cfg.get("env", "pendulum"), cfg["profile"]
     worker = RolloutWorker(
-        env_cls=lambda: _paced(GenericGymEnv(id="Pendulum-v1", gym_kwargs={"render_mode": None}), p["rate"]),
-        actor_module_cls=partial(SquashedGaussianMLPActor, hidden_sizes=tuple(p["hidden_sizes"])),
-        sample_compressor=None, device="cpu", server_ip="127.0.0.1", server_port=cfg["worker_port"], password=PW,
+        **chaos_env.worker_parts(env, p), device="cpu", server_ip="127.0.0.1", server_port=cfg["worker_port"],
+        password=PW,
         max_samples_per_episode=p["episode"], model_path=str(Path(cfg["workdir"]) / f"{cfg['name']}.tmod"),
         model_history=0, security=None, settings=_net_settings(cfg, cfg["worker_urls"]),
     )
@@ -216,9 +195,10 @@ def _role_worker(cfg: dict[str, Any]) -> None:
 
     _emit("hello", src=src)
     seq = 0
+    collect = chaos_env.collector(env, p)
     try:
         while True:
-            worker.collect_train_episode(p["episode"])
+            collect(worker)
             n = len(worker.buffer)
             t = time.time()
             worker.send_and_clear_buffer()
@@ -234,34 +214,13 @@ def _role_worker(cfg: dict[str, Any]) -> None:
 
 
 def _role_trainer(cfg: dict[str, Any]) -> None:
-    import gymnasium
-
-    from tmrl.algorithms.sac import SACAgent
-    from tmrl.memory import GenericTorchMemory
-    from tmrl.models import MLPActorCritic
     from tmrl.networking import Trainer
-    from tmrl.training_offline import TorchTrainingOffline
-    from tmrl.util import partial
 
-    p = cfg["profile"]
-    env = gymnasium.make("Pendulum-v1")
-    training_cls = partial(
-        TorchTrainingOffline,
-        env_cls=(env.observation_space, env.action_space),
-        memory_cls=partial(GenericTorchMemory, memory_size=p["memory_size"], batch_size=p["batch_size"]),
-        training_agent_cls=partial(
-            SACAgent, model_cls=partial(MLPActorCritic, hidden_sizes=tuple(p["hidden_sizes"])),
-            lr_actor=p["lr"], lr_critic=p["lr"], lr_entropy=p["lr"], learn_entropy_coef=True,
-        ),
-        epochs=10**9, rounds=p["rounds"], steps=p["steps"], update_buffer_interval=p["update_buffer_interval"],
-        update_model_interval=p["update_model_interval"],
-        max_training_steps_per_env_step=p["max_training_steps_per_env_step"], start_training=p["start_training"],
-        sleep_between_buffer_retrieval_attempts=p["poll_wait"], device="cpu",
-    )
+    env, p = cfg.get("env", "pendulum"), cfg["profile"]
     trainer = Trainer(
-        training_cls=training_cls, server_ip="127.0.0.1", server_port=cfg["port"], password=PW, security=None,
-        model_path=str(Path(cfg["workdir"]) / "trainer.tmod"), checkpoint_path=cfg["checkpoint"],
-        obs_preprocessor=None, sample_compressor=None, settings=_net_settings(cfg, cfg["trainer_urls"]),
+        training_cls=chaos_env.training_cls(env, p), server_ip="127.0.0.1", server_port=cfg["port"], password=PW,
+        security=None, model_path=str(Path(cfg["workdir"]) / "trainer.tmod"), checkpoint_path=cfg["checkpoint"],
+        **chaos_env.trainer_parts(env, p), settings=_net_settings(cfg, cfg["trainer_urls"]),
     )
     iface = trainer.interface
     link = iface._link
@@ -329,51 +288,27 @@ def _role_trainer(cfg: dict[str, Any]) -> None:
         _emit("final", **counters())
 
 
-def _test_return(actor: Any, env: Any, episodes: int) -> float:
-    """Mean return of ``episodes`` deterministic Pendulum episodes (fixed seeds) of ``actor``."""
-    import numpy as np
-    import torch
-
-    returns = []
-    for i in range(episodes):
-        obs, _ = env.reset(seed=10_000 + i)
-        ret, done = 0.0, False
-        while not done:
-            with torch.no_grad():
-                act = actor.act_(np.asarray(obs, np.float32), test=True)
-            obs, rew, terminated, truncated, _ = env.step(np.asarray(act, np.float32).reshape(env.action_space.shape))
-            ret += float(rew)
-            done = terminated or truncated
-        returns.append(ret)
-    return float(np.mean(returns))
-
-
-def _eval_actor(cfg: dict[str, Any]) -> tuple[Any, Any]:
-    import gymnasium
-
-    from tmrl.models import SquashedGaussianMLPActor
-
-    env = gymnasium.make("Pendulum-v1")
-    return env, SquashedGaussianMLPActor(env.observation_space, env.action_space,
-                                         hidden_sizes=tuple(cfg["profile"]["hidden_sizes"]))
-
-
 def _role_eval(cfg: dict[str, Any]) -> None:
-    """Mean return of ``episodes`` deterministic Pendulum episodes of the trainer's last weights."""
-    env, actor = _eval_actor(cfg)
-    actor = actor.load(str(Path(cfg["workdir"]) / "trainer.tmod"), device="cpu")
-    _emit("eval", ret=_test_return(actor, env, cfg["episodes"]), episodes=cfg["episodes"])
+    """Mean return of ``episodes`` deterministic episodes of the trainer's last weights
+    (:class:`bench.chaos_env.Evaluation`)."""
+    evaluation = chaos_env.Evaluation(cfg.get("env", "pendulum"), cfg["profile"])
+    evaluation.load(Path(cfg["workdir"]) / "trainer.tmod")
+    ret = evaluation.test_return(cfg["episodes"])
+    _emit("eval", ret=ret, episodes=cfg["episodes"], **evaluation.extra)
 
 
 def _role_evalloop(cfg: dict[str, Any]) -> None:
     """While the faults run: evaluate the trainer's weights file whenever it changed, at most every
-    ``every`` seconds, until the test return first passes :data:`THRESHOLD` (then exit). Each
-    evaluation's event carries ``t_read``, when the weights were read: the orchestrator counts the
-    samples produced by then."""
+    ``every`` seconds, until the test return first passes the environment's threshold
+    (:data:`bench.chaos_env.THRESHOLDS`: Pendulum's :data:`THRESHOLD`; then exit), or, with none
+    (the simulator), until stopped at the end of the faults. Each evaluation's event carries
+    ``t_read``, when the weights were read: the orchestrator counts the samples produced by then."""
     import torch
 
     torch.set_num_threads(1)
-    env, actor = _eval_actor(cfg)
+    env = cfg.get("env", "pendulum")
+    threshold = chaos_env.THRESHOLDS[env]
+    evaluation = chaos_env.Evaluation(env, cfg["profile"])
     path = Path(cfg["workdir"]) / "trainer.tmod"
     last = None
     while True:
@@ -383,14 +318,14 @@ def _role_evalloop(cfg: dict[str, Any]) -> None:
                 time.sleep(0.2)
                 continue
             t_read = time.time()
-            actor = actor.load(str(path), device="cpu")
+            evaluation.load(path)
         except Exception:  # noqa: BLE001 (not written yet, or replaced while read: try again soon)
             time.sleep(0.2)
             continue
         last = mtime
-        ret = _test_return(actor, env, cfg["episodes"])
-        _emit("eval", ret=ret, t_read=t_read, episodes=cfg["episodes"])
-        if ret > THRESHOLD:
+        ret = evaluation.test_return(cfg["episodes"])
+        _emit("eval", ret=ret, t_read=t_read, episodes=cfg["episodes"], **evaluation.extra)
+        if threshold is not None and ret > threshold:
             return
         time.sleep(cfg["every"])
 
@@ -428,15 +363,19 @@ class ChaosConfig:
             ``cycle`` False, the run ends after the listed faults.
         cycle: draw faults until ``minutes`` are over (True), or inject ``faults`` once, in order.
         seed: the schedule's and the roles' seed.
-        profile: ``"test"`` or ``"bench"`` (see :data:`PROFILES`).
+        profile: ``"test"`` or ``"bench"`` (see :data:`PROFILES`; for ``env`` ``"sim"``,
+            :data:`bench.chaos_env.SIM_PROFILES`).
+        env: ``"pendulum"`` (Pendulum-v1) or ``"sim"`` (the built-in driving simulator's lidar
+            observations on the ``oval`` track): :mod:`bench.chaos_env`.
         nats_nodes: 1 (tmrl's supervised nats-server) or 3 (a cluster this command runs).
         durations: seconds of each timed fault (low, high).
         gap: seconds between a recovery and the next fault (low, high).
         recovery_timeout: seconds a recovery may take before the fault counts as not recovered.
         workdir: where logs, checkpoints and stores go (a new folder by default).
-        evaluate: evaluate the final weights on Pendulum (episodes; 0: not); with ``learning``,
-            also the trainer's weights while the faults run, until they first pass
-            :data:`THRESHOLD` (the samples produced by then are the learning figure).
+        evaluate: evaluate the final weights (episodes; 0: not); with ``learning``, also the
+            trainer's weights while the faults run: on Pendulum until they first pass
+            :data:`THRESHOLD` (the samples produced by then are the learning figure), on the
+            simulator until the faults end (the first and the best test return are the figure).
         learning: evaluate while the faults run (see ``evaluate``), at most every
             ``eval_every`` seconds.
         rss_every: seconds between two samples of every role's resident memory.
@@ -451,6 +390,7 @@ class ChaosConfig:
     cycle: bool = True
     seed: int = 0
     profile: str = "bench"
+    env: str = "pendulum"
     nats_nodes: int = 1
     durations: dict[str, tuple[float, float]] = field(default_factory=lambda: dict(DURATIONS))
     gap: tuple[float, float] = (2.0, 5.0)
@@ -722,6 +662,8 @@ class Chaos:
         self.notes: list[str] = []
         self.mounted = False
         self.nats_pids: dict[str, int] = {}
+        self.final_eval: dict[str, Any] = {}
+        """The final evaluation's figures besides its return (the simulator's lap time and progress)."""
         self._events_file = open(self.workdir / "events.jsonl", "w")  # noqa: SIM115
 
     # --- events -----------------------------------------------------------------------------------
@@ -769,7 +711,8 @@ class Chaos:
         cfg = self.cfg
         common = {
             "backend": cfg.backend, "port": self.port, "seed": cfg.seed, "workdir": str(self.workdir),
-            "profile": PROFILES[cfg.profile], "replicas": 3 if cfg.nats_nodes == 3 else 1,
+            "env": cfg.env, "profile": chaos_env.profile(cfg.env, cfg.profile, PROFILES[cfg.profile]),
+            "replicas": 3 if cfg.nats_nodes == 3 else 1,
             "nats_store": str(self.workdir / "nats-store"), "checkpoint": str(self.checkpoint),
             "trainer_urls": ",".join(f"nats://127.0.0.1:{p}" for p in self.node_ports) if cfg.nats_nodes == 3 else "",
             "worker_port": self.port, "worker_urls": "", "marker": self.marker,
@@ -1146,9 +1089,16 @@ class Chaos:
         return out
 
     def learning(self, t_warm: float) -> dict[str, Any]:
-        """The first evaluation during the faults that passed :data:`THRESHOLD`: samples produced
-        when its weights were read, and seconds since the roles were warm."""
+        """Pendulum: the first evaluation during the faults that passed :data:`THRESHOLD`: samples
+        produced when its weights were read, and seconds since the roles were warm. The simulator
+        (no threshold): the test return of the first evaluation and the best one (``rising``: best
+        minus first), when the weights of the first evaluation within 1 % of the best were read
+        (seconds, samples produced by then), the first evaluation that completed a lap, and the
+        best lap time (a lap's return hardly depends on its time: the lap time says what the
+        returns no longer do)."""
         evals = self.select("eval", "evaluator")
+        if chaos_env.THRESHOLDS[self.cfg.env] is None:
+            return self._rising(evals, t_warm)
         passed = next((e for e in evals if e["ret"] > THRESHOLD), None)
         out: dict[str, Any] = {"evaluations": len(evals), "reached": passed is not None,
                                "best": max((e["ret"] for e in evals), default=None)}
@@ -1156,6 +1106,27 @@ class Chaos:
             out["samples"] = sum(e["n"] for e in self.select("sent") if e["t_sent"] <= passed["t_read"])
             out["s"] = passed["t_read"] - t_warm
             out["faults_before"] = sum(1 for f in self.faults if f.t_start <= passed["t_read"])
+        return out
+
+    def _rising(self, evals: list[dict[str, Any]], t_warm: float) -> dict[str, Any]:
+        """The simulator's learning figure (see :meth:`learning`)."""
+        out: dict[str, Any] = {"evaluations": len(evals), "reached": None, "first": None, "best": None}
+        if not evals:
+            return out
+
+        def when(e: dict[str, Any]) -> dict[str, Any]:
+            return {"s": e["t_read"] - t_warm,
+                    "samples": sum(s["n"] for s in self.select("sent") if s["t_sent"] <= e["t_read"])}
+
+        best = max(e["ret"] for e in evals)
+        # the first evaluation within 1 % of the best (laps of the same line differ in the decimals)
+        near = next(e for e in evals if e["ret"] >= best - 0.01 * abs(best))
+        lap = next((e for e in evals if e.get("lap_time") is not None), None)
+        out.update(first=evals[0]["ret"], best=best, rising=best - evals[0]["ret"],
+                   best_at=when(near), first_lap=None if lap is None else {"lap_time": lap["lap_time"], **when(lap)},
+                   laps=sum(1 for e in evals if e.get("lap_time") is not None),
+                   best_lap=min((e["lap_time"] for e in evals if e.get("lap_time") is not None), default=None),
+                   best_progress=max(e.get("progress") or 0.0 for e in evals))
         return out
 
     def _missing(self) -> set[tuple[int, int]]:
@@ -1300,7 +1271,9 @@ class Chaos:
                               check=False)
         for line in done.stdout.splitlines():
             if line.startswith("{"):
-                return json.loads(line).get("ret")
+                ev = json.loads(line)
+                self.final_eval = {k: ev[k] for k in ("lap_time", "progress") if k in ev}
+                return ev.get("ret")
         self.notes.append(f"evaluation failed: {done.stderr.strip().splitlines()[-1:] }")
         return None
 
@@ -1362,7 +1335,7 @@ class Chaos:
             if f.weights_s is not None:
                 k["weights"].append(f.weights_s)
         return {
-            "backend": cfg.backend, "workers": cfg.workers, "seed": cfg.seed, "profile": cfg.profile,
+            "backend": cfg.backend, "env": cfg.env, "workers": cfg.workers, "seed": cfg.seed, "profile": cfg.profile,
             "nats_nodes": cfg.nats_nodes if cfg.backend == "nats" else None, "marker": self.marker,
             "wall_s": time.time() - t0, "warmup_s": warm, **figures, **end,
             "rss_start_mib": rss_start, "rss_end_mib": rss_end, "rss_mid_mib": rss_figures["mid"],
@@ -1374,7 +1347,7 @@ class Chaos:
                              "weights_median_s": _median(v["weights"]), "weights_max_s": max(v["weights"], default=None)}
                          for k, v in kinds.items()},
             "restarts": {n: r.restarts for n, r in self.roles.items()},
-            "test_return": ret, "notes": self.notes, "workdir": str(self.workdir),
+            "test_return": ret, "test_extra": self.final_eval, "notes": self.notes, "workdir": str(self.workdir),
         }
 
 
@@ -1472,6 +1445,9 @@ def _rows(results: dict[str, dict[str, Any]]) -> list[tuple[str, list[str]]]:
                       f"{sum(v for k, v in r['restarts'].items() if k.startswith('worker'))}"),
         row("stopped by SIGTERM", lambda r: f"{sum(r['stopped_cleanly'].values())} of {len(r['stopped_cleanly'])}"),
         row("processes left", lambda r: r["processes_left"]),
+    ]
+    env = next(iter(results.values()), {}).get("env", "pendulum")
+    return rows + (_learning_rows(row) if chaos_env.THRESHOLDS[env] is None else [
         row(f"learning: samples to a test return > {THRESHOLD:g} (s)",
             lambda r: None if not r["learning"]["evaluations"] else
             (f"{r['learning']['samples']:,} ({r['learning']['s']:.0f} s, after {r['learning']['faults_before']} faults)"
@@ -1479,8 +1455,35 @@ def _rows(results: dict[str, dict[str, Any]]) -> list[tuple[str, list[str]]]:
         row(f"Pendulum test return (> {THRESHOLD:g}?)",
             lambda r: None if r["test_return"] is None else f"{r['test_return']:.0f} "
                                                            f"({'yes' if r['test_return'] > THRESHOLD else 'no'})"),
+    ])
+
+
+def _learning_rows(row: Callable[[str, Callable[[dict[str, Any]], Any]], tuple[str, list[str]]]
+                   ) -> list[tuple[str, list[str]]]:
+    """The simulator's learning rows (no threshold: how far its test return rose during the faults)."""
+
+    def lap(extra: dict[str, Any]) -> str:
+        if extra.get("lap_time") is not None:
+            return f"lap {extra['lap_time']:.1f} s"
+        return "no lap" + (f", {100 * extra['progress']:.0f} % of it" if extra.get("progress") is not None else "")
+
+    return [
+        row("learning: test return first -> best (rising; evaluations)",
+            lambda r: None if not r["learning"]["evaluations"] else
+            f"{r['learning']['first']:.1f} -> {r['learning']['best']:.1f} ({r['learning']['rising']:+.1f}; "
+            f"{r['learning']['evaluations']})"),
+        row("  best (first within 1 %): s after warm, samples",
+            lambda r: None if not r["learning"]["evaluations"] else
+            f"{r['learning']['best_at']['s']:.0f} s, {r['learning']['best_at']['samples']:,}"),
+        row("  first test lap: s after warm, samples (laps, best lap s)",
+            lambda r: None if not r["learning"]["evaluations"] else
+            (f"none (best {100 * r['learning']['best_progress']:.0f} % of a lap)" if not r["learning"]["first_lap"]
+             else f"{r['learning']['first_lap']['s']:.0f} s, {r['learning']['first_lap']['samples']:,} "
+                  f"({r['learning']['laps']}, {r['learning']['best_lap']:.1f})")),
+        row("simulator test return at the end",
+            lambda r: None if r["test_return"] is None else
+            f"{r['test_return']:.1f} ({lap(r.get('test_extra') or {})})"),
     ]
-    return rows
 
 
 def print_table(results: dict[str, dict[str, Any]]) -> None:
@@ -1499,17 +1502,21 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--quick", action="store_true", help="2 minutes per backend")
     ap.add_argument("--backends", default="tlspyo,nats", help="comma-separated: tlspyo, nats")
     ap.add_argument("--workers", type=int, default=4)
+    ap.add_argument("--env", choices=chaos_env.ENVS, default="pendulum",
+                    help="pendulum (Pendulum-v1, the default) or sim (the built-in driving simulator, lidar, "
+                         "track oval): bench/chaos_env.py")
     ap.add_argument("--nats-nodes", type=int, choices=(1, 3), default=3,
                     help="3: a NATS cluster on 127.0.0.1 run by this command; 1: tmrl's supervised nats-server")
     ap.add_argument("--seed", type=int, default=0, help="draws the fault schedule (and seeds the roles)")
     ap.add_argument("--faults", default=",".join(FAULT_KINDS), help=f"among {', '.join(FAULT_KINDS)}")
     ap.add_argument("--no-faults", action="store_true", help="the same run without faults (a reference)")
-    ap.add_argument("--eval-episodes", type=int, default=10, help="Pendulum test episodes at the end")
+    ap.add_argument("--eval-episodes", type=int, default=10,
+                    help="test episodes at each evaluation (the simulator's are deterministic: one is driven)")
     ap.add_argument("--recovery-timeout", type=float, default=60.0)
     ap.add_argument("--gap", default="2,5", help="seconds between a recovery and the next fault: LOW,HIGH")
     ap.add_argument("--eval-every", type=float, default=2.0,
-                    help="seconds between two evaluations while the faults run (until the test return first "
-                         f"passes {THRESHOLD:g}); 0: evaluate only at the end")
+                    help="seconds between two evaluations while the faults run (pendulum: until the test return "
+                         f"first passes {THRESHOLD:g}; sim: until the faults end); 0: evaluate only at the end")
     ap.add_argument("--keep", action="store_true", help="keep the work folders (logs, events.jsonl)")
     args = ap.parse_args(argv)
     minutes = 2.0 if args.quick else args.minutes
@@ -1526,17 +1533,19 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError:
         ap.error(f"--gap must be LOW,HIGH seconds (0 <= LOW <= HIGH), not {args.gap!r}")
     settings = {"minutes": minutes, "gap_s": list(gap), "eval_every_s": args.eval_every, "workers": args.workers, "nats_nodes": args.nats_nodes, "seed": args.seed,
-                "faults": list(faults), "profile": PROFILES["bench"], "durations": DURATIONS,
+                "faults": list(faults), "env": args.env,
+                "profile": chaos_env.profile(args.env, "bench", PROFILES["bench"]), "durations": DURATIONS,
                 "recovery_timeout_s": args.recovery_timeout, "eval_episodes": args.eval_episodes}
     rec = harness.Recorder("chaos", settings)
     results: dict[str, dict[str, Any]] = {}
     for backend in backends:
         cfg = ChaosConfig(backend=backend, workers=args.workers, faults=faults, minutes=minutes, seed=args.seed,
-                          profile="bench", nats_nodes=args.nats_nodes, recovery_timeout=args.recovery_timeout,
+                          profile="bench", env=args.env, nats_nodes=args.nats_nodes,
+                          recovery_timeout=args.recovery_timeout,
                           evaluate=args.eval_episodes, learning=args.eval_every > 0,
                           eval_every=max(args.eval_every, 0.0), gap=gap)
         load_start = harness.load_average()
-        print(f"{backend}: {minutes:g} min, {args.workers} workers"
+        print(f"{backend}: {args.env}, {minutes:g} min, {args.workers} workers"
               + (f", NATS nodes {args.nats_nodes}" if backend == "nats" else "") + f", load {load_start:.2f}",
               flush=True)
         res = run_chaos(cfg, keep=args.keep)
@@ -1546,8 +1555,12 @@ def main(argv: list[str] | None = None) -> None:
                     "lost_with_killed_workers", "lost_with_killed_servers", "lost_in_killed_trainer_links",
                     "lost_with_killed_trainers", "worker_link_dropped", "processes_left", "test_return"):
             rec.add(backend, key, "ours", res.get(key), echo=False)
-        rec.add(backend, "samples_to_threshold", "ours", res["learning"].get("samples"), higher_is_better=False,
-                echo=False)
+        if chaos_env.THRESHOLDS[args.env] is not None:
+            rec.add(backend, "samples_to_threshold", "ours", res["learning"].get("samples"), higher_is_better=False,
+                    echo=False)
+        else:
+            for key in ("first", "best", "rising"):
+                rec.add(backend, f"test_return_{key}", "ours", res["learning"].get(key), echo=False)
         for kind, r in res["recovery"].items():
             for metric in ("flow_median_s", "flow_max_s", "weights_median_s", "weights_max_s"):
                 rec.add(f"{backend} {kind}", metric, "ours", r[metric], higher_is_better=False, unit="s", echo=False)
