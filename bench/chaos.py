@@ -134,6 +134,10 @@ def _stop_on_sigterm() -> None:
     signal.signal(signal.SIGHUP, handler)
 
 
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 def _net_settings(cfg: dict[str, Any], urls: str) -> Any:
     from tmrl.config.loader import validate
     from tmrl.config.settings import NetSettings
@@ -157,7 +161,10 @@ def _seed(seed: int) -> None:
 def _role_server(cfg: dict[str, Any]) -> None:
     from tmrl.networking import Server
 
-    server = Server(port=cfg["port"], password=PW, security=None, settings=_net_settings(cfg, ""))
+    # max_workers: the run's number of workers (as a user sets NB_WORKERS), so that a killed
+    # worker's slot must be freed for its restarted self to be let in
+    limit = {"max_workers": cfg["max_workers"]} if cfg.get("max_workers") else {}
+    server = Server(port=cfg["port"], password=PW, security=None, settings=_net_settings(cfg, ""), **limit)
     relay = server._relay
     last_pid = None
     try:
@@ -715,7 +722,7 @@ class Chaos:
             "replicas": 3 if cfg.nats_nodes == 3 else 1,
             "nats_store": str(self.workdir / "nats-store"), "checkpoint": str(self.checkpoint),
             "trainer_urls": ",".join(f"nats://127.0.0.1:{p}" for p in self.node_ports) if cfg.nats_nodes == 3 else "",
-            "worker_port": self.port, "worker_urls": "", "marker": self.marker,
+            "worker_port": self.port, "worker_urls": "", "marker": self.marker, "max_workers": cfg.workers,
         }
         path = self.workdir / f"{name}.json"
         path.write_text(json.dumps({**common, **extra}))
@@ -1073,19 +1080,19 @@ class Chaos:
             self.record({"ev": "rss", "role": "chaos", "t": time.time(), "mib": self.rss()})
 
     def rss_figures(self, t_faults: float, t_end: float) -> dict[str, Any]:
-        """Each role's resident memory near the tenth minute of faults (a sixth of a shorter run)
-        and over the last two minutes: the peak of the samples in each window (a role restarted
-        just before a sample reads low until it has loaded its state, so the peak stands for the
-        role rather than for one of its processes)."""
+        """Each role's resident memory around the tenth minute of faults (a sixth of a shorter
+        run) and over the last four minutes: the median of the samples in each window, so that a
+        role restarted just before a sample (low until it has loaded its state) or a spike of a
+        nats-server's garbage collector does not stand for the role."""
         mark = t_faults + min(600.0, (t_end - t_faults) / 6)
         samples = self.select("rss")
         out: dict[str, Any] = {"mark_s": mark - t_faults, "mid": {}, "end": {}, "samples": len(samples)}
         for name in self.rss():
-            def peak(lo: float, hi: float, n: str = name) -> float | None:
+            def median(lo: float, hi: float, n: str = name) -> float | None:
                 vals = [e["mib"].get(n) for e in samples if lo <= e["t"] <= hi and e["mib"].get(n)]
-                return max(vals) if vals else None
-            out["mid"][name] = peak(mark - 60, mark + 60)
-            out["end"][name] = peak(t_end - 120, t_end + 1)
+                return statistics.median(vals) if vals else None
+            out["mid"][name] = median(mark - 120, mark + 120)
+            out["end"][name] = median(t_end - 240, t_end + 1)
         return out
 
     def learning(self, t_warm: float) -> dict[str, Any]:
@@ -1519,6 +1526,7 @@ def main(argv: list[str] | None = None) -> None:
                          f"first passes {THRESHOLD:g}; sim: until the faults end); 0: evaluate only at the end")
     ap.add_argument("--keep", action="store_true", help="keep the work folders (logs, events.jsonl)")
     args = ap.parse_args(argv)
+    signal.signal(signal.SIGTERM, _interrupt)  # `kill` ends the run as Ctrl-C does: its roles are stopped
     minutes = 2.0 if args.quick else args.minutes
     backends = [b for b in args.backends.split(",") if b]
     if set(backends) - {"tlspyo", "nats"}:

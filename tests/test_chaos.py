@@ -200,3 +200,37 @@ def test_a_nats_worker_cut_during_a_weights_read_gets_the_next_weights_soon(tmp_
         trainer.close()
         relay.stop()
         proxy.close()
+
+
+# ------------------------------------------------------------------------------------------------
+# the benchmark stopped by SIGTERM
+
+
+@pytest.mark.timeout(180)
+def test_the_benchmark_stopped_by_sigterm_leaves_no_process(tmp_path):
+    import re
+    import signal
+    import time
+
+    env = dict(os.environ, PYTHONUNBUFFERED="1", TMPDIR=str(tmp_path))
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "chaos", "--minutes", "5", "--backends", "tlspyo",
+                             "--workers", "1", "--faults", "stop_worker", "--eval-every", "0"],
+                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    assert proc.stdout is not None
+    for line in proc.stdout:  # until the roles run: samples and weights flow
+        lines.append(line)
+        if "warm:" in line:
+            break
+    else:
+        raise AssertionError("".join(lines))
+    proc.send_signal(signal.SIGTERM)
+    rest, _ = proc.communicate(timeout=90)
+    lines.append(rest)
+    text = "".join(lines)
+    found = re.search(r"logs kept in \S*/(tmrl-chaos-[0-9a-f]+)", text)
+    assert found, text  # the run ended through its clean-up, which names the folder it kept
+    deadline = time.monotonic() + 10
+    while marked_processes(found.group(1)) and time.monotonic() < deadline:
+        time.sleep(0.2)  # polling /proc: a role told to stop may take a moment to go
+    assert marked_processes(found.group(1)) == []
