@@ -63,6 +63,16 @@ def network_processes(marker: str) -> list[int]:
     return [p for p in run_processes(marker) if "tmrl.transport._netproc" in cmdline(p)]
 
 
+
+_DEFAULT_SIGNALS_THEN_TMRL = (
+    "import os, signal, sys\n"
+    "for name in ('SIGINT', 'SIGTERM', 'SIGHUP'):\n"
+    "    signal.signal(getattr(signal, name), signal.SIG_DFL)\n"
+    "os.execv(sys.executable, [sys.executable, '-m', 'tmrl', *sys.argv[1:]])\n"
+)
+"""``python -c`` this, then tmrl's arguments: SIGINT, SIGTERM and SIGHUP back to their default
+action, then ``python -m tmrl`` in the same process (exec keeps a default action default)."""
+
 class Run:
     """The processes started by one test, with their output collected in the background."""
 
@@ -78,7 +88,10 @@ class Run:
     def start(self, *args: str, env: dict[str, str] | None = None) -> subprocess.Popen:
         # A session of its own, as a command typed in its own terminal: a signal sent to it
         # reaches that process only.
-        proc = subprocess.Popen([sys.executable, "-m", "tmrl", *args], stdout=subprocess.PIPE,
+        # Its signals as a terminal gives them: a suite started under `nohup` (SIGHUP ignored) or
+        # as a background job (SIGINT ignored) would pass those on, and tmrl keeps an ignored
+        # signal ignored, as it should.
+        proc = subprocess.Popen([sys.executable, "-c", _DEFAULT_SIGNALS_THEN_TMRL, *args], stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, env={**self.env, **(env or {})}, cwd=self.cwd,
                                 start_new_session=True)
         lines: list[str] = []
