@@ -1521,6 +1521,10 @@ def main(argv: list[str] | None = None) -> None:
                     help="test episodes at each evaluation (the simulator's are deterministic: one is driven)")
     ap.add_argument("--recovery-timeout", type=float, default=60.0)
     ap.add_argument("--gap", default="2,5", help="seconds between a recovery and the next fault: LOW,HIGH")
+    ap.add_argument("--memory-size", type=int, default=None,
+                    help="the trainer's replay memory, in samples (Pendulum; default "
+                    f"{PROFILES['bench']['memory_size']:,}): a memory full early tells the roles' memory growth "
+                    "from the memory filling")
     ap.add_argument("--eval-every", type=float, default=2.0,
                     help="seconds between two evaluations while the faults run (pendulum: until the test return "
                          f"first passes {THRESHOLD:g}; sim: until the faults end); 0: evaluate only at the end")
@@ -1540,6 +1544,10 @@ def main(argv: list[str] | None = None) -> None:
             raise ValueError
     except ValueError:
         ap.error(f"--gap must be LOW,HIGH seconds (0 <= LOW <= HIGH), not {args.gap!r}")
+    if args.memory_size is not None:
+        if args.memory_size < PROFILES["bench"]["batch_size"]:
+            ap.error(f"--memory-size must be at least the batch size ({PROFILES['bench']['batch_size']})")
+        PROFILES["bench"]["memory_size"] = args.memory_size  # written into every role's settings
     settings = {"minutes": minutes, "gap_s": list(gap), "eval_every_s": args.eval_every, "workers": args.workers, "nats_nodes": args.nats_nodes, "seed": args.seed,
                 "faults": list(faults), "env": args.env,
                 "profile": chaos_env.profile(args.env, "bench", PROFILES["bench"]), "durations": DURATIONS,
