@@ -234,3 +234,12 @@ def test_the_benchmark_stopped_by_sigterm_leaves_no_process(tmp_path):
     while marked_processes(found.group(1)) and time.monotonic() < deadline:
         time.sleep(0.2)  # polling /proc: a role told to stop may take a moment to go
     assert marked_processes(found.group(1)) == []
+
+
+def test_a_memory_smaller_than_a_batch_is_one_line(capsys):
+    from bench import chaos
+
+    with pytest.raises(SystemExit):
+        chaos.main(["--memory-size", "10", "--minutes", "0"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--memory-size must be at least the batch size (256)" in err
