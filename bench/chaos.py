@@ -1346,7 +1346,7 @@ class Chaos:
             "nats_nodes": cfg.nats_nodes if cfg.backend == "nats" else None, "marker": self.marker,
             "wall_s": time.time() - t0, "warmup_s": warm, **figures, **end,
             "rss_start_mib": rss_start, "rss_end_mib": rss_end, "rss_mid_mib": rss_figures["mid"],
-            "rss_peak_end_mib": rss_figures["end"], "rss_mark_s": rss_figures["mark_s"],
+            "rss_late_mib": rss_figures["end"], "rss_mark_s": rss_figures["mark_s"],
             "learning": learning,
             "faults": [asdict(f) for f in self.faults],
             "recovery": {k: {"n": v["n"], "not_recovered": v["not_recovered"],
@@ -1440,7 +1440,7 @@ def _rows(results: dict[str, dict[str, Any]]) -> list[tuple[str, list[str]]]:
     roles = sorted({n for r in results.values() for n in r["rss_start_mib"]})
     for name in roles:
         def rss(r: dict[str, Any], n: str = name) -> str | None:
-            a, m, b = r["rss_start_mib"].get(n), r["rss_mid_mib"].get(n), r["rss_peak_end_mib"].get(n)
+            a, m, b = r["rss_start_mib"].get(n), r["rss_mid_mib"].get(n), r["rss_late_mib"].get(n)
             if a is None or m is None or b is None:
                 return None
             return f"{a:.0f}, {m:.0f} -> {b:.0f} ({100 * (b - m) / m:+.1f} %)"
@@ -1580,7 +1580,7 @@ def main(argv: list[str] | None = None) -> None:
         for kind, r in res["recovery"].items():
             for metric in ("flow_median_s", "flow_max_s", "weights_median_s", "weights_max_s"):
                 rec.add(f"{backend} {kind}", metric, "ours", r[metric], higher_is_better=False, unit="s", echo=False)
-        for name, mib in res["rss_peak_end_mib"].items():
+        for name, mib in res["rss_late_mib"].items():
             mid = res["rss_mid_mib"].get(name)
             rec.add(f"{backend} {name}", "rss_growth_pct", "ours",
                     None if not mid or mib is None else 100 * (mib - mid) / mid, higher_is_better=False,

@@ -326,8 +326,8 @@ def _evaluate(impl: str, s: dict[str, Any], workdir: Path, episodes: int, every:
                 continue
             t_read = time.monotonic() - t0
             steps, updates = harness.read_int(workdir / "steps"), harness.read_int(workdir / "updates")
-            window = snapshots.take() if snapshots is not None else []
             actor = actor.load(str(path), device="cpu")
+            window = snapshots.take() if snapshots is not None else []  # after the load: a failed one keeps them
             last_mtime, next_eval = mtime, time.monotonic() + every
         except Exception:  # noqa: BLE001 (missing, or being written in place by the original: retry soon)
             time.sleep(0.05)

@@ -229,9 +229,7 @@ class TrainerInterface:
 
         cfg = _settings(settings)
         self.model_path = Path(_given(model_path, cfg.model_path_trainer))
-        if removed := remove_stale_temporaries(self.model_path):
-            logger.info("removed %d temporary weights files left by stopped processes beside %s", removed,
-                        self.model_path)
+        remove_stale_temporaries(self.model_path)
         self.server_ip = _given(server_ip, cfg.server_ip_for_trainer)
         self.maxlen = cfg.buffers_maxlen
         self.schema = schema

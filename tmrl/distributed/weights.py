@@ -61,8 +61,8 @@ def remove_stale_temporaries(path: str | os.PathLike[str]) -> int:
     """Remove the temporary copies of ``path`` that a killed process left in its folder: the
     ``.<name>.<pid>-<id>.tmp`` of :func:`replace_file` and the ``.<name>.<pid>-<id>.incoming`` of
     :meth:`WeightsInstaller.install` whose process ``<pid>`` no longer runs. Only processes of
-    one machine share a ``model_path`` (workers of one machine may), so the pid tells. Returns
-    how many were removed."""
+    one machine share a ``model_path`` (workers of one machine may), so the pid tells. Says how
+    many went in one log line; returns that number."""
     path = Path(path)
     prefix = f".{path.name}."
     removed = 0
@@ -80,6 +80,8 @@ def remove_stale_temporaries(path: str | os.PathLike[str]) -> int:
         with contextlib.suppress(OSError):
             os.unlink(entry.path)
             removed += 1
+    if removed:
+        logger.info("removed %d temporary weights files left by stopped processes beside %s", removed, path)
     return removed
 
 
@@ -286,9 +288,7 @@ class WeightsInstaller:
         self._unsigned_warned = False
         self._key: bytes | None = None
         self._key_stamp: tuple[int, int, int] | None = None
-        if removed := remove_stale_temporaries(self.model_path):
-            logger.info("removed %d temporary weights files left by stopped processes beside %s", removed,
-                        self.model_path)
+        remove_stale_temporaries(self.model_path)
 
     def load_file(self, actor: Any) -> Any:
         """``actor`` with the weights of ``model_path`` (at start), or ``actor`` itself when the

@@ -103,10 +103,10 @@ class _WeightsReader(_NatsLink):
                 logger.debug("worker link: no weights read (%s: %s)", type(e).__name__, e)
                 kv = None
 
-    async def _while_connected(self, coro: Any, bound: float, still_there: Any = None) -> Any:
-        """``await coro`` for at most ``bound`` seconds and no longer than the connection lasts;
-        with ``still_there`` (an async callable), no longer than it answers True either (asked
-        every :data:`GONE_CHECK` seconds).
+    async def _while_connected(self, coro: Any, bound: float, still_there: Any) -> Any:
+        """``await coro`` for at most ``bound`` seconds, no longer than the connection lasts and no
+        longer than ``still_there`` (an async callable, asked every :data:`GONE_CHECK` seconds)
+        answers True.
 
         Raises:
             asyncio.TimeoutError: ``bound`` passed.
@@ -126,7 +126,7 @@ class _WeightsReader(_NatsLink):
                 left = deadline - loop.time()
                 if left <= 0:
                     raise asyncio.TimeoutError
-                if still_there is not None and loop.time() >= next_check:
+                if loop.time() >= next_check:
                     if not await still_there():
                         raise LookupError("the object was deleted during the read")
                     next_check = loop.time() + GONE_CHECK
