@@ -748,3 +748,99 @@ def test_a_weights_read_ends_soon_once_its_object_is_deleted(made):
     trainer.broadcast_weights(b"w1")
     assert worker.latest_weights(block=True, timeout=30) == b"w1"
     asyncio.run(check())
+
+
+async def _store_subjects(port: int) -> dict[str, int]:
+    """The object store's subjects and their message counts (as the trainer's user sees them)."""
+    import nats
+
+    from tmrl.transport.jetstream.layout import DEFAULT_BUCKET
+
+    user, password = role_credentials("trainer", PW)
+    nc = await nats.connect(f"nats://127.0.0.1:{port}", user=user, password=password,
+                            inbox_prefix=INBOX["trainer"], allow_reconnect=False)
+    try:
+        info = await nc.jetstream(timeout=5).stream_info(f"OBJ_{DEFAULT_BUCKET}",
+                                                           subjects_filter=f"$O.{DEFAULT_BUCKET}.>")
+        return dict(info.state.subjects or {})
+    finally:
+        await nc.close()
+
+
+def test_the_weights_store_keeps_only_the_newest_two_objects_however_many_broadcasts(made):
+    # Found by the chaos soak: nats-py's ObjectStore.delete leaves a description marked deleted
+    # per object, kept forever; the trainer deleted one object per broadcast (about 15 a second),
+    # so the store, the nats-servers' memory and a restarted trainer's listing of the store grew
+    # through the hour. The trainer now removes an old object's description with its chunks.
+    relay = _relay(made)
+    trainer, worker = _trainer(made, relay.port), _worker(made, relay.port)
+    assert trainer.wait_connected(30) and worker.wait_connected(30)
+    for k in range(40):
+        trainer.broadcast_weights(b"w%d" % k)
+        _wait_for(lambda k=k: trainer.broadcasts == k + 1, 30, f"broadcast {k}")  # none coalesced
+    got: list[bytes] = []
+    _wait_for(lambda: got.append(worker.latest_weights(block=True, timeout=1.0) or b"") or got[-1] == b"w39",
+              30, "the last weights")
+    subjects = asyncio.run(_store_subjects(relay.port))
+    metas = [s for s in subjects if ".M." in s]
+    chunks = [s for s in subjects if ".C." in s]
+    assert len(metas) == 2 and len(chunks) == 2, subjects  # 40 descriptions with nats-py's delete
+    assert all(n == 1 for n in subjects.values()), subjects
+
+
+def test_a_restarted_trainer_removes_what_earlier_trainers_left_in_the_store(made, monkeypatch):
+    # A store an earlier version of tmrl filled with descriptions of deleted objects (one per
+    # broadcast), two objects a killed trainer had not removed yet and the chunks of an upload
+    # cut by a kill: a new trainer keeps the latest object only, in a few requests however many
+    # descriptions there are, and workers still read the latest weights.
+    import nats
+    import nats.js.manager
+
+    from tmrl import wire
+    from tmrl.transport.jetstream.layout import DEFAULT_BUCKET, LATEST_KEY
+
+    relay = _relay(made)
+    first = _trainer(made, relay.port)
+    assert first.wait_connected(30)
+    first.broadcast_weights(b"from the first trainer")
+    _wait_for(lambda: first.broadcasts == 1, 30, "the first broadcast")
+    first.close()
+
+    async def litter() -> None:
+        user, password = role_credentials("trainer", PW)
+        nc = await nats.connect(f"nats://127.0.0.1:{relay.port}", user=user, password=password,
+                                inbox_prefix=INBOX["trainer"], allow_reconnect=False)
+        try:
+            js = nc.jetstream(timeout=5)
+            obs = await js.object_store(DEFAULT_BUCKET)
+            for k in range(150):
+                await obs.put(f"old-{k}", b"x")
+                await obs.delete(f"old-{k}")  # the description marked deleted stays
+            await obs.put("left-1", b"y")
+            await obs.put("left-2", b"z")
+            await js.publish(f"$O.{DEFAULT_BUCKET}.C.cutupload", b"a chunk with no description")
+            latest = wire.decode(bytes((await (await js.key_value(DEFAULT_BUCKET)).get(LATEST_KEY)).value))
+            assert (await obs.get(latest["name"])).data == wire.encode(b"from the first trainer")
+        finally:
+            await nc.close()
+
+    asyncio.run(litter())
+    assert len(asyncio.run(_store_subjects(relay.port))) == 150 + 2 * 2 + 1 + 2
+
+    purges: list[Any] = []
+    real_purge = nats.js.manager.JetStreamManager.purge_stream
+
+    async def counted(self: Any, name: str, *a: Any, **kw: Any) -> Any:
+        if name.startswith("OBJ_"):
+            purges.append(kw.get("subject"))
+        return await real_purge(self, name, *a, **kw)
+
+    monkeypatch.setattr(nats.js.manager.JetStreamManager, "purge_stream", counted)
+    second = _trainer(made, relay.port)
+    assert second.wait_connected(30)  # the store is cleaned before the link says it is connected
+    subjects = asyncio.run(_store_subjects(relay.port))
+    assert len(subjects) == 2 and sorted(s.split(".")[2] for s in subjects) == ["C", "M"], subjects
+    assert len(purges) <= 8, purges  # not one per description (150 here, a million after a long run)
+    worker = _worker(made, relay.port)
+    assert worker.wait_connected(30)
+    assert worker.latest_weights(block=True, timeout=30) == b"from the first trainer"
