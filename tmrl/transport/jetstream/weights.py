@@ -302,6 +302,8 @@ class _WeightsWriter(_NatsLink):
         objects, the descriptions of deleted ones (earlier versions of tmrl left one per
         broadcast), the chunks of an upload cut by a kill."""
         import nats.js.errors as jse
+        from nats.js import api
+        from nats.js.object_store import MSG_ROLLUP_SUBJECT
 
         stream = self._store_stream()
         kv = await js.key_value(self._bucket)
@@ -312,9 +314,6 @@ class _WeightsWriter(_NatsLink):
                 keep = (meta["name"], meta["nuid"])
         except (jse.NotFoundError, wire.DecodeError):
             pass
-        from nats.js import api
-        from nats.js.object_store import MSG_ROLLUP_SUBJECT
-
         kept_subjects: tuple[str, ...] = ()
         kept_seq = None
         if keep is not None:
