@@ -83,6 +83,16 @@ def _receive(trainer: Any, n: int, timeout: float = 30.0) -> list[Any]:
     return got
 
 
+async def _connect_as(role: str, port: int, **kw: Any) -> Any:
+    """A plain nats-py connection to the relay on ``port`` with ``role``'s credentials (no
+    reconnection: a test sees a dropped connection)."""
+    import nats
+
+    user, password = role_credentials(role, PW)
+    return await nats.connect(f"nats://127.0.0.1:{port}", user=user, password=password,
+                              inbox_prefix=INBOX[role], allow_reconnect=False, **kw)
+
+
 def _settings(tmp_path: Path, port: int, **nats: Any) -> Any:
     from tmrl.config.loader import validate
     from tmrl.config.settings import NetSettings
@@ -432,9 +442,7 @@ def test_a_worker_user_can_neither_write_the_weights_nor_read_the_samples(made):
         async def on_error(e: Exception) -> None:
             errors.append(str(e).lower())
 
-        user, password = role_credentials("worker", PW)
-        nc = await nats.connect(f"nats://127.0.0.1:{relay.port}", user=user, password=password,
-                                inbox_prefix=INBOX["worker"], error_cb=on_error, allow_reconnect=False)
+        nc = await _connect_as("worker", relay.port, error_cb=on_error)
         js = nc.jetstream(timeout=1)
         kv = await js.key_value("tmrl-weights")  # reading is allowed
         with pytest.raises(nats.errors.Error):  # a timeout: the server drops the publication
@@ -705,7 +713,6 @@ def test_a_weights_read_ends_soon_once_its_object_is_deleted(made):
     # nats-py's get then waits forever, and the read waited out its bound (up to 30 s) before
     # the worker took the newest weights. The read now asks every second whether its object is
     # still stored and ends when it is not.
-    import nats
 
     from tmrl import wire
     from tmrl.transport.jetstream.layout import DEFAULT_BUCKET, LATEST_KEY
@@ -719,9 +726,7 @@ def test_a_weights_read_ends_soon_once_its_object_is_deleted(made):
         return wire.decode(bytes((await kv.get(LATEST_KEY)).value))["name"]
 
     async def check() -> None:
-        user, password = role_credentials("worker", PW)
-        nc = await nats.connect(f"nats://127.0.0.1:{relay.port}", user=user, password=password,
-                                inbox_prefix=INBOX["worker"], allow_reconnect=False)
+        nc = await _connect_as("worker", relay.port)
         try:
             js = nc.jetstream(timeout=5)
             kv, obs = await js.key_value(DEFAULT_BUCKET), await js.object_store(DEFAULT_BUCKET)
@@ -752,13 +757,9 @@ def test_a_weights_read_ends_soon_once_its_object_is_deleted(made):
 
 async def _store_subjects(port: int) -> dict[str, int]:
     """The object store's subjects and their message counts (as the trainer's user sees them)."""
-    import nats
-
     from tmrl.transport.jetstream.layout import DEFAULT_BUCKET
 
-    user, password = role_credentials("trainer", PW)
-    nc = await nats.connect(f"nats://127.0.0.1:{port}", user=user, password=password,
-                            inbox_prefix=INBOX["trainer"], allow_reconnect=False)
+    nc = await _connect_as("trainer", port)
     try:
         info = await nc.jetstream(timeout=5).stream_info(f"OBJ_{DEFAULT_BUCKET}",
                                                            subjects_filter=f"$O.{DEFAULT_BUCKET}.>")
@@ -807,9 +808,7 @@ def test_a_restarted_trainer_removes_what_earlier_trainers_left_in_the_store(mad
     first.close()
 
     async def litter() -> None:
-        user, password = role_credentials("trainer", PW)
-        nc = await nats.connect(f"nats://127.0.0.1:{relay.port}", user=user, password=password,
-                                inbox_prefix=INBOX["trainer"], allow_reconnect=False)
+        nc = await _connect_as("trainer", relay.port)
         try:
             js = nc.jetstream(timeout=5)
             obs = await js.object_store(DEFAULT_BUCKET)
