@@ -63,6 +63,7 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.request
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -407,7 +408,7 @@ class ChaosConfig:
     evaluate: int = 0
     learning: bool = False
     eval_every: float = 2.0
-    rss_every: float = 30.0
+    rss_every: float = 5.0
     disk_mib: int = 64
     stop_on_unrecovered: bool = False
     log: Callable[[str], None] = print
@@ -572,6 +573,24 @@ def tree_rss_mib(pid: int | None) -> float | None:
     if pid is None:
         return None
     return sum(_rss_kib(p) for p in [pid, *_children(pid)]) / 1024
+
+
+def _go_heap_mib(prof_port: int) -> dict[str, float] | None:
+    """A Go program's heap (MiB) from its profiling port: ``alloc`` (live objects and garbage not
+    yet collected), ``idle`` (freed and kept), ``released`` (given back to the system), ``sys``
+    (all it took); None when it does not answer within a second."""
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{prof_port}/debug/pprof/heap?debug=1", timeout=1.0) as r:
+            text = r.read().decode(errors="replace")
+    except OSError:
+        return None
+    stats = {}
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) == 4 and parts[0] == "#" and parts[2] == "=" and parts[3].isdigit():
+            stats[parts[1]] = int(parts[3]) / 2**20
+    names = {"alloc": "HeapAlloc", "idle": "HeapIdle", "released": "HeapReleased", "sys": "Sys"}
+    return {k: round(stats[v], 1) for k, v in names.items() if v in stats} or None
 
 
 def marked_processes(marker: str) -> list[int]:
@@ -748,6 +767,8 @@ class Chaos:
         users = {role: role_credentials(role, PW, None, None) for role in ("worker", "trainer")}
         conf = {
             "server_name": f"n{i}", "host": "127.0.0.1", "port": self.node_ports[i],
+            "http": f"127.0.0.1:{self.monitor_ports[i]}",  # /jsz: which node leads each stream
+            "prof_port": self.prof_ports[i],  # the Go heap behind the resident memory
             "max_payload": 8 * 2**20,
             "jetstream": {"store_dir": str(self.workdir / f"node{i}")},
             "cluster": {"name": "tmrl-chaos", "listen": f"127.0.0.1:{self.route_ports[i]}", "no_advertise": True,
@@ -782,9 +803,13 @@ class Chaos:
             self._mount_checkpoint_disk()
         self.node_ports: list[int] = []
         self.route_ports: list[int] = []
+        self.monitor_ports: list[int] = []
+        self.prof_ports: list[int] = []
         if cfg.backend == "nats" and cfg.nats_nodes == 3:
             self.node_ports = [harness.free_port() for _ in range(3)]
             self.route_ports = [harness.free_port() for _ in range(3)]
+            self.monitor_ports = [harness.free_port() for _ in range(3)]
+            self.prof_ports = [harness.free_port() for _ in range(3)]
             targets = self.node_ports
         else:
             targets = [self.port]
@@ -824,7 +849,10 @@ class Chaos:
         return got if got is not None or timeout <= 0 else self.wait_for(find, timeout)
 
     def warm_up(self) -> float:
-        """Wait until every worker's samples reach the trainer and every worker loaded weights."""
+        """Wait until every worker's samples reach the trainer and every worker loaded weights of
+        the training (a version after the trainer's first broadcast, its initial weights: until
+        its memory holds ``start_training`` samples no other comes, and a fault then would count
+        that wait as its recovery)."""
         t0 = time.time()
 
         def ready(evs: list[dict[str, Any]]) -> bool:
@@ -832,7 +860,7 @@ class Chaos:
             if None in srcs.values():
                 return False
             got = {e["src"] for e in evs if e["ev"] == "recv"}
-            loaded = {e["role"] for e in evs if e["ev"] == "weights"}
+            loaded = {e["role"] for e in evs if e["ev"] == "weights" and e.get("version", 0) >= 2}
             return set(srcs.values()) <= got and set(srcs) <= loaded
 
         def crashing(evs: list[dict[str, Any]]) -> str | None:
@@ -932,6 +960,7 @@ class Chaos:
         if self.cfg.backend == "nats" and self.cfg.nats_nodes == 3:
             name = self.rng.choice(["node0", "node1", "node2"])
             fault.detail["node"] = name
+            fault.detail["led"] = self._streams_led_by(int(name[-1]))
             fault.detail["killed"] = self.roles[name].signal_group(signal.SIGKILL)
         elif kind == "kill_server":
             fault.detail["killed"] = self.roles["server"].signal_group(signal.SIGKILL)
@@ -943,6 +972,26 @@ class Chaos:
                 fault.detail["killed"] = True
             except (TypeError, ProcessLookupError):
                 fault.detail["killed"] = False
+
+    def _streams_led_by(self, i: int) -> list[str] | None:
+        """The streams (samples, weights' key-value and object buckets) and the consumers
+        (``stream/consumer``) node ``i`` leads now, from its monitoring endpoint; None when it does
+        not answer within a second."""
+        url = f"http://127.0.0.1:{self.monitor_ports[i]}/jsz?accounts=true&streams=true&consumers=true"
+        try:
+            with urllib.request.urlopen(url, timeout=1.0) as answer:
+                jsz = json.load(answer)
+        except (OSError, ValueError):
+            return None
+        led = []
+        for account in jsz.get("account_details") or []:
+            for stream in account.get("stream_detail") or []:
+                if (stream.get("cluster") or {}).get("leader") == f"n{i}":
+                    led.append(stream.get("name"))
+                for consumer in stream.get("consumer_detail") or []:
+                    if (consumer.get("cluster") or {}).get("leader") == f"n{i}":
+                        led.append(f"{stream.get('name')}/{consumer.get('name')}")
+        return sorted(led)
 
     def _kill_mid_checkpoint(self, fault: Fault) -> None:
         """SIGKILL the trainer while it writes its checkpoint's header (``checkpoint.json``, the
@@ -1075,9 +1124,16 @@ class Chaos:
         return {name: tree_rss_mib(role.pid) for name, role in self.roles.items() if role.kind != "evalloop"}
 
     def _sample_rss(self) -> None:
-        """Every ``rss_every`` seconds, every role's resident memory as an ``rss`` event."""
+        """Every ``rss_every`` seconds, every role's resident memory as an ``rss`` event; every
+        30 s, the Go heap of each NATS node of a cluster as a ``heap`` event (what its resident
+        memory holds: the live heap, what the collector freed and kept, what it gave back)."""
+        last_heap = 0.0
         while not self.stop_event.wait(self.cfg.rss_every):
             self.record({"ev": "rss", "role": "chaos", "t": time.time(), "mib": self.rss()})
+            if self.prof_ports and time.monotonic() - last_heap >= 30.0:
+                last_heap = time.monotonic()
+                self.record({"ev": "heap", "role": "chaos", "t": time.time(),
+                             "mib": {f"node{i}": _go_heap_mib(port) for i, port in enumerate(self.prof_ports)}})
 
     def rss_figures(self, t_faults: float, t_end: float) -> dict[str, Any]:
         """Each role's resident memory around the tenth minute of faults (a sixth of a shorter
@@ -1093,6 +1149,13 @@ class Chaos:
                 return statistics.median(vals) if vals else None
             out["mid"][name] = median(mark - 120, mark + 120)
             out["end"][name] = median(t_end - 240, t_end + 1)
+        heaps = self.select("heap")
+        out["heap_mid"], out["heap_end"] = {}, {}
+        for name in sorted({n for e in heaps for n in e["mib"]}):
+            for key, lo, hi in (("heap_mid", mark - 120, mark + 120), ("heap_end", t_end - 240, t_end + 1)):
+                got = [e["mib"][name] for e in heaps if lo <= e["t"] <= hi and e["mib"].get(name)]
+                if got:
+                    out[key][name] = {k: statistics.median(g[k] for g in got if k in g) for k in got[0]}
         return out
 
     def learning(self, t_warm: float) -> dict[str, Any]:
@@ -1347,6 +1410,7 @@ class Chaos:
             "wall_s": time.time() - t0, "warmup_s": warm, **figures, **end,
             "rss_start_mib": rss_start, "rss_end_mib": rss_end, "rss_mid_mib": rss_figures["mid"],
             "rss_late_mib": rss_figures["end"], "rss_mark_s": rss_figures["mark_s"],
+            "go_heap_mid_mib": rss_figures["heap_mid"], "go_heap_late_mib": rss_figures["heap_end"],
             "learning": learning,
             "faults": [asdict(f) for f in self.faults],
             "recovery": {k: {"n": v["n"], "not_recovered": v["not_recovered"],
@@ -1445,6 +1509,14 @@ def _rows(results: dict[str, dict[str, Any]]) -> list[tuple[str, list[str]]]:
                 return None
             return f"{a:.0f}, {m:.0f} -> {b:.0f} ({100 * (b - m) / m:+.1f} %)"
         rows.append(row(f"RSS MiB {name} (start, mark -> end)", rss))
+    for name in sorted({n for r in results.values() for n in r.get("go_heap_mid_mib") or {}}):
+        def heap(r: dict[str, Any], n: str = name) -> str | None:
+            m, b = (r.get("go_heap_mid_mib") or {}).get(n), (r.get("go_heap_late_mib") or {}).get(n)
+            if not m or not b or "alloc" not in m or "alloc" not in b:
+                return None
+            kept = f", kept {m.get('idle', 0) - m.get('released', 0):.0f} -> {b.get('idle', 0) - b.get('released', 0):.0f}"
+            return f"{m['alloc']:.0f} -> {b['alloc']:.0f}{kept}"
+        rows.append(row(f"  Go heap MiB {name} (mark -> end: in use{', freed and kept'})", heap))
     rows += [
         row("restarts (trainer / server / workers)",
             lambda r: f"{r['restarts'].get('trainer', 0)} / "

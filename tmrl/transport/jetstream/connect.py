@@ -132,6 +132,7 @@ class _NatsLink:
         self._recon_delay = float(recon_delay)
         self._state_cv = threading.Condition()
         self._is_connected = False
+        self._losses = 0  # connections lost so far: a wait notices one however soon nats-py reconnects
         self._closed = False
         self.refused: str | None = None
         """The server's last refusal (e.g. a wrong password or a permission error), or None."""
@@ -220,10 +221,48 @@ class _NatsLink:
 
     def _set_connected(self, value: bool) -> None:
         with self._state_cv:
+            if self._is_connected and not value:
+                self._losses += 1
             self._is_connected = value and not self._closed
             self._state_cv.notify_all()
         if self._ready is not None:
             (self._ready.set if self._is_connected else self._ready.clear)()
+
+    async def _while_connected(self, coro: Any, bound: float, still_there: Any = None,
+                               check_every: float = 1.0) -> Any:
+        """``await coro`` for at most ``bound`` seconds, no longer than the connection lasts and,
+        given ``still_there`` (an async callable, asked every ``check_every`` seconds), no longer
+        than it answers True.
+
+        Raises:
+            asyncio.TimeoutError: ``bound`` passed.
+            ConnectionError: the connection dropped first.
+            LookupError: ``still_there`` answered False (``coro`` is cancelled in every case).
+        """
+        import asyncio
+
+        loop = asyncio.get_running_loop()
+        task = asyncio.ensure_future(coro)
+        deadline = loop.time() + bound
+        next_check = loop.time() + check_every
+        losses = self._losses
+        try:
+            while not task.done():
+                if not self._is_connected or self._losses != losses:
+                    raise ConnectionError("the connection dropped")
+                left = deadline - loop.time()
+                if left <= 0:
+                    raise asyncio.TimeoutError
+                if still_there is not None and loop.time() >= next_check:
+                    if not await still_there():
+                        raise LookupError("the object was deleted during the read")
+                    next_check = loop.time() + check_every
+                    continue
+                await asyncio.wait({task}, timeout=min(0.2, left))
+            return task.result()
+        finally:
+            if not task.done():
+                task.cancel()
 
     # -- the contract -----------------------------------------------------------------------------
 

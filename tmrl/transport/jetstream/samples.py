@@ -39,7 +39,18 @@ SEND_WINDOW_BYTES = 32 * 2**20
 """... and at most this many bytes of them (at least one batch, whatever its size)."""
 ACK_TIMEOUT = 5.0
 """Seconds without any acknowledgement of the in-flight batches after which they are all sent
-again (in order, with the same message ids: the stream deduplicates them)."""
+again (in order, with the same message ids: the stream deduplicates them), unless a ping to the
+server still waits for its answer (:data:`ACK_PROBE`)."""
+ACK_PROBE = 1.0
+"""Seconds without any acknowledgement after which a worker asks its server (a ping) whether every
+batch in flight reached it. Once the server said so, :data:`ACK_CONFIRMED_WAIT` more seconds without
+an answer of the stream mean the stream lost them (its leader died with them) and they are sent
+again. On a slow link the ping's answer waits behind the batches: a link busy carrying them
+causes no copies."""
+ACK_CONFIRMED_WAIT = 1.0
+"""Seconds the stream may take to answer batches its server has (see :data:`ACK_PROBE`)."""
+PING_TIMEOUT = 20.0
+"""Seconds a worker waits for its server's answer to that ping before it sends its batches again."""
 RECEIVE_WINDOW = 64
 """The trainer link holds at most this many unacknowledged batches (fetched, not yet returned)."""
 
@@ -69,6 +80,12 @@ class _SampleSender(_NatsLink):
         self._acked: set[int] = set()  # acknowledged, but an older one is not yet
         self._retry_at = 0.0  # when to publish again from the oldest, after a refusal
         self._last_ack = time.monotonic()
+        self._probe_round = 0  # bumped by every answer and resend: a ping of an older round says nothing
+        self._probing = -1  # the round whose ping waits for the server's answer (-1: none)
+        self._confirmed_at: float | None = None  # when the server confirmed it had them all
+        self.fast_resends = 0
+        """Windows sent again because the server had them and the stream did not answer (the
+        :data:`ACK_PROBE` path), not after the whole :data:`ACK_TIMEOUT`."""
         self._drop_log = _Rate(logging.WARNING)
         self._send_wake: Any = None  # an asyncio.Event, made on the loop
 
@@ -141,10 +158,8 @@ class _SampleSender(_NatsLink):
                         continue  # nothing published before the refused batch is again
                     self._retry_at = 0.0
                     self._resend_from_first()
-                if self._inflight_seqs() and time.monotonic() - self._last_ack > ACK_TIMEOUT:
-                    self._error_log("worker link: no acknowledgement for %.0f s: the %d batches in flight are "
-                                    "sent again", ACK_TIMEOUT, len(self._inflight_seqs()))
-                    self._resend_from_first()
+                if self._inflight_seqs():
+                    self._check_answers(nc)
                 while self._is_connected:
                     with self._out_cv:
                         if not self._outbox:
@@ -176,6 +191,53 @@ class _SampleSender(_NatsLink):
                 await asyncio.sleep(0.2)
                 self._send_wake.set()
 
+    def _check_answers(self, nc: Any) -> None:
+        """Batches are in flight: send them again when the stream is not answering (on the loop).
+
+        After :data:`ACK_PROBE` seconds without an answer, the server is asked (a ping) whether it
+        has every batch in flight. Once it said so, the batches are sent again when the stream
+        still answered none :data:`ACK_CONFIRMED_WAIT` seconds later: a stream whose leader was
+        killed drops what it was given, and its new leader is elected within seconds. While the
+        ping is unanswered the link is still carrying the batches (a slow link) and nothing is
+        sent again, for at most :data:`PING_TIMEOUT` seconds (a connection that silent is dead:
+        nats-py's own pings end it, and the reconnection sends everything again). Without a
+        ping (an answer came, then silence), everything again after :data:`ACK_TIMEOUT` seconds."""
+        import asyncio
+
+        now = time.monotonic()
+        silent = now - self._last_ack
+        if self._probing == self._probe_round:
+            return  # the server has not read everything yet (or nats-py's own pings will find it gone)
+        if self._confirmed_at is not None and now - self._confirmed_at > ACK_CONFIRMED_WAIT:
+            self._error_log("worker link: the server has the %d batches in flight and the stream answered none "
+                            "for %.1f s (a new stream leader?): sent again", len(self._inflight_seqs()), silent)
+            self.fast_resends += 1
+            self._resend_from_first()
+        elif silent > ACK_TIMEOUT:
+            self._error_log("worker link: no acknowledgement for %.0f s: the %d batches in flight are "
+                            "sent again", ACK_TIMEOUT, len(self._inflight_seqs()))
+            self._resend_from_first()
+        elif silent > ACK_PROBE and self._confirmed_at is None and self._probing != self._probe_round:
+            self._probing = self._probe_round
+            asyncio.ensure_future(self._ask_server(nc, self._probe_round))
+
+    async def _ask_server(self, nc: Any, round_: int) -> None:
+        """Ping the server: its answer comes once it has read everything published before. An
+        answer of an earlier round (an acknowledgement or a resend came since) says nothing."""
+        try:
+            await nc.flush(timeout=PING_TIMEOUT)
+        except Exception as e:  # noqa: BLE001 (no answer: sent again, as after ACK_TIMEOUT)
+            logger.debug("worker link: the server did not answer a ping (%s)", e)
+            if self._probing == round_:
+                self._probing = -1
+                self._last_ack = min(self._last_ack, time.monotonic() - ACK_TIMEOUT)  # resent now
+            self._send_wake.set()
+            return
+        if self._probing == round_ and round_ == self._probe_round:
+            self._probing = -1
+            self._confirmed_at = time.monotonic()
+        self._send_wake.set()
+
     def _on_disconnected(self) -> None:
         # nats-py replays on reconnection what it had not written to the lost socket yet: sample
         # batches published then would overtake older ones lost in the socket. They are dropped
@@ -195,6 +257,8 @@ class _SampleSender(_NatsLink):
         with self._out_cv:
             self._next_send = self._outbox[0][0] if self._outbox else self._seq + 1
         self._last_ack = time.monotonic()
+        self._probe_round += 1
+        self._confirmed_at = None
         if self._send_wake is not None:
             self._send_wake.set()
 
@@ -226,6 +290,8 @@ class _SampleSender(_NatsLink):
         """Batch ``seq`` is stored: the acknowledged head of the outbox leaves it."""
         with self._out_cv:
             self._last_ack = time.monotonic()
+            self._confirmed_at = None  # the stream answers
+            self._probe_round += 1
             if not self._outbox or seq < self._outbox[0][0]:
                 return  # an older copy's answer
             self._acked.add(seq)

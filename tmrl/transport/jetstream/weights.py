@@ -34,8 +34,12 @@ logger = logging.getLogger("tmrl.transport.nats")
 
 WEIGHTS_POLL = 2.0
 """Seconds between a worker's checks for new weights when it hears no announcement."""
-GONE_CHECK = 1.0
-"""Seconds between two checks, during a weights read, that the object read is still stored."""
+STORE_ANSWER = 2.0
+"""Seconds the trainer waits for the store's answer to one request of a weights upload (a chunk:
+one more second per MB of it) before it starts the upload again: a store whose leader was killed
+answers nothing it was given, and its new leader is elected within seconds."""
+UPLOAD_BOUND = 60.0
+"""Seconds a weights upload may take in all (one more per MB of weights) before it starts again."""
 
 
 class _WeightsReader(_NatsLink):
@@ -76,7 +80,7 @@ class _WeightsReader(_NatsLink):
             wake.set()
 
         subscribed = False
-        kv = obs = None
+        kv = js = None
         epoch = ""
         while True:
             try:
@@ -95,64 +99,14 @@ class _WeightsReader(_NatsLink):
                 if kv is None:
                     js = self._nc.jetstream(timeout=5)
                     kv = await js.key_value(self._bucket)
-                    obs = await js.object_store(self._bucket)
                     status = await kv.status()
                     epoch = str(getattr(status.stream_info, "created", "") or "")
-                await self._read_weights(kv, obs, epoch)
+                await self._read_weights(kv, js, epoch)
             except Exception as e:  # noqa: BLE001 (no bucket yet, a restart: tried again later)
                 logger.debug("worker link: no weights read (%s: %s)", type(e).__name__, e)
                 kv = None
 
-    async def _while_connected(self, coro: Any, bound: float, still_there: Any) -> Any:
-        """``await coro`` for at most ``bound`` seconds, no longer than the connection lasts and no
-        longer than ``still_there`` (an async callable, asked every :data:`GONE_CHECK` seconds)
-        answers True.
-
-        Raises:
-            asyncio.TimeoutError: ``bound`` passed.
-            ConnectionError: the connection dropped first.
-            LookupError: ``still_there`` answered False (``coro`` is cancelled in every case).
-        """
-        import asyncio
-
-        loop = asyncio.get_running_loop()
-        task = asyncio.ensure_future(coro)
-        deadline = loop.time() + bound
-        next_check = loop.time() + GONE_CHECK
-        try:
-            while not task.done():
-                if not self._is_connected:
-                    raise ConnectionError("the connection dropped during the read")
-                left = deadline - loop.time()
-                if left <= 0:
-                    raise asyncio.TimeoutError
-                if loop.time() >= next_check:
-                    if not await still_there():
-                        raise LookupError("the object was deleted during the read")
-                    next_check = loop.time() + GONE_CHECK
-                    continue
-                await asyncio.wait({task}, timeout=min(0.2, left))
-            return task.result()
-        finally:
-            if not task.done():
-                task.cancel()
-
-    @staticmethod
-    async def _object_exists(obs: Any, name: str) -> bool:
-        """Whether object ``name`` is still in the store (True when that cannot be told now)."""
-        import asyncio
-
-        import nats.js.errors as jse
-
-        try:
-            await asyncio.wait_for(obs.get_info(name), GONE_CHECK)
-        except jse.NotFoundError:  # ObjectNotFoundError: deleted (the trainer keeps the newest few)
-            return False
-        except Exception:  # noqa: BLE001 (a slow or failed answer says nothing: the read goes on)
-            return True
-        return True
-
-    async def _read_weights(self, kv: Any, obs: Any, epoch: str) -> None:
+    async def _read_weights(self, kv: Any, js: Any, epoch: str) -> None:
         import asyncio
 
         import nats.js.errors as jse
@@ -170,20 +124,19 @@ class _WeightsReader(_NatsLink):
             logger.error("worker link: ignored a weights announcement that is not valid")
             return
         try:
-            # A get whose object is deleted meanwhile (newer broadcasts while a slow link reads it)
-            # waits forever: bounded, ended with the connection (cut mid-read, it would wait out
-            # the whole bound), and ended as soon as the object is found gone (it waited out the
-            # bound, up to 30 s, after latency or a frozen worker: found by the chaos soak).
-            name = meta["name"]
-            result = await self._while_connected(obs.get(name), 30.0 + meta["size"] / 1e6,
-                                                 still_there=lambda: self._object_exists(obs, name))
+            # Bounded, and ended with the connection (cut mid-read, it would wait out the bound).
+            data = await self._while_connected(self._fetch_object(js, meta["name"], meta["nuid"]),
+                                               30.0 + meta["size"] / 1e6)
         except (asyncio.TimeoutError, ConnectionError, LookupError, jse.NotFoundError):
-            self._weights_wake.set()  # read again (once connected again)
+            # deleted meanwhile (newer weights came) or cut: read the newest again, soon
+            await asyncio.sleep(0.05)
+            self._weights_wake.set()
             return
-        if result.info.nuid != meta["nuid"]:
-            return  # replaced meanwhile: its own announcement follows
+        except ValueError as e:
+            logger.error("worker link: dropped weights that are not whole (%s)", e)
+            return
         try:
-            weights = wire.decode(bytes(result.data))
+            weights = wire.decode(data)
         except Exception as e:  # noqa: BLE001 (hostile or corrupt data must not stop the reader)
             logger.error("worker link: dropped weights that could not be decoded: %s", e)
             return
@@ -194,6 +147,77 @@ class _WeightsReader(_NatsLink):
         with self._weights_cv:
             self._weights = bytes(weights)
             self._weights_cv.notify_all()
+
+
+    async def _fetch_object(self, js: Any, name: str, nuid: str) -> bytes:
+        """Object ``name``'s bytes, read with direct gets: its description, then its chunks one
+        by one. Any replica of the store answers one (no leader is needed) and no consumer is
+        made: nats-py's ``ObjectStore.get`` creates one per read (three workers reading about 15
+        times a second kept over a hundred alive in the chaos soak, each made and removed through
+        the cluster's metadata leader).
+
+        Raises:
+            LookupError: the object is not (or no longer) in the store, or was replaced.
+            ValueError: its chunks do not add up to its size and digest.
+        """
+        import base64
+        import hashlib
+        import json
+
+        import nats.js.errors as jse
+        from nats.js.object_store import OBJ_DIGEST_TYPE
+
+        stream = _store_stream(self._bucket)
+        meta_subject, chunk_subject = _object_subjects(self._bucket, name, nuid)
+        try:
+            description = json.loads((await js.get_last_msg(stream, meta_subject, direct=True)).data or b"{}")
+        except jse.NotFoundError:
+            raise LookupError(f"weights object {name} is not in the store") from None
+        if not isinstance(description, dict) or description.get("nuid") != nuid or description.get("deleted"):
+            raise LookupError(f"weights object {name} was replaced or deleted")
+        chunks, size = description.get("chunks"), description.get("size")
+        if type(chunks) is not int or type(size) is not int or chunks < 0 or size < 0:
+            raise ValueError(f"weights object {name} has a description that is not valid")
+        parts, digest, seq, got = [], hashlib.sha256(), 0, 0
+        for _ in range(chunks):
+            try:
+                msg = await js.get_msg(stream, seq=seq + 1, subject=chunk_subject, direct=True, next=True)
+            except jse.NotFoundError:
+                raise LookupError(f"weights object {name} was deleted during the read") from None
+            data = bytes(msg.data or b"")
+            got += len(data)
+            if got > size:
+                raise ValueError(f"weights object {name} has more bytes than its size")
+            parts.append(data)
+            digest.update(data)
+            seq = int(msg.seq)
+        expected = str(description.get("digest", "")).replace(OBJ_DIGEST_TYPE, "").replace(OBJ_DIGEST_TYPE.upper(), "")
+        try:
+            same = base64.urlsafe_b64decode(expected) == digest.digest()
+        except ValueError:
+            same = False
+        if got != size or not same:
+            raise ValueError(f"weights object {name} does not match its size and digest")
+        return b"".join(parts)
+
+
+def _object_subjects(bucket: str, name: str | None = None, nuid: str | None = None) -> tuple[str, str]:
+    """The object store's subjects (nats-py's layout): object ``name``'s description and object
+    ``nuid``'s chunks; ``>`` for every one of them when not given."""
+    import base64
+
+    from nats.js.object_store import OBJ_CHUNKS_PRE_TEMPLATE, OBJ_META_PRE_TEMPLATE
+
+    obj = ">" if name is None else base64.urlsafe_b64encode(name.encode()).decode()
+    return (OBJ_META_PRE_TEMPLATE.format(bucket=bucket, obj=obj),
+            OBJ_CHUNKS_PRE_TEMPLATE.format(bucket=bucket, obj=">" if nuid is None else nuid))
+
+
+def _store_stream(bucket: str) -> str:
+    """The object store's stream."""
+    from nats.js.object_store import OBJ_STREAM_TEMPLATE
+
+    return OBJ_STREAM_TEMPLATE.format(bucket=bucket)
 
 
 class _WeightsWriter(_NatsLink):
@@ -208,6 +232,7 @@ class _WeightsWriter(_NatsLink):
         self._weights_wake: Any = None  # an asyncio.Event, made on the loop
         self._uploading = False
         self._objects: collections.deque[tuple[str, str]] = collections.deque()  # (name, nuid)
+        self._cut_uploads = 0  # uploads given up since the store was last swept of their chunks
 
     def broadcast_weights(self, data: bytes) -> None:
         """Send ``data`` to every connected worker and to every worker that connects later (only
@@ -239,18 +264,10 @@ class _WeightsWriter(_NatsLink):
                 if data is None:
                     break
                 try:
-                    js = self._nc.jetstream(timeout=10)
-                    obs = await js.object_store(self._bucket)
-                    name = f"{WEIGHTS_OBJECT}-{secrets.token_hex(8)}"
-                    info = await obs.put(name, data, meta=self._object_meta(name))
-                    kv = await js.key_value(self._bucket)
-                    await kv.put(LATEST_KEY, wire.encode({"name": name, "nuid": info.nuid, "size": int(info.size)}))
-                    await self._nc.publish(f"{NOTIFY_PREFIX}.{self._bucket}", b"")
-                    self.broadcasts += 1
-                    self._objects.append((name, info.nuid))
-                    while len(self._objects) > 2:  # the previous one stays for workers reading it now
-                        await self._remove_object(js, *self._objects.popleft())
+                    # Ended with the connection: a chunk lost with it would wait out its answer.
+                    await self._while_connected(self._upload(data), UPLOAD_BOUND + len(data) / 1e6)
                 except Exception as e:  # noqa: BLE001 (kept and uploaded after the reconnection)
+                    self._cut_uploads += 1
                     self._error_log("trainer link: uploading the weights failed (%s: %s)", type(e).__name__, e)
                     with self._weights_lock:
                         if self._pending_weights is None:
@@ -259,6 +276,29 @@ class _WeightsWriter(_NatsLink):
                 finally:
                     with self._weights_lock:
                         self._uploading = False
+
+    async def _upload(self, data: bytes) -> None:
+        """Store ``data`` as a new object, name it in the key-value entry, announce it, and remove
+        the objects before the previous one."""
+        meta = self._object_meta(f"{WEIGHTS_OBJECT}-{secrets.token_hex(8)}")
+        # A request the store does not answer (its leader was killed with it) is given up after
+        # STORE_ANSWER seconds, one more per MB of a chunk, and the upload starts again.
+        js = self._nc.jetstream(timeout=STORE_ANSWER + meta.options.max_chunk_size / 1e6)
+        obs = await js.object_store(self._bucket)
+        info = await obs.put(meta.name, data, meta=meta)
+        kv = await js.key_value(self._bucket)
+        await kv.put(LATEST_KEY, wire.encode({"name": meta.name, "nuid": info.nuid, "size": int(info.size)}))
+        await self._nc.publish(f"{NOTIFY_PREFIX}.{self._bucket}", b"")
+        self.broadcasts += 1
+        self._objects.append((meta.name, info.nuid))
+        while len(self._objects) > 2:  # the previous one stays for workers reading it now
+            await self._remove_object(js, *self._objects.popleft())
+        if self._cut_uploads:  # what uploads given up left (chunks, maybe a description)
+            try:
+                await self._remove_all_but(js, [sub for obj in self._objects for sub in self._subjects(*obj)])
+                self._cut_uploads = 0
+            except Exception as e:  # noqa: BLE001 (tried again after the next upload)
+                logger.debug("trainer link: what cut uploads left was not removed (%s)", e)
 
     def _object_meta(self, name: str) -> Any:
         """Chunks as large as the server allows (at most 4 MiB): fewer round trips than the
@@ -269,20 +309,11 @@ class _WeightsWriter(_NatsLink):
         return api.ObjectMeta(name=name, options=api.ObjectMetaOptions(max_chunk_size=chunk))
 
     def _subjects(self, name: str | None = None, nuid: str | None = None) -> tuple[str, str]:
-        """The object store's subjects (nats-py's layout): object ``name``'s description and
-        object ``nuid``'s chunks; ``>`` for every one of them when not given."""
-        import base64
-
-        from nats.js.object_store import OBJ_CHUNKS_PRE_TEMPLATE, OBJ_META_PRE_TEMPLATE
-
-        obj = ">" if name is None else base64.urlsafe_b64encode(name.encode()).decode()
-        return (OBJ_META_PRE_TEMPLATE.format(bucket=self._bucket, obj=obj),
-                OBJ_CHUNKS_PRE_TEMPLATE.format(bucket=self._bucket, obj=">" if nuid is None else nuid))
+        """See :func:`_object_subjects` (this link's bucket)."""
+        return _object_subjects(self._bucket, name, nuid)
 
     def _store_stream(self) -> str:
-        from nats.js.object_store import OBJ_STREAM_TEMPLATE
-
-        return OBJ_STREAM_TEMPLATE.format(bucket=self._bucket)
+        return _store_stream(self._bucket)
 
     async def _remove_object(self, js: Any, name: str, nuid: str) -> None:
         """Remove an object and leave nothing of it: its description first (a worker reading it
@@ -328,12 +359,18 @@ class _WeightsWriter(_NatsLink):
         # Every other description in one request (there can be a million), then what is left
         # (a few chunk subjects), one by one, as the server lists them.
         await js.purge_stream(stream, subject=self._subjects()[0], seq=kept_seq)
+        await self._remove_all_but(js, kept_subjects)
+        if keep is not None:
+            self._objects.append(keep)
+
+    async def _remove_all_but(self, js: Any, kept_subjects: Any) -> None:
+        """Purge every subject of the store except ``kept_subjects``, one by one, as the server lists
+        them."""
+        stream = self._store_stream()
         held = (await js.stream_info(stream, subjects_filter=f"$O.{self._bucket}.>")).state.subjects or {}
         for subject in held:
             if subject not in kept_subjects:
                 await js.purge_stream(stream, subject=subject)
-        if keep is not None:
-            self._objects.append(keep)
 
     def _flush(self, budget: float) -> None:
         deadline = time.monotonic() + budget
