@@ -865,6 +865,9 @@ def test_a_weights_object_whose_chunks_do_not_match_its_digest_is_refused(made, 
             js = nc.jetstream(timeout=5)
             kv = await js.key_value(DEFAULT_BUCKET)
             meta = wire.decode(bytes((await kv.get(LATEST_KEY)).value))
+            # the trainer writes objects as nats-py does: its own reader takes them
+            stored = await (await js.object_store(DEFAULT_BUCKET)).get(meta["name"])
+            assert stored.info.nuid == meta["nuid"] and wire.decode(bytes(stored.data)) == b"good"
             chunks = trainer._subjects(meta["name"], meta["nuid"])[1]
             await js.purge_stream(f"OBJ_{DEFAULT_BUCKET}", subject=chunks)
             await js.publish(chunks, wire.encode(b"evil"))  # as long as the original
@@ -949,6 +952,27 @@ def test_a_weights_upload_cut_with_its_connection_starts_again_at_once_and_leave
     _wait_for(lambda: set(asyncio.run(_store_subjects(relay.port))) == kept, 30.0,
               what="the cut upload's chunk removed")
     assert trainer._cut_uploads == 0
+
+
+def test_a_weights_upload_the_store_does_not_answer_is_given_up_and_tried_again(made, monkeypatch):
+    """The server frozen (SIGSTOP) during an upload: the connection looks alive and nothing
+    answers, as with a killed store leader. The upload is given up after STORE_ANSWER seconds
+    (0.3 here) and tried again; once the server runs again, the worker gets the weights."""
+    from tmrl.transport.jetstream import weights
+
+    monkeypatch.setattr(weights, "STORE_ANSWER", 0.3)
+    relay = _relay(made)
+    trainer, worker = _trainer(made, relay.port), _worker(made, relay.port)
+    assert trainer.wait_connected(30) and worker.wait_connected(30)
+    trainer.broadcast_weights(b"first")
+    assert worker.latest_weights(block=True, timeout=30) == b"first"
+    os.kill(relay.pid, signal.SIGSTOP)
+    try:
+        trainer.broadcast_weights(b"second")
+        _wait_for(lambda: trainer.failed_uploads >= 1, 10.0, what="the unanswered upload given up")
+    finally:
+        os.kill(relay.pid, signal.SIGCONT)
+    assert worker.latest_weights(block=True, timeout=30) == b"second"
 
 
 def test_a_restarted_trainer_removes_what_earlier_trainers_left_in_the_store(made, monkeypatch):
