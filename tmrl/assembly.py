@@ -19,7 +19,9 @@ Values of ``ENV.RTGYM_INTERFACE``:
   game is reached at the environment's first reset.
 
 The simulator and TrackMania share their observations, hence their preprocessor, sample
-compressor, replay memory and models (:func:`tmrl.sim.interfaces.pipeline_parts`). Importing this
+compressor, replay memory and models (:func:`tmrl.sim.interfaces.pipeline_parts`); ``ALG.ALGORITHM``
+``"DRQ"`` (image interfaces only) keeps the frames uint8 from the worker to the model
+(:mod:`tmrl.algorithms.drq`). Importing this
 module reads nothing and imports none of the modules the objects come from.
 """
 
@@ -111,7 +113,7 @@ def assemble(cfg: Mapping[str, Any]) -> Assembly:
     Raises:
         tmrl.config.loader.ConfigError: the configuration does not fit the interface (an unknown
             key in ``ENV.RTGYM_CONFIG.interface_kwargs``, an algorithm without image model on an
-            image interface); one line.
+            image interface, DrQ on an interface without images); one line.
         tmrl.errors.UserError: a module the configured interface needs is not available.
     """
     key = json.dumps(cfg, sort_keys=True, default=repr)
@@ -242,6 +244,11 @@ def _build(cfg: dict[str, Any]) -> Assembly:
             f"use one of {', '.join(_SUPPORTED)}"
         )
     alg_name: str = cfg["ALG"]["ALGORITHM"]
+    if alg_name == "DRQ" and interface not in _IMAGE:
+        raise ConfigError(
+            f'ALG.ALGORITHM "DRQ" learns from images, and ENV.RTGYM_INTERFACE {interface} gives none: use '
+            f"{' or '.join(_IMAGE)}, or another ALG.ALGORITHM"
+        )
     rtgym: dict[str, Any] = env["RTGYM_CONFIG"]
     act_buf_len: int = rtgym["act_buf_len"]
     generic_gym_env = _attr("tmrl.envs", "GenericGymEnv", interface)
@@ -356,7 +363,13 @@ def _driving(cfg: dict[str, Any], interface: str, alg_name: str, generic_gym_env
     parts["OBS_PREPROCESSOR"] = pipeline["obs_preprocessor"]
     parts["SAMPLE_COMPRESSOR"] = pipeline["sample_compressor"]
     parts["POLICY"] = pipeline["actor_cls"]
-    if alg_name in ("SAC", "REDQSAC"):
+    memory_cls = pipeline["memory_cls"]
+    if alg_name == "DRQ":  # an image interface (checked in _build): frames stay uint8 up to the model
+        parts["OBS_PREPROCESSOR"] = _attr("tmrl.driving.preprocessors", "preprocess_full_obs_uint8", interface)
+        memory_cls = _attr("tmrl.driving.memories", "RawImageMemory", interface)
+        parts["POLICY"] = _attr("tmrl.algorithms.drq", "DrQActor", interface)
+        parts["TRAIN_MODEL"] = _attr("tmrl.algorithms.drq", "DrQActorCritic", interface)
+    elif alg_name in ("SAC", "REDQSAC"):
         parts["TRAIN_MODEL"] = pipeline["model_cls"]  # REDQ passes its number of critics (n) itself
     elif interface in _IMAGE:
         # Their critics (dropout, quantile, batch-normalised) exist as MLPs only: none reads images.
@@ -369,7 +382,7 @@ def _driving(cfg: dict[str, Any], interface: str, alg_name: str, generic_gym_env
         # The algorithm's MLP actor-critic with the lidar scaling; its actor is the workers' LidarActor.
         parts["TRAIN_MODEL"] = _attr("tmrl.driving.models", "lidar_model_cls", interface)(alg_name)
     parts["MEMORY"] = partial(
-        pipeline["memory_cls"],
+        memory_cls,
         hist_len=env["IMG_HIST_LEN"],
         act_buf_len=act_buf_len,
         crc_debug=False,  # the original's CRC_DEBUG constant

@@ -1,6 +1,6 @@
 """Training algorithms: SAC (:mod:`tmrl.algorithms.sac`), REDQ-SAC (:mod:`tmrl.algorithms.redq`),
-DroQ (:mod:`tmrl.algorithms.droq`), TQC (:mod:`tmrl.algorithms.tqc`) and CrossQ
-(:mod:`tmrl.algorithms.crossq`).
+DroQ (:mod:`tmrl.algorithms.droq`), TQC (:mod:`tmrl.algorithms.tqc`), CrossQ
+(:mod:`tmrl.algorithms.crossq`) and DrQ (:mod:`tmrl.algorithms.drq`, image observations only).
 
 ``ALG.ALGORITHM`` in ``config.json`` names one of them; :func:`agent_class` maps that name to
 the class.
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from tmrl.algorithms.crossq import CrossQAgent
 from tmrl.algorithms.droq import DroQAgent
+from tmrl.algorithms.drq import DrQAgent
 from tmrl.algorithms.redq import REDQSACAgent
 from tmrl.algorithms.sac import SACAgent, SpinupSacAgent
 from tmrl.algorithms.tqc import TQCAgent
@@ -17,10 +18,10 @@ from tmrl.config.schema import AGENT_CLASSES
 from tmrl.errors import UserError
 
 __all__ = [
-    "ALGORITHMS", "CrossQAgent", "DroQAgent", "REDQSACAgent", "SACAgent", "SpinupSacAgent", "TQCAgent", "agent_class",
+    "ALGORITHMS", "CrossQAgent", "DrQAgent", "DroQAgent", "REDQSACAgent", "SACAgent", "SpinupSacAgent", "TQCAgent", "agent_class",
 ]
 
-_CLASSES = {cls.__name__: cls for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, CrossQAgent)}
+_CLASSES = {cls.__name__: cls for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, CrossQAgent, DrQAgent)}
 ALGORITHMS: dict[str, type] = {name: _CLASSES[cls_name] for name, cls_name in AGENT_CLASSES.items()}
 """Values of ``ALG.ALGORITHM`` and the agents they select (the names come from the settings
 table, :data:`tmrl.config.schema.AGENT_CLASSES`)."""
@@ -30,13 +31,13 @@ def agent_class(name: str) -> type:
     """The training agent class for a config's ``ALG.ALGORITHM``.
 
     Args:
-        name: ``"SAC"``, ``"REDQSAC"``, ``"DROQ"``, ``"TQC"`` or ``"CROSSQ"``; case, ``-`` and ``_`` are ignored
+        name: ``"SAC"``, ``"REDQSAC"``, ``"DROQ"``, ``"TQC"``, ``"CROSSQ"`` or ``"DRQ"``; case, ``-`` and ``_`` are ignored
             (``"redq-sac"`` works).
 
     Returns:
         The class: :class:`~tmrl.algorithms.sac.SACAgent`, :class:`~tmrl.algorithms.redq.REDQSACAgent`,
-        :class:`~tmrl.algorithms.droq.DroQAgent`, :class:`~tmrl.algorithms.tqc.TQCAgent` or
-        :class:`~tmrl.algorithms.crossq.CrossQAgent`.
+        :class:`~tmrl.algorithms.droq.DroQAgent`, :class:`~tmrl.algorithms.tqc.TQCAgent`,
+        :class:`~tmrl.algorithms.crossq.CrossQAgent` or :class:`~tmrl.algorithms.drq.DrQAgent`.
 
     Raises:
         UserError: unknown algorithm name.

@@ -93,7 +93,7 @@ RTGYM_INTERFACES = (
 progress), the built-in simulated track (same three observations), any Gymnasium environment
 (``ENV.GYM_ID``), and the real-time simulated drone of :mod:`tmrl.realtime`."""
 
-ALGORITHMS = ("SAC", "REDQSAC", "DROQ", "TQC", "CROSSQ")
+ALGORITHMS = ("SAC", "REDQSAC", "DROQ", "TQC", "CROSSQ", "DRQ")
 """Values of ``ALG.ALGORITHM``."""
 
 PASSWORD_PLACEHOLDER = "YourRandomPasswordHere"
@@ -106,7 +106,7 @@ UPDATE_ORDERS = ("simultaneous", "sequential")
 """Values of ``ALG.UPDATE_ORDER`` (``SACAgent(update_order=...)``)."""
 
 AGENT_CLASSES = {"SAC": "SACAgent", "REDQSAC": "REDQSACAgent", "DROQ": "DroQAgent", "TQC": "TQCAgent",
-                 "CROSSQ": "CrossQAgent"}
+                 "CROSSQ": "CrossQAgent", "DRQ": "DrQAgent"}
 """The agent class each value of ``ALG.ALGORITHM`` selects (:data:`tmrl.algorithms.ALGORITHMS`)."""
 
 _MIB = 1024 * 1024
@@ -120,7 +120,7 @@ def _agents(arg: str, class_default: Any) -> dict[str, Any]:
 _ALG = Section(
     {
         "ALGORITHM": Choice("SAC", "training algorithm (SAC: SACAgent, REDQSAC: REDQSACAgent, DROQ: DroQAgent, "
-                            "TQC: TQCAgent, CROSSQ: CrossQAgent)", ALGORITHMS),
+                            "TQC: TQCAgent, CROSSQ: CrossQAgent, DRQ: DrQAgent, image interfaces only)", ALGORITHMS),
         "LEARN_ENTROPY_COEF": Bool(False, "learn the entropy coefficient (SAC v2) instead of keeping ALPHA fixed",
                                    **_agents("learn_entropy_coef", True)),
         "LR_ACTOR": Number(1e-05, "learning rate of the actor", min=0, min_open=True, **_agents("lr_actor", 1e-3)),
@@ -162,6 +162,8 @@ _ALG = Section(
         "CROSSQ_RENORM_WARMUP_STEPS": Int(100000, "CrossQ critic updates of plain batch normalisation before batch "
                                                   "renormalisation", min=0,
                                           feeds=("CrossQAgent.renorm_warmup_steps",), class_default=100000),
+        "DRQ_IMAGE_PAD": Int(4, "DrQ's random shift of the trainer's frames: padding in pixels (0: no augmentation)",
+                             min=0, feeds=("DrQAgent.image_pad",), class_default=4),
         "OPTIMIZER_ACTOR": Choice("adam", "optimizer of the actor", OPTIMIZERS, **_agents("optimizer_actor", "adam")),
         "OPTIMIZER_CRITIC": Choice("adam", "optimizer of the critic(s)", OPTIMIZERS,
                                    **_agents("optimizer_critic", "adam")),

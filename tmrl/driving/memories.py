@@ -27,7 +27,7 @@ import numpy as np
 from tmrl.errors import UserError
 from tmrl.memory import RealTimeTorchMemory
 
-__all__ = ["HistoryMemory", "ImageMemory", "LidarMemory", "LidarProgressMemory"]
+__all__ = ["HistoryMemory", "ImageMemory", "LidarMemory", "LidarProgressMemory", "RawImageMemory"]
 
 logger = logging.getLogger(__name__)
 
@@ -140,6 +140,13 @@ class ImageMemory(HistoryMemory):
 
     frame_index = 3
     scale = 1.0 / 256.0
+
+
+class RawImageMemory(ImageMemory):
+    """:class:`ImageMemory` that rebuilds the image histories as stored, uint8 (the DrQ pipeline:
+    the frames reach the batch as bytes and the model scales them)."""
+
+    scale = None
 
 
 MEMORY_FOR: dict[str, Callable[..., HistoryMemory]] = {

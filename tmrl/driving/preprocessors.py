@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["identity_sample", "preprocess_full_obs", "preprocess_lidar_obs", "preprocess_lidar_progress_obs"]
+__all__ = [
+    "identity_sample", "preprocess_full_obs", "preprocess_full_obs_uint8", "preprocess_lidar_obs",
+    "preprocess_lidar_progress_obs",
+]
 
 
 def preprocess_lidar_obs(obs: tuple) -> tuple:
@@ -47,6 +50,29 @@ def preprocess_full_obs(obs: tuple) -> tuple:
         The same elements scaled (the action buffer unchanged).
     """
     imgs = np.asarray(obs[3]).astype(np.float32) / 256.0
+    return (
+        np.asarray(obs[0], dtype=np.float32) / 1000.0,
+        np.asarray(obs[1], dtype=np.float32) / 10.0,
+        np.asarray(obs[2], dtype=np.float32) / 10000.0,
+        imgs,
+        *obs[4:],
+    )
+
+
+def preprocess_full_obs_uint8(obs: tuple) -> tuple:
+    """:func:`preprocess_full_obs` with the frames kept as uint8 (the DrQ pipeline: the model
+    divides them by 255 itself, on the worker and on the trainer alike).
+
+    Args:
+        obs: ``(speed, gear, rpm, uint8 images (h, height, width), *action buffer)``.
+
+    Returns:
+        The scalars scaled as :func:`preprocess_full_obs` does, the frames as uint8, the action
+        buffer unchanged.
+    """
+    imgs = np.asarray(obs[3])
+    if imgs.dtype != np.uint8:
+        imgs = np.clip(np.rint(imgs), 0, 255).astype(np.uint8)
     return (
         np.asarray(obs[0], dtype=np.float32) / 1000.0,
         np.asarray(obs[1], dtype=np.float32) / 10.0,

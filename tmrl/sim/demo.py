@@ -413,7 +413,9 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--out", default="tmrl_demo", help="output folder (default ./tmrl_demo)")
     p.add_argument("--start-training", type=_number(int, 1, False), default=DEMO_SETTINGS["start_training"],
                    help="environment steps collected before training starts (default 1000)")
-    p.add_argument("--algorithm", type=str.upper, choices=ALGORITHMS, default=DEMO_SETTINGS["algorithm"],
+    # DRQ (images only, slow on a CPU) is trained through a config, not the demo.
+    p.add_argument("--algorithm", type=str.upper, choices=[a for a in ALGORITHMS if a != "DRQ"],
+                   default=DEMO_SETTINGS["algorithm"],
                    help=f"training agent (default {DEMO_SETTINGS['algorithm']}); SIMFULL takes SAC or REDQSAC only")
     p.add_argument("--threads", type=_number(int, 1, False),
                    help="PyTorch threads of the trainer and the worker (default 1 each; TMRL_THREADS)")
