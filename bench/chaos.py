@@ -48,11 +48,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
+import datetime
 import errno
 import json
 import math
 import os
 import random
+import re
 import secrets
 import shutil
 import signal
@@ -1259,6 +1261,47 @@ class Chaos:
                 os.kill(pid, signal.SIGKILL)
         return out
 
+    def elections(self) -> None:
+        """For each NATS node kill, how long the cluster took to elect a new leader for each stream
+        and consumer the killed node led (``detail["elected_s"]``, seconds from the kill to the
+        first "new ... leader" line of a node's log; None: none within 60 s). What a link does
+        after a kill cannot come before that: it is the floor of the recovery."""
+        found: list[tuple[float, str]] = []
+        line_re = re.compile(r"(\d{4}/\d\d/\d\d \d\d:\d\d:\d\d\.\d+) \[INF\] JetStream cluster new "
+                             r"(?:stream|consumer) leader for '[^>']+ > ([^']+)'")
+        for path in self.logdir.glob("node*-*.log"):
+            for line in path.read_text(errors="replace").splitlines():
+                m = line_re.search(line)
+                if m:  # the server writes its local time
+                    t = datetime.datetime.strptime(m.group(1), "%Y/%m/%d %H:%M:%S.%f").timestamp()
+                    found.append((t, m.group(2).replace(" > ", "/")))
+        for fault in self.faults:
+            if fault.kind != "kill_nats_node" or not fault.detail.get("led"):
+                continue
+            fault.detail["elected_s"] = {
+                name: min((round(t - fault.t_start, 2) for t, n in found if n == name and 0 < t - fault.t_start < 60),
+                          default=None)
+                for name in fault.detail["led"]}
+
+    def election_figures(self) -> dict[str, Any]:
+        """Over the NATS node kills that took a leader of the samples (the stream or its consumer)
+        or of the weights (their two buckets): the elections' seconds (the slowest of those the
+        node led) and the recovery's seconds beyond them (what tmrl added), medians and maxima."""
+        out: dict[str, Any] = {}
+        for what, names, measured in (("samples", ("tmrl-samples", "tmrl-samples/tmrl-trainer"), "flow_s"),
+                                      ("weights", ("KV_tmrl-weights", "OBJ_tmrl-weights"), "weights_s")):
+            floors, beyond = [], []
+            for f in self.faults:
+                elected = [v for n, v in (f.detail.get("elected_s") or {}).items() if n in names]
+                if f.kind != "kill_nats_node" or not elected or None in elected:
+                    continue
+                floors.append(max(elected))
+                if getattr(f, measured) is not None:
+                    beyond.append(getattr(f, measured) - max(elected))
+            out[what] = {"n": len(floors), "election_median_s": _median(floors), "election_max_s": max(floors, default=None),
+                         "beyond_median_s": _median(beyond), "beyond_max_s": max(beyond, default=None)}
+        return out
+
     def account(self) -> dict[str, Any]:
         payloads = self.payloads()
         received = {(e["src"], e["seq"]): e["n"] for e in self.select("recv")}
@@ -1392,6 +1435,7 @@ class Chaos:
         rss_figures = self.rss_figures(t_faults, t_faults_end)
         learning = self.learning(t_warm)
         end = self.drain_and_stop()
+        self.elections()
         figures = self.account()
         ret = self.evaluate()
         kinds: dict[str, dict[str, Any]] = {}
@@ -1417,6 +1461,7 @@ class Chaos:
                              "flow_median_s": _median(v["flow"]), "flow_max_s": max(v["flow"], default=None),
                              "weights_median_s": _median(v["weights"]), "weights_max_s": max(v["weights"], default=None)}
                          for k, v in kinds.items()},
+            "elections": self.election_figures(),
             "restarts": {n: r.restarts for n, r in self.roles.items()},
             "test_return": ret, "test_extra": self.final_eval, "notes": self.notes, "workdir": str(self.workdir),
         }
@@ -1501,6 +1546,17 @@ def _rows(results: dict[str, dict[str, Any]]) -> list[tuple[str, list[str]]]:
         rows.append(row("    weights median / max s",
                         lambda r, k=kind: f"{_fmt_s(r['recovery'][k]['weights_median_s'])} / "
                                           f"{_fmt_s(r['recovery'][k]['weights_max_s'])}"))
+    def elections(r: dict[str, Any], what: str) -> str | None:
+        e = (r.get("elections") or {}).get(what)
+        if not e or not e.get("n"):
+            return None
+        return (f"({e['n']}) {_fmt_s(e['election_median_s'])} ({_fmt_s(e['election_max_s'])}) / "
+                f"{_fmt_s(e['beyond_median_s'])} ({_fmt_s(e['beyond_max_s'])})")
+
+    for what in ("samples",):  # the weights come back before their buckets' logged elections, often: not a floor
+        if any((r.get("elections") or {}).get(what, {}).get("n") for r in results.values()):
+            rows.append(row(f"node kills taking a {what} leader (n): election / recovery after it, median (max) s",
+                            lambda r, w=what: elections(r, w)))
     roles = sorted({n for r in results.values() for n in r["rss_start_mib"]})
     for name in roles:
         def rss(r: dict[str, Any], n: str = name) -> str | None:

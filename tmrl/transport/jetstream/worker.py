@@ -16,9 +16,9 @@ class NatsWorkerLink(_SampleSender, _WeightsReader):
     :data:`~tmrl.transport.jetstream.samples.SEND_WINDOW` batches
     (:data:`~tmrl.transport.jetstream.samples.SEND_WINDOW_BYTES` bytes) are in flight before the
     server acknowledged them (stored in the stream). A batch is kept until acknowledged; after a
-    reconnection (or a refusal, or :data:`~tmrl.transport.jetstream.samples.ACK_TIMEOUT` seconds
-    without an answer) every unacknowledged batch is published again, in order, with the same
-    message id, which the stream deduplicates. While disconnected, at most
+    reconnection, a refusal, or a silence of the stream once the server confirmed it has the
+    batches (:data:`~tmrl.transport.jetstream.samples.ACK_PROBE`), every unacknowledged batch is
+    published again, in order, with the same message id, which the stream deduplicates. While disconnected, at most
     ``max_store`` batches / ``max_store_bytes`` bytes wait (beyond that the oldest is dropped and
     counted in :attr:`dropped`).
 
