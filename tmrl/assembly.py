@@ -31,6 +31,7 @@ import copy
 import importlib
 import inspect
 import json
+import logging
 import threading
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
@@ -42,6 +43,8 @@ from tmrl.errors import UserError
 from tmrl.util import partial
 
 __all__ = ["Assembly", "DropActionBuffer", "assemble", "check_interface_kwargs"]
+
+logger = logging.getLogger(__name__)
 
 _SIM = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
 _TM = ("TM20FULL", "TM20LIDAR", "TM20LIDARPROGRESS")
@@ -300,8 +303,12 @@ def _build(cfg: dict[str, Any]) -> Assembly:
     memory = parts["MEMORY"]
     model = parts["TRAIN_MODEL"]
     # Every ALG key reaches its agent argument by the settings table (tmrl/config/schema.py, ``feeds``).
-    agent = partial(_attr("tmrl.algorithms", "agent_class", interface)(alg_name), model_cls=model,
-                    **arguments(cfg, AGENT_CLASSES[alg_name]))
+    agent_args = arguments(cfg, AGENT_CLASSES[alg_name])
+    if "compile" not in agent_args and cfg["ALG"].get("COMPILE", "off") != "off":
+        # An agent that does not take the argument (DrQ): its update cannot be compiled yet.
+        logger.warning("ALG.COMPILE=%r: %s cannot compile its update yet; the update runs eager",
+                       cfg["ALG"]["COMPILE"], AGENT_CLASSES[alg_name])
+    agent = partial(_attr("tmrl.algorithms", "agent_class", interface)(alg_name), model_cls=model, **agent_args)
     device_training = _device(cfg["CUDA_TRAINING"])
     trainer = partial(
         _attr("tmrl.training_offline", "TorchTrainingOffline", interface),

@@ -321,6 +321,7 @@ class CrossQAgent(SACAgent):
         betas_critic: Sequence[float] | None = None,
         l2_actor: float | None = None,
         l2_critic: float | None = None,
+        compile: str = "off",
         policy_delay: int = 3,
         critic_width: int = 1024,
         bn_momentum: float = 0.01,
@@ -364,6 +365,7 @@ class CrossQAgent(SACAgent):
             betas_critic=paper_betas(betas_critic, optimizer_critic),
             l2_actor=l2_actor,
             l2_critic=l2_critic,
+            compile=compile,
             update_order="sequential",  # the actor loss reads the critics after their step
             fused=False,
         )

@@ -180,6 +180,7 @@ class DroQAgent(SACAgent):
         betas_critic: Sequence[float] | None = None,
         l2_actor: float | None = None,
         l2_critic: float | None = None,
+        compile: str = "off",
         dropout_rate: float = 0.01,
         q_updates_per_policy_update: int = 20,
     ) -> None:
@@ -213,6 +214,7 @@ class DroQAgent(SACAgent):
             betas_critic=betas_critic,
             l2_actor=l2_actor,
             l2_critic=l2_critic,
+            compile=compile,
             update_order="simultaneous",
             fused=False,
         )

@@ -60,6 +60,7 @@ class REDQSACAgent(SACAgent):
         betas_critic: Sequence[float] | None = None,
         l2_actor: float | None = None,
         l2_critic: float | None = None,
+        compile: str = "off",
         n: int = 10,
         m: int = 2,
         q_updates_per_policy_update: int = 1,
@@ -96,6 +97,7 @@ class REDQSACAgent(SACAgent):
             betas_critic=betas_critic,
             l2_actor=l2_actor,
             l2_critic=l2_critic,
+            compile=compile,
         )
         if len(self.critics) != self.n:
             raise UserError(

@@ -31,17 +31,23 @@ import numpy as np
 import torch
 
 from tmrl.actor import TorchActorModule
+from tmrl.algorithms.compiled_sac import (
+    CompileState,
+    compile_mode_for,
+    compiled_losses,
+    first_compiled_update,
+)
 from tmrl.algorithms.fused_sac import FusedSACUpdate
 from tmrl.algorithms.guard import NonFiniteGuard
 from tmrl.batch import Batch
-from tmrl.config.schema import OPTIMIZERS, UPDATE_ORDERS
-from tmrl.nn import copy_shared, no_grad
+from tmrl.config.schema import COMPILE_MODES, OPTIMIZERS, UPDATE_ORDERS
 from tmrl.errors import UserError
 from tmrl.models import EnsembleQFunction, MLPActorCritic
+from tmrl.nn import copy_shared, no_grad
 from tmrl.training import TrainingAgent
 from tmrl.util import cached_property
 
-__all__ = ["UPDATE_ORDERS", "CriticSet", "SACAgent", "SpinupSacAgent", "make_optimizer"]
+__all__ = ["COMPILE_MODES", "UPDATE_ORDERS", "CriticSet", "SACAgent", "SpinupSacAgent", "make_optimizer"]
 
 logger = logging.getLogger(__name__)
 
@@ -250,10 +256,16 @@ class SACAgent(TrainingAgent):
         fused: use :class:`~tmrl.algorithms.fused_sac.FusedSACUpdate` (the same update with
             hand-written gradients, about twice as fast on a CPU) when the model and settings
             allow it; False always takes the autograd path.
+        compile: ``ALG.COMPILE``: ``"off"`` (eager; the fused update where it applies),
+            ``"compile"`` (the update's forward pass and losses through :func:`torch.compile`) or
+            ``"cudagraph"`` (the same, replayed as CUDA graphs; CUDA devices only). Applies to
+            SAC's own update (no step of :attr:`STEPS` overridden); another agent logs one
+            warning and runs eager. See :mod:`tmrl.algorithms.compiled_sac`.
 
     Raises:
         UserError: an unknown optimizer, malformed betas, an unknown device, an unknown
-            update order, or a model without critics.
+            update order, an unknown compile mode, ``"cudagraph"`` off CUDA, or a model without
+            critics.
     """
 
     model_nograd = cached_property(lambda self: no_grad(copy_shared(self.model)))
@@ -292,7 +304,10 @@ class SACAgent(TrainingAgent):
         l2_critic: float | None = None,
         update_order: str = "simultaneous",
         fused: bool = True,
+        compile: str = "off",
     ) -> None:
+        if compile not in COMPILE_MODES:
+            raise UserError(f"ALG.COMPILE={compile!r} is not known: use one of {', '.join(map(repr, COMPILE_MODES))}")
         if update_order not in UPDATE_ORDERS:
             raise UserError(
                 f"update_order={update_order!r} is not known: set ALG.UPDATE_ORDER to one of "
@@ -300,6 +315,11 @@ class SACAgent(TrainingAgent):
             )
         self.update_order = update_order
         device = _resolve_device(device)
+        if compile == "cudagraph" and device.type != "cuda":
+            raise UserError(
+                f"ALG.COMPILE='cudagraph': cudagraph needs a CUDA device, the training device is {device} "
+                "(use 'compile' or 'off', or train on a GPU)"
+            )
         super().__init__(observation_space, action_space, device)
         self.model_cls = model_cls
         self.gamma = float(gamma)
@@ -349,6 +369,8 @@ class SACAgent(TrainingAgent):
         self.loss_pi = torch.zeros((), device=device)
         self.loss_alpha = torch.zeros((), device=device)
         self.fused_update: FusedSACUpdate | None = FusedSACUpdate.for_agent(self) if fused else None
+        self.compile = compile
+        self._compile_state = CompileState(compile_mode_for(self, compile))
 
     def _make_optimizers(self) -> None:
         self.pi_optimizer = make_optimizer(
@@ -422,6 +444,8 @@ class SACAgent(TrainingAgent):
             ``loss_critic``, ``entropy_coef`` (the coefficient used in this update) and a few
             ``debug_*`` means, all 0-dim tensors (``float()`` them to log).
         """
+        if self._compile_state.mode != "off":
+            return self._compiled_train(batch)
         fused = self._fused()
         if fused is not None:
             return fused(batch)
@@ -597,6 +621,58 @@ class SACAgent(TrainingAgent):
         if self.log_alpha is not None:
             metrics["loss_entropy_coef"] = self.loss_alpha
         return metrics
+
+    # --- ALG.COMPILE (tmrl/algorithms/compiled_sac.py) ---------------------------------------------
+
+    def _sac_losses(self, b: Batch) -> tuple[Any, ...]:
+        """SAC's forward pass and losses in the simultaneous order, as :meth:`train` computes
+        them: ``(alpha, loss_critic, loss_actor, loss_alpha, stats)``, ``stats`` the ``debug_*``
+        means. The function that ``ALG.COMPILE`` compiles."""
+        alpha = self._entropy_coef()
+        pi, logp_pi = self.actor(b.obs)
+        backup = self.target_value(b, alpha)
+        q, q_pi_all = self.critics.with_policy_values(b.obs, b.act, pi)
+        loss_critic = self.critic_loss(q, backup)
+        loss_alpha = self.entropy_loss(logp_pi)
+        loss_actor = self.actor_loss(alpha, logp_pi, q_pi_all)
+        stats = {"debug_log_pi": logp_pi.detach().mean(), "debug_q": q.detach().mean(), "debug_backup": backup.mean()}
+        return alpha, loss_critic, loss_actor, loss_alpha, stats
+
+    def _update_with(self, losses: Callable[[Batch], tuple[Any, ...]], batch: tuple) -> dict[str, Any]:
+        """One SAC update whose forward pass and losses come from ``losses`` (:meth:`_sac_losses`
+        or its compiled version); the backward pass, the non-finite guard, the optimizer steps
+        (fused or foreach kernels, :func:`make_optimizer`) and Polyak averaging run eager. The
+        kept tensors are cloned: a CUDA graph's outputs are overwritten by its next replay."""
+        alpha, loss_critic, loss_actor, loss_alpha, stats = losses(Batch(*batch))
+        if not self._step(loss_critic, loss_actor, loss_alpha, True):
+            return self.guard.skipped_metrics()
+        self._update_targets()
+        self.loss_pi = loss_actor.detach().clone()
+        metrics: dict[str, Any] = {
+            "loss_actor": self.loss_pi,
+            "loss_critic": loss_critic.detach().clone(),
+            "entropy_coef": alpha.detach().clone(),
+        }
+        metrics.update((k, v.clone()) for k, v in stats.items())
+        if loss_alpha is not None:
+            self.loss_alpha = loss_alpha.detach().clone()
+            metrics["loss_entropy_coef"] = self.loss_alpha
+        return metrics
+
+    def _compiled_train(self, batch: tuple) -> dict[str, Any]:
+        """One update with ``ALG.COMPILE`` on: :meth:`_sac_losses` compiled, the rest eager
+        (:mod:`tmrl.algorithms.compiled_sac` says why); the first update checked against eager."""
+        st = self._compile_state
+        if st.fn is None:
+            st.fn = compiled_losses(self._sac_losses, st.mode)
+        if not st.checked:
+            return first_compiled_update(self, batch)
+        return self._update_with(st.fn, batch)
+
+    def _checked_tensors(self) -> list[torch.Tensor]:
+        """What the first compiled update must agree on: parameters, target parameters, log(alpha)."""
+        extra = [self.log_alpha] if self.log_alpha is not None else []
+        return self._params + self._target_params + extra
 
     # --- checkpointing ------------------------------------------------------------------------
 

@@ -201,6 +201,7 @@ class TQCAgent(SACAgent):
         betas_critic: Sequence[float] | None = None,
         l2_actor: float | None = None,
         l2_critic: float | None = None,
+        compile: str = "off",
         n: int = 5,
         n_quantiles: int = 25,
         drop_per_critic: int = 2,
@@ -240,6 +241,7 @@ class TQCAgent(SACAgent):
             betas_critic=betas_critic,
             l2_actor=l2_actor,
             l2_critic=l2_critic,
+            compile=compile,
             update_order="simultaneous",
             fused=False,
         )
