@@ -117,6 +117,35 @@ def _action_bounds(action_space: Any) -> tuple[np.ndarray, np.ndarray]:
     return low, high
 
 
+def squashed_gaussian(mu: torch.Tensor, log_std: torch.Tensor, act_scale: torch.Tensor, act_offset: torch.Tensor,
+                      test: bool = False, with_logprob: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """SAC's squashed Gaussian policy from its head's outputs: ``(action, log pi or None)``.
+
+    Args:
+        mu: the Gaussian's mean ``(B, act_dim)``.
+        log_std: its log standard deviation before clamping to ``[LOG_STD_MIN, LOG_STD_MAX]``.
+        act_scale, act_offset: map ``tanh``'s ``(-1, 1)`` onto the action space's bounds.
+        test: the mean instead of a sample (one ``torch.randn_like(mu)`` draw otherwise).
+        with_logprob: also return the log-density ``(B,)`` of the action.
+    """
+    log_std = torch.clamp(log_std, LOG_STD_MIN, LOG_STD_MAX)
+    if test:
+        u = mu
+        eps = None
+    else:
+        eps = torch.randn_like(mu)
+        u = mu + log_std.exp() * eps  # reparameterised sample
+    logp = None
+    if with_logprob:
+        # Gaussian log-density at u: (u - mu) / std is exactly eps, no need to recompute it.
+        sq = 0.0 if eps is None else 0.5 * eps.square()
+        logp = (-(sq + log_std) - _HALF_LOG_2PI).sum(-1)
+        # tanh change of variables, log(1 - tanh(u)^2) in a stable form (SAC paper, app. C);
+        # the constant log(scale) term is left out, as in the original implementation.
+        logp = logp - (2.0 * (_LOG_2 - u - F.softplus(-2.0 * u))).sum(-1)
+    return torch.tanh(u) * act_scale + act_offset, logp
+
+
 def _compute_dtype(value: str | torch.dtype | None) -> torch.dtype | None:
     if value is None or value in ("float32", torch.float32):
         return None
@@ -175,24 +204,8 @@ class SquashedGaussianMLPActor(TorchActorModule):
             ``(B,)`` (or None).
         """
         h = self.net(flatten_obs(obs))
-        mu = self.mu_layer(h)
-        log_std = torch.clamp(self.log_std_layer(h), LOG_STD_MIN, LOG_STD_MAX)
-        if test:
-            u = mu
-            eps = None
-        else:
-            eps = torch.randn_like(mu)
-            u = mu + log_std.exp() * eps  # reparameterised sample
-        logp = None
-        if with_logprob:
-            # Gaussian log-density at u: (u - mu) / std is exactly eps, no need to recompute it.
-            sq = 0.0 if eps is None else 0.5 * eps.square()
-            logp = (-(sq + log_std) - _HALF_LOG_2PI).sum(-1)
-            # tanh change of variables, log(1 - tanh(u)^2) in a stable form (SAC paper, app. C);
-            # the constant log(scale) term is left out, as in the original implementation.
-            logp = logp - (2.0 * (_LOG_2 - u - F.softplus(-2.0 * u))).sum(-1)
-        action = torch.tanh(u) * self.act_scale + self.act_offset
-        return action, logp
+        return squashed_gaussian(self.mu_layer(h), self.log_std_layer(h), self.act_scale, self.act_offset,
+                                 test, with_logprob)
 
     def act(self, obs: Any, test: bool = False) -> np.ndarray:
         """Action for a batched observation, as a NumPy array, without gradients.

@@ -63,14 +63,13 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from tmrl.actor import TorchActorModule
 from tmrl.algorithms.sac import SACAgent, _build_model, make_optimizer
 from tmrl.batch import Batch
 from tmrl.errors import UserError
-from tmrl.models import LOG_STD_MAX, LOG_STD_MIN, mlp, space_dim
+from tmrl.models import mlp, space_dim, squashed_gaussian
 
 __all__ = ["DRQ_CNN", "DrQActor", "DrQActorCritic", "DrQAgent", "DrQCritics", "DrQEncoder", "random_shift"]
 
@@ -84,8 +83,6 @@ DRQ_CNN: dict[str, Any] = {
 """The sizes of SAC-AE's and DrQ's networks (convolutions, feature size, head widths; DrQ uses
 1024-unit heads, 256 here for a CPU)."""
 
-_HALF_LOG_2PI = 0.5 * float(np.log(2.0 * np.pi))
-_LOG_2 = float(np.log(2.0))
 
 
 def random_shift(imgs: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -247,16 +244,8 @@ class DrQActor(TorchActorModule):
             with_logprob: also return the log-density of the action.
         """
         h = self.net(torch.cat((features, others), dim=-1))
-        mu = self.mu_layer(h)
-        log_std = torch.clamp(self.log_std_layer(h), LOG_STD_MIN, LOG_STD_MAX)
-        eps = None if test else torch.randn_like(mu)
-        u = mu if eps is None else mu + log_std.exp() * eps
-        logp = None
-        if with_logprob:
-            sq = 0.0 if eps is None else 0.5 * eps.square()
-            logp = (-(sq + log_std) - _HALF_LOG_2PI).sum(-1)
-            logp = logp - (2.0 * (_LOG_2 - u - F.softplus(-2.0 * u))).sum(-1)  # tanh's correction
-        return torch.tanh(u) * self.act_scale + self.act_offset, logp
+        return squashed_gaussian(self.mu_layer(h), self.log_std_layer(h), self.act_scale, self.act_offset,
+                                 test, with_logprob)
 
     def forward(self, obs: Any, test: bool = False,
                 with_logprob: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:

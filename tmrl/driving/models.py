@@ -26,7 +26,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from tmrl.actor import TorchActorModule
@@ -35,13 +34,12 @@ from tmrl.algorithms.droq import DroQMLPActorCritic
 from tmrl.algorithms.tqc import TQCActorCritic
 from tmrl.errors import UserError
 from tmrl.models import (
-    LOG_STD_MAX,
-    LOG_STD_MIN,
     EnsembleQFunction,
     MLPActorCritic,
     SquashedGaussianMLPActor,
     mlp,
     space_dim,
+    squashed_gaussian,
 )
 
 __all__ = [
@@ -75,8 +73,6 @@ DEFAULT_CNN: dict[str, tuple[int, ...]] = {
 }
 """tmrl 0.7's VanillaCNN sizes."""
 
-_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
-_LOG_2 = math.log(2.0)
 
 
 def _split_space(observation_space: Any, image_index: int) -> tuple[tuple[int, ...], int]:
@@ -215,17 +211,8 @@ class SquashedGaussianCNNActor(TorchActorModule):
         """
         imgs, scalars = _split_obs(obs, self.image_index)
         h = self.net(torch.cat((self.encoder(imgs), scalars), dim=-1))
-        mu = self.mu_layer(h)
-        log_std = torch.clamp(self.log_std_layer(h), LOG_STD_MIN, LOG_STD_MAX)
-        eps = None if test else torch.randn_like(mu)
-        u = mu if eps is None else mu + log_std.exp() * eps
-        logp = None
-        if with_logprob:
-            sq = 0.0 if eps is None else 0.5 * eps.square()
-            logp = (-(sq + log_std) - _HALF_LOG_2PI).sum(-1)
-            # tanh correction in the numerically stable form
-            logp = logp - (2.0 * (_LOG_2 - u - F.softplus(-2.0 * u))).sum(-1)
-        return torch.tanh(u) * self.act_scale + self.act_offset, logp
+        return squashed_gaussian(self.mu_layer(h), self.log_std_layer(h), self.act_scale, self.act_offset,
+                                 test, with_logprob)
 
     def act(self, obs: Any, test: bool = False) -> np.ndarray:
         """Action for a batched observation as a NumPy array, without gradients.

@@ -228,23 +228,19 @@ class _NatsLink:
         if self._ready is not None:
             (self._ready.set if self._is_connected else self._ready.clear)()
 
-    async def _while_connected(self, coro: Any, bound: float, still_there: Any = None,
-                               check_every: float = 1.0) -> Any:
-        """``await coro`` for at most ``bound`` seconds, no longer than the connection lasts and,
-        given ``still_there`` (an async callable, asked every ``check_every`` seconds), no longer
-        than it answers True.
+    async def _while_connected(self, coro: Any, bound: float) -> Any:
+        """``await coro`` for at most ``bound`` seconds and no longer than the connection lasts
+        (a connection lost and regained meanwhile counts: what ``coro`` waited for went with it).
 
         Raises:
             asyncio.TimeoutError: ``bound`` passed.
-            ConnectionError: the connection dropped first.
-            LookupError: ``still_there`` answered False (``coro`` is cancelled in every case).
+            ConnectionError: the connection dropped first (``coro`` is cancelled in every case).
         """
         import asyncio
 
         loop = asyncio.get_running_loop()
         task = asyncio.ensure_future(coro)
         deadline = loop.time() + bound
-        next_check = loop.time() + check_every
         losses = self._losses
         try:
             while not task.done():
@@ -253,11 +249,6 @@ class _NatsLink:
                 left = deadline - loop.time()
                 if left <= 0:
                     raise asyncio.TimeoutError
-                if still_there is not None and loop.time() >= next_check:
-                    if not await still_there():
-                        raise LookupError("the object was deleted during the read")
-                    next_check = loop.time() + check_every
-                    continue
                 await asyncio.wait({task}, timeout=min(0.2, left))
             return task.result()
         finally:
