@@ -124,7 +124,8 @@ def squashed_gaussian(mu: torch.Tensor, log_std: torch.Tensor, act_scale: torch.
     Args:
         mu: the Gaussian's mean ``(B, act_dim)``.
         log_std: its log standard deviation before clamping to ``[LOG_STD_MIN, LOG_STD_MAX]``.
-        act_scale, act_offset: map ``tanh``'s ``(-1, 1)`` onto the action space's bounds.
+        act_scale: half the width of the action space's bounds (``tanh``'s ``(-1, 1)`` scaled).
+        act_offset: the middle of the bounds.
         test: the mean instead of a sample (one ``torch.randn_like(mu)`` draw otherwise).
         with_logprob: also return the log-density ``(B,)`` of the action.
     """
