@@ -36,6 +36,11 @@ and ``VanillaCNNActorCritic``); ``tmlidar``, speed and 4 lidars of 19 beams plus
 256x256 (ours: ``LidarMemory``, ``LidarActorCritic``; theirs: ``MemoryTMLidar``,
 ``MLPActorCritic``). Both sides store the same synthetic episodes, each compressed by its own
 sample compressor. ``--memory-bytes`` adds the bytes each side's memory holds per stored sample.
+
+Where our batches are built: on a GPU our memories keep their rings there (``MEMORY_ON_DEVICE``
+``"auto"``, :mod:`tmrl.memory.resident`) and gather each batch on the device; ``--host-memory``
+adds ``ours hostmem``, the same memory with ``"off"`` (gathered on the host, then copied over), in
+``full`` mode. The ``memory`` field of each figure says which (``(rings on cuda:0)``).
 """
 
 from __future__ import annotations
@@ -112,7 +117,8 @@ def _build(side: str, algo: str, variant: str = "", device: str = "cpu"):
         from tmrl.models import MLPActorCritic, REDQMLPActorCritic
         from tmrl.util import partial
 
-        memory = GenericTorchMemory(device=device, nb_steps=1, memory_size=1_000_000, batch_size=BATCH)
+        memory = GenericTorchMemory(device=device, nb_steps=1, memory_size=1_000_000, batch_size=BATCH,
+                                    on_device="off" if variant == "hostmem" else "auto")
         cls = SACAgent if algo == "sac" else REDQSACAgent
         model = MLPActorCritic if algo == "sac" else REDQMLPActorCritic
         critic_dtype = "bfloat16" if variant == "bf16" else None
@@ -205,9 +211,9 @@ def _tm_samples(case: str, n: int, compressor, seed: int = 0) -> list:
     return out
 
 
-def _tm_memory(side: str, case: str, memory_size: int, device: str = "cpu"):
+def _tm_memory(side: str, case: str, memory_size: int, device: str = "cpu", variant: str = ""):
     """Each side's memory for ``case``, built as its pipeline builds it (its batches collated on
-    ``device``), and its compressor."""
+    ``device``; ours with its rings on the host for the ``hostmem`` variant), and its compressor."""
     if side == "tmrl":
         from tmrl.custom import custom_memories as cm
 
@@ -223,13 +229,14 @@ def _tm_memory(side: str, case: str, memory_size: int, device: str = "cpu"):
 
     parts = pipeline_parts("TM20FULL" if case == "tmfull" else "TM20LIDAR")
     memory = parts["memory_cls"](hist_len=TM_HIST, act_buf_len=TM_ACT_BUF, memory_size=memory_size,
-                                 batch_size=BATCH, device=device, nb_steps=1)
+                                 batch_size=BATCH, device=device, nb_steps=1,
+                                 on_device="off" if variant == "hostmem" else "auto")
     return memory, parts["sample_compressor"], f"tmrl.driving.memories.{type(memory).__name__}"
 
 
-def _build_tm(side: str, case: str, device: str = "cpu"):
+def _build_tm(side: str, case: str, device: str = "cpu", variant: str = ""):
     obs_space, act_space = _tm_spaces(case)
-    memory, compressor, memory_name = _tm_memory(side, case, 1_000_000, device)
+    memory, compressor, memory_name = _tm_memory(side, case, 1_000_000, device, variant)
     if side == "tmrl":
         from tmrl.custom.custom_algorithms import SpinupSacAgent
         from tmrl.custom.custom_models import MLPActorCritic, VanillaCNNActorCritic
@@ -468,10 +475,11 @@ def child_main(argv: list[str]) -> None:
             return _measure_sb3(built[key], req["seconds"], device)
         if key not in built:
             built[key] = (_build(args.side, algo, req.get("variant", ""), device) if case == "pendulum"
-                          else _build_tm(args.side, case, device))
+                          else _build_tm(args.side, case, device, req.get("variant", "")))
         memory, agent, memory_name = built[key]
         res = _measure_agent(memory, agent, req["mode"], req["seconds"], slow=case == "tmfull", device=device)
-        res["memory"] = memory_name
+        ring = getattr(memory, "device_ring", None)
+        res["memory"] = memory_name + (f" (rings on {ring.device})" if ring is not None else "")
         return res
 
     def handle(req: dict[str, Any]) -> dict[str, Any]:
@@ -543,6 +551,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--algos", default="sac,redq", help="algorithms of the pendulum case")
     parser.add_argument("--modes", default="full,agent", help="full (sample + train) and/or agent (train only)")
     parser.add_argument("--bf16", action="store_true", help="also ours with critic_dtype='bfloat16' (pendulum)")
+    parser.add_argument("--host-memory", action="store_true",
+                        help="also ours with MEMORY_ON_DEVICE \"off\" (batches built on the host and copied over, "
+                        "as before the rings moved to the GPU); full mode; on a CPU both are the host path")
     parser.add_argument("--glibc-defaults-for-tmrl", action="store_true",
                         help="also tmrl 0.7.1 on glibc's allocator defaults (a labelled, one-sided line)")
     parser.add_argument("--memory-bytes", type=int, default=0, metavar="N",
@@ -573,7 +584,7 @@ def main(argv: list[str] | None = None) -> None:
         for w in workers.values():
             w.close()
     rows = rec.print_table(ratios=[("ours", "tmrl"), ("ours", "sb3"), ("ours", "tmrl (glibc defaults)"),
-                                   ("ours bf16", "tmrl"), ("ours", "before")])
+                                   ("ours bf16", "tmrl"), ("ours", "before"), ("ours", "ours hostmem")])
     _print_floor_fractions(rows)
     rec.close()
 
@@ -588,6 +599,8 @@ def _run_rounds(args: argparse.Namespace, jobs: list[tuple[str, str, str]],
             runs = [(n, "") for n in names if n != "sb3" or (case, algo, mode) == ("pendulum", "sac", "full")]
             if args.bf16 and case == "pendulum":
                 runs.append(("ours", "bf16"))
+            if args.host_memory and mode == "full":
+                runs.append(("ours", "hostmem"))
             for name, variant in runs if rnd % 2 == 0 else runs[::-1]:
                 res = workers[name].ask({"case": case, "algo": algo, "mode": mode, "seconds": args.seconds,
                                          "variant": variant})

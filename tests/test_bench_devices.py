@@ -152,7 +152,7 @@ def test_a_side_that_fails_is_recorded_without_a_figure_and_the_others_go_on(tmp
     ok = {"updates_per_s": 50.0, "cpu_ms_per_update": 1.0, "sample_share": 0.1, "threads": 1}
     workers = {"ours": Worker(ok), "tmrl": Worker({"error": "RuntimeError: dtype Double"})}
     rec = harness.Recorder("unit", {"device": "cuda"}, out_dir=tmp_path)
-    args = argparse.Namespace(rounds=1, seconds=0.1, bf16=False)
+    args = argparse.Namespace(rounds=1, seconds=0.1, bf16=False, host_memory=False)
     trainer_speed._run_rounds(args, [("tmfull", "sac", "full")], workers, rec)
     rec.close()
     got = {r["side"]: r for r in rec.records}

@@ -79,7 +79,8 @@ def test_arguments_collects_the_keys_that_feed_a_class():
     assert sac["lr_actor"] == 0.123 and "n" not in sac and sac["update_order"] == "simultaneous"
     redq = schema.arguments(cfg, "REDQSACAgent")
     assert redq["n"] == 7 and "update_order" not in redq
-    assert schema.arguments(cfg, "GenericTorchMemory") == {"memory_size": cfg["MEMORY_SIZE"], "batch_size": 33}
+    assert schema.arguments(cfg, "GenericTorchMemory") == {"memory_size": cfg["MEMORY_SIZE"], "batch_size": 33,
+                                                           "on_device": "auto"}
     assert schema.arguments(cfg, "NoSuchClass") == {}
 
 

@@ -50,6 +50,7 @@ __all__ = [
     "COMPILE_MODES",
     "EXAMPLES",
     "NO_CLASS_DEFAULT",
+    "ON_DEVICE_MODES",
     "OPTIMIZERS",
     "PASSWORD_PLACEHOLDER",
     "RTGYM_INTERFACES",
@@ -108,6 +109,9 @@ UPDATE_ORDERS = ("simultaneous", "sequential")
 
 COMPILE_MODES = ("off", "compile", "cudagraph")
 """Values of ``ALG.COMPILE`` (``SACAgent(compile=...)``)."""
+
+ON_DEVICE_MODES = ("auto", "on", "off")
+"""Values of ``MEMORY_ON_DEVICE`` (the built-in memories' ``on_device``, :mod:`tmrl.memory.resident`)."""
 
 AGENT_CLASSES = {"SAC": "SACAgent", "REDQSAC": "REDQSACAgent", "DROQ": "DroQAgent", "TQC": "TQCAgent",
                  "CROSSQ": "CrossQAgent", "DRQ": "DrQAgent"}
@@ -369,6 +373,12 @@ SCHEMA = Section(
         "MEMORY_SIZE": Int(1000000, "capacity of the replay memory, in samples", min=1,
                            feeds=("GenericTorchMemory.memory_size",), class_default=1000000),
         "BATCH_SIZE": Int(256, "training batch size", min=1, feeds=("GenericTorchMemory.batch_size",), class_default=256),
+        "MEMORY_ON_DEVICE": Choice("auto", "where the replay memory builds its batches: \"auto\" keeps its rings on the "
+                                   "training GPU too and gathers each batch there (on a CPU: the host path), \"off\" "
+                                   "builds them on the host and copies them over, \"on\" puts the rings on the training "
+                                   "device whatever it is (on a CPU, a second copy: for tests); rings that do not fit on "
+                                   "the GPU fall back to the host with \"auto\" and stop the trainer with \"on\"",
+                                   ON_DEVICE_MODES, feeds=("GenericTorchMemory.on_device",), class_default="auto"),
         "ALG": _ALG,
         "ENV": _ENV,
         "__VERSION__": Str("0.6.0", "format version of this file (do not edit)", nonempty=True),

@@ -22,10 +22,9 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
 from tmrl.errors import UserError
 from tmrl.memory import RealTimeTorchMemory
+from tmrl.memory.resident import as_float32
 
 __all__ = ["HistoryMemory", "ImageMemory", "LidarMemory", "LidarProgressMemory", "RawImageMemory"]
 
@@ -90,30 +89,31 @@ class HistoryMemory(RealTimeTorchMemory):
         # Sampled transitions need this many prev links intact (histories and action buffers).
         self.history_depth = max(self.hist_len, self.act_buf_len)
 
-    def build_obs(self, slots: np.ndarray) -> tuple:
-        """Stored elements with the frame replaced by its history, then the action buffer.
+    def build_from(self, rings: Any, hist: Any) -> tuple:
+        """Stored elements with the frame replaced by its history (the frames at the last
+        ``hist_len`` columns of ``hist``), then the action buffer.
 
         Args:
-            slots: the slots whose observations to build.
+            rings: as in :meth:`tmrl.memory.GenericTorchMemory.build_from`.
+            hist: as in :meth:`tmrl.memory.GenericTorchMemory.build_from`.
 
         Raises:
             UserError: the stored observations have no frame at ``frame_index`` (the sample
                 compressor and the memory do not match).
         """
-        elements = list(super().build_obs(slots))
+        elements = list(super().build_from(rings, hist))
         n_stored = len(elements) - self.act_buf_len
         if not 0 <= self.frame_index < n_stored:
             raise UserError(
                 f"the stored observation has {n_stored} elements, no frame at position {self.frame_index}: "
                 "the sample compressor and the memory do not match"
             )
-        frames = self.obs_leaf(self.frame_index)
-        hist = frames[self.history_slots(slots, self.hist_len)]  # (B, hist_len, *frame_shape)
+        frames = rings.obs[self.frame_index][hist[:, -self.hist_len:]]  # (n, hist_len, *frame_shape)
         if self.scale is not None:
-            hist = hist.astype(np.float32) * np.float32(self.scale)
+            frames = as_float32(frames, self.scale)
         if self.flatten:
-            hist = hist.reshape(len(slots), -1)
-        elements[self.frame_index] = hist
+            frames = frames.reshape(len(hist), -1)
+        elements[self.frame_index] = frames
         return tuple(elements)
 
 

@@ -31,6 +31,8 @@ Every name is importable from ``tmrl.memory``; they live in these modules:
 * :mod:`tmrl.memory.sampler`: :class:`SlotSampler` (where the memory samples);
 * :mod:`tmrl.memory.crc`: ``crc_debug`` (:func:`check_transition`, :class:`CRCMismatchError`);
 * :mod:`tmrl.memory.persist`: what ``dataset_path`` loads;
+* :mod:`tmrl.memory.resident`: :class:`DeviceRing`, the rings on the training GPU
+  (``MEMORY_ON_DEVICE``);
 * :mod:`tmrl.memory.tree`: the nested observation structures;
 * :mod:`tmrl.batch`: :class:`~tmrl.batch.Batch`, :func:`collate_torch` and :func:`to_torch`.
 """
@@ -42,6 +44,7 @@ from tmrl.memory.api import Memory, TorchMemory
 from tmrl.memory.builtin import GenericTorchMemory, RealTimeTorchMemory
 from tmrl.memory.crc import CRCMismatchError, check_transition
 from tmrl.memory.episodes import EpisodeLinks
+from tmrl.memory.resident import DeviceRing
 from tmrl.memory.sampler import SlotSampler
 from tmrl.memory.storage import ColumnBuffer, RestoreWindow, RingStorage, SampleBuffer, SampleColumns
 
@@ -49,6 +52,7 @@ __all__ = [
     "Batch",
     "CRCMismatchError",
     "ColumnBuffer",
+    "DeviceRing",
     "EpisodeLinks",
     "GenericTorchMemory",
     "Memory",

@@ -7,22 +7,27 @@ gathers (the *fast path*). Pre-filling from ``dataset_path`` is :mod:`tmrl.memor
 
 from __future__ import annotations
 
+import logging
 import uuid
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+import torch
 
 from tmrl.batch import Batch, to_torch
 from tmrl.errors import UserError
 from tmrl.memory.api import TorchMemory
 from tmrl.memory.episodes import EpisodeLinks
 from tmrl.memory.persist import load_dataset
+from tmrl.memory.resident import DeviceRing, RingDoesNotFit, wants_device_ring
 from tmrl.memory.sampler import SlotSampler
 from tmrl.memory.storage import ColumnBuffer, RestoreWindow, RingStorage, SampleBuffer, SampleColumns
-from tmrl.memory.tree import _tree_map
+from tmrl.memory.tree import _tree_map, _unflatten
 
 __all__ = ["GenericTorchMemory", "RealTimeTorchMemory"]
+
+logger = logging.getLogger(__name__)
 
 
 class GenericTorchMemory(TorchMemory):
@@ -48,6 +53,13 @@ class GenericTorchMemory(TorchMemory):
     tensors in one go (pinned memory and non-blocking copies on CUDA). With a
     ``sample_preprocessor`` or ``crc_debug``, it falls back to the per-item slow path.
 
+    On the device (``on_device``, :mod:`tmrl.memory.resident`): on a GPU the rings also live there,
+    copied row by row as samples arrive, and :meth:`sample` gathers the batch on the device from
+    one index matrix the host computes (no NumPy gather, no batch copy, no wait for the device).
+    The batches are the same as the host path's, value for value. A subclass that overrides
+    :meth:`build_obs` keeps the host path (its code is NumPy); the built-in ones override
+    :meth:`build_from`, which both paths run.
+
     Args:
         device: as in :class:`Memory`.
         nb_steps: as in :class:`Memory`.
@@ -58,12 +70,18 @@ class GenericTorchMemory(TorchMemory):
         crc_debug: as in :class:`Memory`.
         store_info: keep each sample's ``info`` dict (Python objects, not checkpointed) so that
             ``get_transition`` returns it; implied by ``crc_debug``. Otherwise ``info`` is ``{}``.
+        on_device: ``MEMORY_ON_DEVICE``: ``"auto"`` (the rings also on ``device`` when it is a
+            GPU), ``"on"`` (also on ``device``, whatever it is) or ``"off"`` (host only).
 
     Attributes:
         uid: identity of this memory's history (a checkpoint appends to its own segments only).
+        device_ring: the rings on the device (:class:`~tmrl.memory.resident.DeviceRing`), or
+            ``None`` when batches are built on the host.
 
     Subclassing (history-based memories): override :meth:`build_obs` and set
-    :attr:`history_depth`; use :meth:`history_slots`, :meth:`obs_leaf` and :attr:`actions`.
+    :attr:`history_depth`; use :meth:`history_slots`, :meth:`obs_leaf` and :attr:`actions`. Or,
+    to keep the device path, override :meth:`build_from` (code that runs on NumPy arrays and on
+    tensors alike).
     """
 
     history_depth: int = 1
@@ -80,6 +98,7 @@ class GenericTorchMemory(TorchMemory):
         dataset_path: str = "",
         crc_debug: bool = False,
         store_info: bool = False,
+        on_device: str = "auto",
     ) -> None:
         super().__init__(
             device=device,
@@ -94,7 +113,29 @@ class GenericTorchMemory(TorchMemory):
         self._storage = RingStorage(self.memory_size, store_info=store_info or crc_debug)
         self._links = EpisodeLinks(self._storage)
         self._sampler = SlotSampler(self._links)
+        self.on_device = on_device
+        self.device_ring: DeviceRing | None = None
+        if wants_device_ring(on_device, device):
+            if type(self).build_obs is not GenericTorchMemory.build_obs:
+                logger.info("%s overrides build_obs: its batches are built on the host and copied to %s",
+                            type(self).__name__, device)
+            else:
+                self._to_device(lambda: setattr(self, "device_ring", DeviceRing(self._storage, device)))
         load_dataset(self, dataset_path)
+
+    def _to_device(self, step: Callable[[], Any]) -> None:
+        """Run ``step`` (an allocation or copy of the device rings); when the rings do not fit,
+        go on without them (``"auto"``: one warning) or stop (``"on"``: one line)."""
+        try:
+            step()
+        except RingDoesNotFit as e:
+            self.device_ring = None
+            if self.on_device == "on":
+                raise UserError(f"{e}: lower MEMORY_SIZE or set MEMORY_ON_DEVICE to \"off\"") from None
+            logger.warning("%s; batches are built on the host instead (MEMORY_ON_DEVICE \"off\" says so "
+                           "without trying)", e)
+            if torch.device(self.device).type == "cuda":
+                torch.cuda.empty_cache()
 
     # --- storage -------------------------------------------------------------------------------
 
@@ -210,6 +251,9 @@ class GenericTorchMemory(TorchMemory):
         self._storage.write(first, obs, act, rew[keep], terminated[keep], truncated[keep], infos)
         self._links.write(first, prev[keep])
         self._storage.total += n
+        ring = self.device_ring
+        if ring is not None:
+            self._to_device(lambda: ring.write(first, n - keep.start))
 
     # --- validity and histories ----------------------------------------------------------------
 
@@ -238,12 +282,31 @@ class GenericTorchMemory(TorchMemory):
 
     def build_obs(self, slots: np.ndarray) -> Any:
         """The observations stored at ``slots``, batched: the stored structure with each leaf of
-        shape ``(len(slots), *leaf_shape)``. Subclasses override this to add histories.
+        shape ``(len(slots), *leaf_shape)``, histories rebuilt (:meth:`build_from` on the host
+        rings). A subclass may override this (NumPy code; its batches are then built on the host).
 
         Args:
             slots: the slots whose observations to build.
         """
-        return self._storage.observations(slots)
+        return self.build_from(self._storage, self.history_slots(slots, self.history_depth))
+
+    def build_from(self, rings: Any, hist: Any) -> Any:
+        """The observations whose history slots are ``hist``, gathered from ``rings``: the code
+        both paths run, on NumPy arrays (the host :class:`RingStorage`) or on tensors (the
+        :class:`~tmrl.memory.resident.DeviceRing`). It must use only indexing, ``reshape`` and
+        :func:`~tmrl.memory.resident.as_float32`, which both kinds of arrays share.
+
+        Args:
+            rings: what holds the rings: ``obs`` (one ring per observation leaf), ``act``,
+                ``obs_spec``.
+            hist: integer array ``(n, history_depth)``: the slots of each observation's history,
+                oldest first, as :meth:`history_slots` gives them (column ``-1``: the slots).
+
+        Returns:
+            The stored structure with batched leaves.
+        """
+        idx = hist[:, -1]
+        return _unflatten(rings.obs_spec, [leaf[idx] for leaf in rings.obs])
 
     # --- sampling ------------------------------------------------------------------------------
 
@@ -299,6 +362,8 @@ class GenericTorchMemory(TorchMemory):
         if self.sample_preprocessor is not None or self.crc_debug:
             return super().sample(indices)
         slots = self.sample_indices() if indices is None else self._links.check_slots(indices)
+        if self.device_ring is not None:
+            return self._gather_on_device(self.device_ring, slots)
         prev_obs, act, rew, new_obs, terminated, truncated = self.gather(slots)
         dev = self.device
         return Batch(
@@ -308,6 +373,25 @@ class GenericTorchMemory(TorchMemory):
             to_torch(new_obs, dev),
             to_torch(terminated.astype(np.float32), dev),
             to_torch(truncated.astype(np.float32), dev),
+        )
+
+    def _gather_on_device(self, ring: DeviceRing, slots: np.ndarray) -> Batch:
+        """:meth:`gather` on the device: the host follows the links of both observations' slots
+        into one index matrix, copies it over, and the device gathers everything from it."""
+        if ring.act is None:
+            raise UserError("the memory holds no action yet: every stored action is None")
+        n = len(slots)
+        both = np.concatenate([self._links.prev_slots(slots), slots])
+        hist = ring.index(self.history_slots(both, self.history_depth))
+        obs = self.build_from(ring, hist)
+        last = hist[n:, -1]
+        return Batch(
+            _tree_map(lambda a: a[:n], obs),
+            ring.act[last],
+            ring.rew[last],
+            _tree_map(lambda a: a[n:], obs),
+            ring.terminated[last],
+            ring.truncated[last],
         )
 
     def get_transition(self, item: int) -> tuple:
@@ -368,6 +452,9 @@ class GenericTorchMemory(TorchMemory):
         window = RestoreWindow.of(meta, self.memory_size)
         self._storage.restore(meta, window, rows)
         self._links.restore(meta, window, rows)
+        ring = self.device_ring
+        if ring is not None:
+            self._to_device(ring.reload)
         self.uid = meta["uid"]
         self._sampler.restore(meta, self.rng)
         if meta.get("stats") is not None:
@@ -405,6 +492,7 @@ class RealTimeTorchMemory(GenericTorchMemory):
         dataset_path: str = "",
         crc_debug: bool = False,
         store_info: bool = False,
+        on_device: str = "auto",
     ) -> None:
         if int(act_buf_len) < 1:
             raise UserError(f"act_buf_len must be at least 1, got {act_buf_len}: fix ACT_BUF_LEN")
@@ -419,16 +507,18 @@ class RealTimeTorchMemory(GenericTorchMemory):
             dataset_path=dataset_path,
             crc_debug=crc_debug,
             store_info=store_info,
+            on_device=on_device,
         )
 
-    def build_obs(self, slots: np.ndarray) -> tuple:
-        """Stored observation elements followed by the rebuilt action buffer.
+    def build_from(self, rings: Any, hist: Any) -> tuple:
+        """Stored observation elements followed by the rebuilt action buffer (the actions at the
+        last ``act_buf_len`` columns of ``hist``, oldest first).
 
         Args:
-            slots: the slots whose observations to build.
+            rings: as in :meth:`GenericTorchMemory.build_from`.
+            hist: as in :meth:`GenericTorchMemory.build_from`.
         """
-        base = super().build_obs(slots)
-        assert self.actions is not None
-        acts = self.actions[self.history_slots(slots, self.act_buf_len)]  # (B, L, *act_shape)
+        base = super().build_from(rings, hist)
+        assert rings.act is not None
         elements = tuple(base) if isinstance(base, (tuple, list)) else (base,)
-        return elements + tuple(acts[:, i] for i in range(self.act_buf_len))
+        return elements + tuple(rings.act[hist[:, j]] for j in range(-self.act_buf_len, 0))
