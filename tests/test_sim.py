@@ -604,3 +604,46 @@ def test_demo_roles_stop_on_sigint_even_when_started_with_sigint_ignored(tmp_pat
             proc.wait()
     with socket.socket() as s:  # the port is free again
         s.bind(("127.0.0.1", port))
+
+
+def test_demo_in_real_time_on_a_gpu_trains_the_benchmark_s_recommendation(tmp_path, monkeypatch):
+    from bench.track_learning import DEMO_OVERRIDES, VARIANTS
+    from tmrl.algorithms import REDQSACAgent
+    from tmrl.sim import demo
+
+    gpu = demo.GPU_REALTIME_SETTINGS
+    # what the demo measured its setting from: the benchmark's REDQSAC-UTD8-CAP-R250
+    assert VARIANTS["REDQSAC-UTD8-CAP-R250"] == (gpu["algorithm"], "demo", gpu["realtime_max_training_steps_per_env_step"])
+    assert DEMO_OVERRIDES["REDQSAC-UTD8-CAP-R250"] == {"start_steps": gpu["start_training"], "policy_every": 1,
+                                                      "alpha_max": gpu["alpha_max"]}
+    # when it applies: real time, lidar, a CUDA trainer, no agent chosen; what the user gives wins
+    assert demo.demo_setting("SIMLIDAR", True, "cuda", None, None) == ("REDQSAC", 250, True)
+    assert demo.demo_setting("SIMLIDARPROGRESS", True, "cuda:1", None, 400) == ("REDQSAC", 400, True)
+    assert demo.demo_setting("SIMLIDAR", True, "cuda", "SAC", None) == ("SAC", 1000, False)
+    assert demo.demo_setting("SIMLIDAR", True, "cpu", None, None) == ("SAC", 1000, False)
+    assert demo.demo_setting("SIMLIDAR", False, "cuda", None, None) == ("SAC", 1000, False)
+    assert demo.demo_setting("SIMFULL", True, "cuda", None, None) == ("SAC", 1000, False)
+    # the parent hands it to its roles, and a role applies it before it builds the trainer
+    args = demo._parse(["--realtime"])
+    args.interface, args.track, args.algorithm, args.start_training = "SIMLIDAR", "oval", "REDQSAC", 250
+    cmd = demo._role_command("trainer", args, tmp_path, 1234, "cuda", True)
+    assert "--gpu-setting" in cmd and "--gpu-setting" not in demo._role_command("trainer", args, tmp_path, 1, "cpu", False)
+    seen = {}
+    monkeypatch.setattr(demo, "_run_role", lambda *a: seen.update(settings=dict(demo.DEMO_SETTINGS), args=a))
+    saved = dict(demo.DEMO_SETTINGS)
+    try:
+        assert demo._role_main(demo._parse(cmd[3:] + ["--port", "1234"])) == 0
+        training = demo._training_cls("SIMLIDAR", "oval", tmp_path, realtime=True)
+    finally:
+        demo.DEMO_SETTINGS.clear()
+        demo.DEMO_SETTINGS.update(saved)
+    assert seen["settings"]["algorithm"] == "REDQSAC" and seen["settings"]["start_training"] == 250
+    assert seen["args"][-1] == "cuda" and seen["args"][-2] is True  # device, realtime
+    assert training.keywords["max_training_steps_per_env_step"] == 8.0
+    assert training.keywords["start_training"] == 250
+    env = demo._make_env("SIMLIDAR", "oval")
+    agent = training.keywords["training_agent_cls"](env.observation_space, env.action_space, "cpu")
+    assert isinstance(agent, REDQSACAgent) and agent.q_updates_per_policy_update == 1
+    assert agent.learn_entropy_coef and float(agent.alpha) == pytest.approx(0.2) and agent.alpha_max == 0.01
+    # and the CPU's setting is left as it was
+    assert "alpha_max" not in demo.DEMO_SETTINGS and demo.DEMO_SETTINGS["algorithm"] == "SAC"
