@@ -24,7 +24,7 @@ from typing import Any
 
 from tmrl.errors import UserError
 from tmrl.memory import RealTimeTorchMemory
-from tmrl.memory.resident import as_float32
+from tmrl.memory.resident import as_float32, take
 
 __all__ = ["HistoryMemory", "ImageMemory", "LidarMemory", "LidarProgressMemory", "RawImageMemory"]
 
@@ -108,7 +108,7 @@ class HistoryMemory(RealTimeTorchMemory):
                 f"the stored observation has {n_stored} elements, no frame at position {self.frame_index}: "
                 "the sample compressor and the memory do not match"
             )
-        frames = rings.obs[self.frame_index][hist[:, -self.hist_len:]]  # (n, hist_len, *frame_shape)
+        frames = take(rings.obs[self.frame_index], hist[:, -self.hist_len:])  # (n, hist_len, *frame_shape)
         if self.scale is not None:
             frames = as_float32(frames, self.scale)
         if self.flatten:

@@ -20,7 +20,7 @@ from tmrl.errors import UserError
 from tmrl.memory.api import TorchMemory
 from tmrl.memory.episodes import EpisodeLinks
 from tmrl.memory.persist import load_dataset
-from tmrl.memory.resident import DeviceRing, RingDoesNotFit, wants_device_ring
+from tmrl.memory.resident import DeviceRing, RingDoesNotFit, take, wants_device_ring
 from tmrl.memory.sampler import SlotSampler
 from tmrl.memory.storage import ColumnBuffer, RestoreWindow, RingStorage, SampleBuffer, SampleColumns
 from tmrl.memory.tree import _tree_map, _unflatten
@@ -293,8 +293,9 @@ class GenericTorchMemory(TorchMemory):
     def build_from(self, rings: Any, hist: Any) -> Any:
         """The observations whose history slots are ``hist``, gathered from ``rings``: the code
         both paths run, on NumPy arrays (the host :class:`RingStorage`) or on tensors (the
-        :class:`~tmrl.memory.resident.DeviceRing`). It must use only indexing, ``reshape`` and
-        :func:`~tmrl.memory.resident.as_float32`, which both kinds of arrays share.
+        :class:`~tmrl.memory.resident.DeviceRing`). It must gather with :func:`~tmrl.memory.resident.take`
+        and convert with :func:`~tmrl.memory.resident.as_float32`, and otherwise use only slicing
+        and ``reshape``, which both kinds of arrays share.
 
         Args:
             rings: what holds the rings: ``obs`` (one ring per observation leaf), ``act``,
@@ -306,7 +307,7 @@ class GenericTorchMemory(TorchMemory):
             The stored structure with batched leaves.
         """
         idx = hist[:, -1]
-        return _unflatten(rings.obs_spec, [leaf[idx] for leaf in rings.obs])
+        return _unflatten(rings.obs_spec, [take(leaf, idx) for leaf in rings.obs])
 
     # --- sampling ------------------------------------------------------------------------------
 
@@ -387,11 +388,11 @@ class GenericTorchMemory(TorchMemory):
         last = hist[n:, -1]
         return Batch(
             _tree_map(lambda a: a[:n], obs),
-            ring.act[last],
-            ring.rew[last],
+            take(ring.act, last),
+            take(ring.rew, last),
             _tree_map(lambda a: a[n:], obs),
-            ring.terminated[last],
-            ring.truncated[last],
+            take(ring.terminated, last),
+            take(ring.truncated, last),
         )
 
     def get_transition(self, item: int) -> tuple:
@@ -521,4 +522,4 @@ class RealTimeTorchMemory(GenericTorchMemory):
         base = super().build_from(rings, hist)
         assert rings.act is not None
         elements = tuple(base) if isinstance(base, (tuple, list)) else (base,)
-        return elements + tuple(rings.act[hist[:, j]] for j in range(-self.act_buf_len, 0))
+        return elements + tuple(take(rings.act, hist[:, j]) for j in range(-self.act_buf_len, 0))
