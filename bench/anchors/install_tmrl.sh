@@ -3,6 +3,7 @@
 # (never a dependency of this project).
 #
 #   bash bench/anchors/install_tmrl.sh [DIR]        (default DIR: /tmp/tmrl-anchor)
+#   TMRL_WHEELS=.wheels bash bench/anchors/install_tmrl.sh   (offline: see bench/anchors/gpu_wheels.sh)
 #
 # The benchmarks then run it as `HOME=DIR/home DIR/venv/bin/python ...` (python -m bench finds
 # it there by default; --anchor-dir DIR elsewhere), so it never touches your ~/TmrlData.
@@ -13,11 +14,30 @@
 set -euo pipefail
 DIR=${1:-/tmp/tmrl-anchor}
 here=$(cd "$(dirname "$0")" && pwd)
-python3 -m venv "$DIR/venv"
-"$DIR/venv/bin/pip" install -q torch==2.13.0
-"$DIR/venv/bin/pip" install -q --no-deps tmrl==0.7.1
-"$DIR/venv/bin/pip" install -q numpy pandas gymnasium 'rtgym>=0.13' pyyaml requests \
-    opencv-python-headless pyinstrument 'tlspyo>=0.2.5' chardet packaging mss wandb
+if [ -n "${TMRL_WHEELS:-}" ]; then
+    # Offline, on a machine without a package registry (a GPU machine): tmrl 0.7.1 and what its
+    # runtime needs beyond a scientific Python (torch, numpy, pandas...) go from the wheels of
+    # bench/anchors/gpu_wheels.sh into DIR/site, without dependencies (tmrl 0.7.1's own would ask
+    # for pywin32), and DIR/venv/bin/python runs this machine's python3 with them. No venv: one made
+    # from a venv's python (the GPU image's is one) would not see that venv's CUDA torch.
+    wheels=$(cd "$TMRL_WHEELS" && pwd)
+    if [ -L "$DIR/venv/bin/python" ]; then  # a venv made online: never write through its python's link
+        echo "$DIR holds a virtual environment already: give another DIR" >&2
+        exit 2
+    fi
+    python3 -m pip install -q --no-index --no-deps --target "$DIR/site" \
+        $(cd "$wheels" && ls | grep -E '^(tmrl-0\.7\.1|rtgym|tlspyo|twisted|automat|constantly|hyperlink|incremental|zope|pyopenssl|cryptography|cffi|pycparser|service_identity|pyasn1|pyinstrument|chardet|mss|gymnasium|farama)' | sed "s|^|$wheels/|")
+    mkdir -p "$DIR/venv/bin"
+    printf '#!/bin/sh\nPYTHONPATH="%s" exec "%s" "$@"\n' "$DIR/site" "$(python3 -c 'import sys; print(sys.executable)')" \
+        > "$DIR/venv/bin/python"
+    chmod +x "$DIR/venv/bin/python"
+else
+    python3 -m venv "$DIR/venv"
+    "$DIR/venv/bin/pip" install -q torch==2.13.0
+    "$DIR/venv/bin/pip" install -q --no-deps tmrl==0.7.1
+    "$DIR/venv/bin/pip" install -q numpy pandas gymnasium 'rtgym>=0.13' pyyaml requests \
+        opencv-python-headless pyinstrument 'tlspyo>=0.2.5' chardet packaging mss wandb
+fi
 mkdir -p "$DIR/home/TmrlData/"{checkpoints,config,dataset,reward,weights}
 cp "$here/tmrl-0.7.1-config.json" "$DIR/home/TmrlData/config/config.json"
 cd "$DIR"  # outside any checkout of this project, so that `import tmrl` finds 0.7.1
