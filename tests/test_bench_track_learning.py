@@ -660,3 +660,21 @@ def test_the_drq_settings_the_docs_give_are_the_ones_the_benchmark_runs():
             assert abs(float(built.alpha) - float(measured.alpha)) < 1e-7, page
             found += 1
     assert found == 2
+
+
+@pytest.mark.parametrize("label", ["DRQ", "SAC-TMRL-CNN"])
+def test_an_image_row_builds_its_memory_agent_and_actor_on_its_device(label):
+    from tmrl.sim.interfaces import fast_env
+
+    parts = tl._pixel_parts(label, "classic", 8, 1000, "meta")  # meta stands in for a GPU
+    env = fast_env(tl.pixel_config(label, "classic", 8))
+    agent = parts["agent"]((env.observation_space, env.action_space), "meta")
+    assert parts["memory"].device == "meta"
+    assert {p.device.type for p in agent.model.parameters()} == {"meta"}
+    assert torch_device(agent.get_actor().device) == "meta"  # the loop acts with it: observations collate there
+
+
+def torch_device(device):
+    import torch
+
+    return torch.device(device).type
