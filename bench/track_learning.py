@@ -1,11 +1,14 @@
 """Learning in environment steps: how many simulator steps each agent needs to complete a lap,
-on the built-in tracks, with the simulator's lidar observations in fast mode (and Pendulum-v1).
+on the built-in tracks, with the simulator's lidar observations in fast mode (and Pendulum-v1), or
+from its images (``--interface SIMFULL``).
 
     python -m bench track_learning                 # the default agents, oval/classic/technical, 5 seeds
     python -m bench track_learning --quick         # a CI-sized check (one seed, classic, 1,000 steps)
     python -m bench track_learning --agents SAC,SAC-UTD2,SAC-UTD4 --tracks classic --seeds 5 --jobs 2
     python -m bench track_learning --floor         # the least time the full run can take on this machine
     python -m bench track_learning --device cpu    # on the CPU even where there is a GPU
+    python -m bench track_learning --interface SIMFULL --device cuda --jobs 3   # from pixels (a GPU host)
+    python -m bench track_learning --interface SIMFULL --quick                  # its CI-sized check
 
 In real time an environment step costs 50 ms of somebody's afternoon whatever the computer, so
 the figure that matters is steps, not updates per second. Each run is a fresh process with one
@@ -57,6 +60,38 @@ update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides
 compares :data:`DEFAULT_AGENTS` unless ``--agents`` names others. Budgets per track are in
 :data:`PROFILES`: on ``classic`` every run drives its whole budget, so that best laps compare at an
 equal number of steps; on ``oval`` and ``technical`` a run ends 500 steps after its first lap.
+
+From pixels (``--interface SIMFULL``; the default, ``SIMLIDAR``, is everything above). The image
+variants (:data:`PIXEL_VARIANTS`) run on the simulator's full interface (speed, gear, rpm and a
+history of 4 grayscale 64x64 frames, uint8) with the objects a ``SIMFULL`` config builds
+(:func:`tmrl.assembly.assemble`: the fast environment, the preprocessor, the sample compressor, the
+replay memory, the actor and the agent), each variant being a set of ``config.json`` keys over the
+defaults (:func:`pixel_config`). ``DRQ`` is the recommended image agent: DrQ
+(:mod:`tmrl.algorithms.drq`: uint8 frames to the model, ``RawImageMemory``, random shifts of 4
+pixels) at DrQ's learning rates 1e-3, initial entropy coefficient 0.1 (learned, target ``-3``),
+target factor 0.99 and gamma 0.99, Adam's default betas, 1,000 random steps (DrQ's seed steps,
+tmrl's ``ENVIRONMENT_STEPS_BEFORE_TRAINING``) and 8 updates per environment step, the ratio of
+this project's lidar recommendation (not measured from pixels yet; ``DRQ-UTD4`` and ``DRQ-UTD1``,
+the papers' one update per step, are the screens around it). ``SAC-TMRL-CNN`` is tmrl's
+``TM20FULL`` setting: SAC with tmrl's VanillaCNN actor-critic (:class:`tmrl.driving.models.CNNActorCritic`
+at its default sizes, one CNN per actor and critic), the ``ImageMemory`` of float frames and
+tmrl's default ``ALG`` values (the ``SAC-TMRL`` row's: learning rates 1e-5/5e-5, gamma 0.995,
+fixed alpha 0.01, betas 0.997), 4 updates per step after 1,000 random steps. Beside them, on the
+same tracks, seeds and budgets, the lidar recommendation :data:`LIDAR_REFERENCE` runs on
+``SIMLIDAR`` (any lidar variant named in ``--agents`` does: a lidar model reads no images), so that
+one table holds the image rows and their lidar reference. Every row's record names its interface
+(``"interface"`` in each measure, and the settings' ``interfaces``); ``--merge`` refuses records of
+two interfaces as it refuses two devices. The budgets (:data:`PROFILES` ``"pixels"``: ``oval``
+10,000 steps, ending 500 steps after the first lap; ``classic`` 20,000, every run to its end;
+``oval,classic`` by default, 3 seeds) are sized for an H100 host on the assumption that the image
+trainer reaches about 800 updates per second there (the target of this benchmark, not yet
+measured): a ``DRQ`` run on ``classic`` is 19,000 training steps x 8 updates = 152,000 updates,
+190 s at that rate, plus its 20,000 environment steps and up to 40 test episodes (a step of the
+simulator with the image policy acting took about a millisecond on the development CPU), within the
+8 minutes a seed is given; ``--jobs 3`` runs three seeds side by side on the host's cores. On a 2-core CPU the same
+update runs at 1.63 per second at batch 256 (docs/benchmarks.md, "From pixels"): about 26 hours for
+that run. ``--quick`` with ``SIMFULL`` is a CI-sized check (one seed, ``classic``, 200 steps of
+which the last 10 train, batches of 8). ``--floor`` and ``--pendulum`` go with ``SIMLIDAR`` only.
 """
 
 from __future__ import annotations
@@ -156,8 +191,62 @@ START_STEPS = 1_000
 
 
 def start_steps_of(label: str) -> int:
-    """The random steps variant ``label`` takes before training."""
+    """The random steps variant ``label`` takes before training (an image variant: its config's
+    ``ENVIRONMENT_STEPS_BEFORE_TRAINING``)."""
+    if label in PIXEL_VARIANTS:
+        return int(PIXEL_VARIANTS[label].get("ENVIRONMENT_STEPS_BEFORE_TRAINING", START_STEPS))
     return int(DEMO_OVERRIDES.get(label, {}).get("start_steps", START_STEPS))
+
+
+def utd_of(label: str) -> int:
+    """The updates per environment step of variant ``label`` (an image variant: its config's
+    ``MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP``, tmrl's 4 unless it names its own)."""
+    if label in PIXEL_VARIANTS:
+        return int(PIXEL_VARIANTS[label].get("MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP", 4.0))
+    return VARIANTS[label][2]
+
+
+#: The observation interfaces ``--interface`` takes: the lidar (the default) or the images.
+INTERFACES = ("SIMLIDAR", "SIMFULL")
+
+#: DrQ's ``ALG`` settings, those :mod:`tmrl.algorithms.drq` and docs/simulator.md give: DrQ's
+#: learning rates, initial entropy coefficient (learned toward ``-act_dim``) and target factor,
+#: gamma 0.99, Adam's default betas, random shifts of 4 pixels.
+DRQ_ALG: dict[str, Any] = {
+    "ALGORITHM": "DRQ", "DRQ_IMAGE_PAD": 4, "LR_ACTOR": 0.001, "LR_CRITIC": 0.001, "LR_ENTROPY": 0.001,
+    "GAMMA": 0.99, "POLYAK": 0.99, "ALPHA": 0.1, "LEARN_ENTROPY_COEF": True, "TARGET_ENTROPY": None,
+    "BETAS_ACTOR": [0.9, 0.999], "BETAS_CRITIC": [0.9, 0.999],
+}
+
+#: The image variants of ``--interface SIMFULL``: label -> the ``config.json`` keys it sets over
+#: the defaults (:func:`tmrl.config.schema.defaults`, tmrl 0.7.1's ``TM20FULL`` file), which
+#: :func:`pixel_config` puts on the simulator's full interface. ``DRQ`` is the recommended image
+#: agent (8 updates per step, the lidar recommendation's ratio, after DrQ's 1,000 seed steps);
+#: ``DRQ-UTD4`` and ``DRQ-UTD1`` the same at 4 and at the papers' one; ``SAC-TMRL-CNN`` is the
+#: defaults themselves: tmrl's SAC with its VanillaCNN actor-critic and its ``ALG`` values, 4
+#: updates per step after 1,000 random steps.
+PIXEL_VARIANTS: dict[str, dict[str, Any]] = {
+    "DRQ": {"MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 8.0, "ENVIRONMENT_STEPS_BEFORE_TRAINING": 1000,
+            "ALG": DRQ_ALG},
+    "DRQ-UTD4": {"MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 4.0, "ENVIRONMENT_STEPS_BEFORE_TRAINING": 1000,
+                 "ALG": DRQ_ALG},
+    "DRQ-UTD1": {"MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 1.0, "ENVIRONMENT_STEPS_BEFORE_TRAINING": 1000,
+                 "ALG": DRQ_ALG},
+    "SAC-TMRL-CNN": {},
+}
+
+#: The lidar row of a ``SIMFULL`` table: the lidar recommendation of docs/trackmania.md for a trainer
+#: that can afford it (a GPU), run on ``SIMLIDAR`` on the same tracks, seeds and budgets.
+LIDAR_REFERENCE = "REDQSAC-UTD8-CAP-R250"
+
+#: The agents a ``SIMFULL`` run compares unless ``--agents`` says otherwise.
+DEFAULT_PIXEL_AGENTS: tuple[str, ...] = ("DRQ", "SAC-TMRL-CNN", LIDAR_REFERENCE)
+
+
+def interface_of(label: str) -> str:
+    """The interface variant ``label`` runs on: ``SIMFULL`` for an image variant, ``SIMLIDAR``
+    for a lidar one (also inside a ``SIMFULL`` run: a lidar model reads no images)."""
+    return "SIMFULL" if label in PIXEL_VARIANTS else "SIMLIDAR"
 
 #: Budgets (environment steps per run) by profile.
 PROFILES: dict[str, dict[str, Any]] = {
@@ -167,7 +256,24 @@ PROFILES: dict[str, dict[str, Any]] = {
              "seeds": 5, "eval_every": 500, "settle": {"oval": 500, "technical": 500}},
     "quick": {"steps": {"oval": 1_000, "classic": 1_000, "technical": 1_000, "pendulum": 1_000},
               "seeds": 1, "eval_every": 500, "settle": {}},
+    # --interface SIMFULL, sized for an H100 host at the assumed ~800 image updates per second (the
+    # module's notes): a DRQ seed on classic in about 5 minutes of the 8 it is given
+    "pixels": {"steps": {"oval": 10_000, "classic": 20_000, "technical": 20_000},
+               "seeds": 3, "eval_every": 500, "settle": {"oval": 500, "technical": 500},
+               "tracks": ("oval", "classic")},
+    # its CI-sized check: random steps up to the last 10, which train (every variant's own ratio)
+    # on batches of 8; one test episode at the end
+    "pixels-quick": {"steps": {"oval": 200, "classic": 200, "technical": 200},
+                     "seeds": 1, "eval_every": 200, "settle": {}, "tracks": ("classic",),
+                     "train_steps": 10, "batch_size": 8},
 }
+
+
+def profile_name(interface: str, quick: bool) -> str:
+    """The :data:`PROFILES` key of a command: ``full``/``quick`` (lidar), ``pixels``/``pixels-quick``."""
+    if interface == "SIMFULL":
+        return "pixels-quick" if quick else "pixels"
+    return "quick" if quick else "full"
 
 
 # --- one run (child process) ----------------------------------------------------------------------
@@ -296,28 +402,81 @@ def _lidar_model(alg: str) -> Any:
     return lidar_model_cls(alg)
 
 
+def pixel_config(label: str, track: str, batch_size: int, memory_size: int = 200_000) -> dict[str, Any]:
+    """The validated config of image variant ``label`` on ``track``: the defaults (tmrl's
+    ``TM20FULL`` settings), the variant's keys (:data:`PIXEL_VARIANTS`), and the simulator's full
+    interface in fast mode with the lidar runs' environment (:func:`tmrl.sim.demo._demo_config`:
+    4 frames of 64x64, 2 actions in the observation, episodes of at most 1,000 steps, the default
+    reward), ``BATCH_SIZE`` and ``MEMORY_SIZE``."""
+    from tmrl.config.loader import deep_merge, validate
+    from tmrl.config.schema import defaults
+    from tmrl.sim.demo import _demo_config
+
+    cfg = deep_merge(defaults(), PIXEL_VARIANTS[label])
+    env = {**_demo_config("SIMFULL", track)["ENV"], "SIM_FAST_MODE": True, "IMG_GRAYSCALE": True}
+    cfg = deep_merge(cfg, {"ENV": env, "BATCH_SIZE": int(batch_size), "MEMORY_SIZE": int(memory_size)})
+    return validate(cfg, source=f"the {label} variant")
+
+
+def _pixel_parts(label: str, track: str, batch_size: int, memory_size: int, device: str) -> dict[str, Any]:
+    """What :func:`run` needs of image variant ``label``, all from :func:`tmrl.assembly.assemble`
+    of its :func:`pixel_config`: the environment factory, the actor class, the worker's
+    preprocessor and compressor, the replay memory (batches on ``device``) and the agent factory
+    (``agent(spaces, device)``, the config's ``ALG`` and model)."""
+    from tmrl.assembly import assemble
+
+    cfg = pixel_config(label, track, batch_size, memory_size)
+    built = assemble(cfg)
+    return {"env_cls": built.ENV_CLS, "actor_cls": built.POLICY,
+            "memory": built.MEMORY(nb_steps=1, device=device),
+            "worker": {"obs_preprocessor": built.OBS_PREPROCESSOR, "sample_compressor": built.SAMPLE_COMPRESSOR},
+            "max_samples": cfg["ENV"]["RTGYM_CONFIG"]["ep_max_length"],
+            "agent": lambda spaces, dev: built.AGENT(*spaces, dev)}
+
+
+def _observed(env: Any) -> tuple[str, list[list[int]]]:
+    """The interface an environment was built with (``SIMLIDAR``, ``SIMFULL``..., ``GYM``) and the
+    shapes of its observation's elements: what a run reports it drove, not what it was asked."""
+    from tmrl.sim.interfaces import SIM_INTERFACES
+
+    inner = getattr(env.unwrapped, "interface", None)
+    name = next((n for n, cls in SIM_INTERFACES.items() if type(inner) is cls), "GYM")
+    space = env.observation_space
+    elements = list(getattr(space, "spaces", [space]))
+    return name, [list(e.shape) for e in elements]
+
+
 def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps: int, eval_every: int,
         batch_size: int, append_every: int, settle: int | None = None,
-        on_agent: Callable[[Any], None] | None = None, device: str = "cpu") -> dict[str, Any]:
+        on_agent: Callable[[Any], None] | None = None, device: str = "cpu",
+        interface: str = "SIMLIDAR") -> dict[str, Any]:
     """One learning run on ``device``: its training episodes (end step, return, lap time or
     None), its test episodes, and timings. With ``settle``, the run ends that many steps after its first lap
     (or at ``steps``). ``on_agent`` is called with the agent once it is built (the floor's FLOP
-    count wraps its update there)."""
+    count wraps its update there). ``interface``: ``SIMLIDAR`` (a lidar variant of
+    :data:`VARIANTS`) or ``SIMFULL`` (an image variant of :data:`PIXEL_VARIANTS`); the result's
+    ``interface`` and ``observation`` say what the environment built gave."""
     import numpy as np
     import torch
 
     from tmrl.networking import RolloutWorker
 
+    if env_name != "pendulum" and interface != interface_of(label):
+        raise SystemExit(f"{label} runs on {interface_of(label)}, not {interface}")
     torch.set_num_threads(1)
     torch.manual_seed(seed)
     np.random.seed(seed)
-    p = _parts("pendulum" if env_name == "pendulum" else "simlidar", batch_size, 200_000, track=env_name,
-               device=device)
+    if interface == "SIMFULL":
+        p = _pixel_parts(label, env_name, batch_size, 200_000, device)
+    else:
+        p = _parts("pendulum" if env_name == "pendulum" else "simlidar", batch_size, 200_000, track=env_name,
+                   device=device)
     memory = p["memory"]
     worker_kwargs = dict(env_cls=p["env_cls"], actor_module_cls=p["actor_cls"], standalone=True, model_history=0,
                          max_samples_per_episode=p["max_samples"], model_path=os.devnull + "_none", **p["worker"])
     worker, tester = RolloutWorker(**worker_kwargs), RolloutWorker(**worker_kwargs)
-    agent = _agent(label, (worker.env.observation_space, worker.env.action_space), env_name, utd, device)
+    spaces = (worker.env.observation_space, worker.env.action_space)
+    agent = p["agent"](spaces, device) if "agent" in p else _agent(label, spaces, env_name, utd, device)
     n_step = int(DEMO_OVERRIDES.get(label, {}).get("n_step", 1))
     if n_step > 1:
         _n_step_targets(agent, memory, n_step)
@@ -359,9 +518,10 @@ def run(env_name: str, label: str, seed: int, steps: int, utd: int, start_steps:
             print(f"    [{env_name} {label} seed {seed}] step {step:6d} test return {tests[-1][1]:8.1f}"
                   f"{'' if lap is None else f' lap {lap:.2f} s'} ({time.perf_counter() - start:.0f} s)",
                   file=sys.stderr, flush=True)
+    observed, shapes = _observed(worker.env)
     return {"episodes": episodes, "tests": tests, "wall_s": time.perf_counter() - start, "updates": updates,
             "steps": min(end, steps),
-            "updates_per_s": updates / max(t_update, 1e-9)}
+            "updates_per_s": updates / max(t_update, 1e-9), "interface": observed, "observation": shapes}
 
 
 def _test_episode(tester: Any, max_samples: int) -> tuple[float, float | None]:
@@ -544,6 +704,7 @@ def _plot(path: Path, results: dict[tuple[str, str], list[dict[str, Any]]], envs
     except ImportError:
         return False
     fig, axes = plt.subplots(1, len(envs), figsize=(5.5 * len(envs), 4.2), squeeze=False)
+    mixed = any(r.get("interface", "SIMLIDAR") not in ("SIMLIDAR", "GYM") for rs in results.values() for r in rs)
     for ax, env in zip(axes[0], envs):
         grid = np.linspace(0, budgets[env], 60)
         for label in labels:
@@ -560,10 +721,13 @@ def _plot(path: Path, results: dict[tuple[str, str], list[dict[str, Any]]], envs
             if not curves:
                 continue
             arr = np.array(curves)  # drawn while every seed still runs (a run may end after its first lap)
-            line = ax.plot(grid, np.median(arr, axis=0), label=f"{label} ({len(curves)} seeds)")[0]
+            where = _interface_of_rows(runs)
+            tag = f", {where}" if mixed and env != "pendulum" else ""
+            line = ax.plot(grid, np.median(arr, axis=0), label=f"{label} ({len(curves)} seeds{tag})")[0]
             if len(curves) > 1:
                 ax.fill_between(grid, arr.min(axis=0), arr.max(axis=0), color=line.get_color(), alpha=0.15)
-        ax.set_title(env if env == "pendulum" else f"track {env} (SIMLIDAR, fast mode)")
+        title = "SIMFULL and SIMLIDAR" if mixed else "SIMLIDAR"
+        ax.set_title(env if env == "pendulum" else f"track {env} ({title}, fast mode)")
         ax.set_xlabel("environment steps (50 ms each in real time)")
         ax.set_ylabel("test return" if env == "pendulum" else "training episode return (mean of 5)")
         ax.grid(alpha=0.3)
@@ -578,8 +742,13 @@ def _plot(path: Path, results: dict[tuple[str, str], list[dict[str, Any]]], envs
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m bench track_learning", description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="CI-sized: 1 seed, classic only, short budgets")
-    ap.add_argument("--agents", default=",".join(DEFAULT_AGENTS),
-                    help="comma-separated among " + ", ".join(VARIANTS) + " (default: " + ",".join(DEFAULT_AGENTS) + ")")
+    ap.add_argument("--interface", type=str.upper, choices=INTERFACES, default="SIMLIDAR",
+                    help="SIMLIDAR (default: the lidar variants) or SIMFULL (the image variants, "
+                    + ", ".join(PIXEL_VARIANTS) + ", beside lidar variants run on SIMLIDAR; default agents "
+                    + ",".join(DEFAULT_PIXEL_AGENTS) + ", tracks oval,classic, 3 seeds)")
+    ap.add_argument("--agents", default=None,
+                    help="comma-separated among " + ", ".join(VARIANTS) + " (default: " + ",".join(DEFAULT_AGENTS)
+                    + "); with --interface SIMFULL also " + ", ".join(PIXEL_VARIANTS))
     ap.add_argument("--tracks", default=None, help="comma-separated among " + ", ".join(TRACKS))
     ap.add_argument("--pendulum", action="store_true", help="also Pendulum-v1 (steps to a test return above -200)")
     ap.add_argument("--seeds", type=int, default=None)
@@ -590,7 +759,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--start-steps", type=int, default=None, help="uniformly random actions first, for every "
                     f"agent (default: each variant's own, {START_STEPS} unless it says otherwise)")
     ap.add_argument("--eval-every", type=int, default=None)
-    ap.add_argument("--batch-size", type=int, default=256)
+    ap.add_argument("--batch-size", type=int, default=None, help="default 256 (8 for --interface SIMFULL --quick)")
     ap.add_argument("--append-every", type=int, default=10)
     ap.add_argument("--jobs", type=int, default=2, help="runs at once (one torch thread each)")
     ap.add_argument("--settle", type=int, default=None, help="end a run this many steps after its first lap, "
@@ -604,29 +773,51 @@ def main(argv: list[str] | None = None) -> None:
     if args.merge:
         merge_main(args.merge)
         return
+    pixels = args.interface == "SIMFULL"
+    if pixels and (args.floor or args.pendulum):
+        ap.error("--floor and --pendulum go with --interface SIMLIDAR only")
     # --floor counts one CPU core's matrix products: its record is a CPU one whatever --device says
     device = "cpu" if args.floor else harness.resolve_device(ap, args.device)
-    profile = PROFILES["quick" if args.quick else "full"]
-    labels = [a.strip().upper() for a in args.agents.split(",") if a.strip()]
-    if set(labels) - set(VARIANTS):
-        ap.error(f"unknown agent(s) {sorted(set(labels) - set(VARIANTS))}: use {', '.join(VARIANTS)}")
-    tracks = [t for t in (args.tracks or ("classic" if args.quick else ",".join(TRACKS))).split(",") if t]
+    name = profile_name(args.interface, args.quick)
+    profile = PROFILES[name]
+    known = {**VARIANTS, **PIXEL_VARIANTS} if pixels else VARIANTS
+    agents = args.agents or ",".join(DEFAULT_PIXEL_AGENTS if pixels else DEFAULT_AGENTS)
+    labels = [a.strip().upper() for a in agents.split(",") if a.strip()]
+    if set(labels) - set(known):
+        hint = "" if pixels or not set(labels) & set(PIXEL_VARIANTS) else " (image variants need --interface SIMFULL)"
+        ap.error(f"unknown agent(s) {sorted(set(labels) - set(known))}{hint}: use {', '.join(known)}")
+    default_tracks = ",".join(profile.get("tracks", ("classic",) if args.quick else TRACKS))
+    tracks = [t for t in (args.tracks or default_tracks).split(",") if t]
     if set(tracks) - set(TRACKS):
         ap.error(f"unknown track(s) {sorted(set(tracks) - set(TRACKS))}: use {', '.join(TRACKS)}")
     envs = tracks + (["pendulum"] if args.pendulum else [])
     seeds = args.seeds or profile["seeds"]
     eval_every = args.eval_every or profile["eval_every"]
+    batch_size = args.batch_size or profile.get("batch_size", 256)
     budgets = {e: args.steps or profile["steps"][e] for e in envs}
-    utd = {label: args.utd or VARIANTS[label][2] for label in labels}
+    utd = {label: args.utd or utd_of(label) for label in labels}
     start = {label: start_steps_of(label) if args.start_steps is None else args.start_steps for label in labels}
     settle = settle_per_env(profile, envs, args.settle)
-    settings = {"profile": "quick" if args.quick else "full", "budgets": budgets, "utd": utd,
-                "start_steps": start, "eval_every": eval_every, "batch_size": args.batch_size,
+    interfaces = {label: interface_of(label) for label in labels}
+
+    def run_start(label: str, env: str) -> int:
+        """The random steps of one run: the variant's, at most half the budget; a profile with
+        ``train_steps`` (the CI check) trains that many last steps instead."""
+        if args.start_steps is None and "train_steps" in profile:
+            return max(0, budgets[env] - profile["train_steps"])
+        return min(start[label], budgets[env] // 2)
+
+    settings = {"profile": name, "budgets": budgets, "utd": utd,
+                "start_steps": start, "eval_every": eval_every, "batch_size": batch_size,
                 "append_every": args.append_every, "jobs": args.jobs, "torch_threads_per_run": 1, "settle": settle,
-                **harness.device_settings(device)}
+                "interface": args.interface, **harness.device_settings(device)}
+    if pixels:  # each row's interface, and the config keys of each image variant
+        settings.update(interfaces=interfaces, start_steps={label: {e: run_start(label, e) for e in envs}
+                                                            for label in labels},
+                        pixel_variants={label: PIXEL_VARIANTS[label] for label in labels if label in PIXEL_VARIANTS})
     rec = harness.Recorder("track_learning", settings)
     if args.floor:
-        floor_main(labels, {t: budgets[t] for t in tracks}, settle, start, seeds, args.jobs, args.batch_size, rec)
+        floor_main(labels, {t: budgets[t] for t in tracks}, settle, start, seeds, args.jobs, batch_size, rec)
         rec.close()
         return
     side = harness.ours_side()
@@ -635,14 +826,20 @@ def main(argv: list[str] | None = None) -> None:
     def one(job: tuple[str, int, str]) -> tuple[tuple[str, int, str], dict[str, Any]]:
         env, seed, label = job
         kwargs = {"env_name": env, "label": label, "seed": seed, "steps": budgets[env], "utd": utd[label],
-                      "start_steps": min(start[label], budgets[env] // 2), "eval_every": eval_every,
-                      "batch_size": args.batch_size, "append_every": args.append_every, "settle": settle[env],
-                      "device": device}
+                  "start_steps": run_start(label, env), "eval_every": eval_every,
+                  "batch_size": batch_size, "append_every": args.append_every, "settle": settle[env],
+                  "device": device}
+        if pixels:
+            kwargs["interface"] = interfaces[label]
         out = subprocess.run(side.command("track_learning", "--run", json.dumps(kwargs)), env=side.env,
                              cwd=side.cwd, stdout=subprocess.PIPE, text=True, check=False)
         if out.returncode != 0:
             raise SystemExit(f"the {label} run on {env}, seed {seed}, failed (exit code {out.returncode})")
-        return job, json.loads(out.stdout.strip().splitlines()[-1])
+        res = json.loads(out.stdout.strip().splitlines()[-1])
+        asked = "GYM" if env == "pendulum" else interfaces[label]
+        if res.get("interface", asked) != asked:
+            raise SystemExit(f"the {label} run on {env}, seed {seed}, drove {res['interface']}, not {asked}")
+        return job, res
 
     t0 = time.perf_counter()
     results: dict[tuple[str, str], list[dict[str, Any]]] = {}
@@ -650,15 +847,17 @@ def main(argv: list[str] | None = None) -> None:
         for future in as_completed([pool.submit(one, job) for job in plan]):  # recorded as they end
             (env, seed, label), res = future.result()
             results.setdefault((env, label), []).append(res)
-            rec.add(env, "wall_s", label, res["wall_s"], round=seed, higher_is_better=False, unit="s")
-            rec.add(env, "updates_per_s_in_train", label, res["updates_per_s"], round=seed, unit="1/s")
+            row = {"interface": res.get("interface", interfaces[label])}
+            rec.add(env, "wall_s", label, res["wall_s"], round=seed, higher_is_better=False, unit="s", **row)
+            rec.add(env, "updates_per_s_in_train", label, res["updates_per_s"], round=seed, unit="1/s", **row)
             if env == "pendulum":
                 rec.add(env, "steps_to_-200", label, steps_to_return(res, -200.0), round=seed,
-                        higher_is_better=False, unit="steps", curve=res["tests"])
+                        higher_is_better=False, unit="steps", curve=res["tests"], **row)
             else:
                 rec.add(env, "steps_to_first_lap", label, first_step(res), round=seed, higher_is_better=False,
-                        unit="steps", laps=laps(res), episodes=res["episodes"], tests=res["tests"])
-                rec.add(env, "best_lap_s", label, best_lap(res), round=seed, higher_is_better=False, unit="s")
+                        unit="steps", laps=laps(res), episodes=res["episodes"], tests=res["tests"],
+                        observation=res.get("observation"), **row)
+                rec.add(env, "best_lap_s", label, best_lap(res), round=seed, higher_is_better=False, unit="s", **row)
     total = time.perf_counter() - t0
     _print_table(results, envs, labels, budgets, seeds)
     print(f"\nwhole run: {total / 60:.1f} min with {args.jobs} jobs; load average {harness.load_average():.2f}")
@@ -676,6 +875,7 @@ def load_results(paths: list[Path]) -> tuple[dict[tuple[str, str], list[dict[str
     runs: dict[tuple[str, str, int], dict[str, Any]] = {}
     budgets: dict[str, int] = {}
     devices: dict[str, Path] = {}
+    interfaces: dict[str, Path] = {}
     for path in paths:
         if not Path(path).is_file():
             raise SystemExit(f"{path}: no such record (the JSONL files are in bench/out/)")
@@ -693,12 +893,20 @@ def load_results(paths: list[Path]) -> tuple[dict[tuple[str, str], list[dict[str
                     first, second = devices.items()
                     raise SystemExit(f"{second[1]} was recorded on {second[0]} and {first[1]} on {first[0]}: "
                                      "merge the records of one device at a time")
+                # records from before --interface were all lidar ones
+                interfaces.setdefault(rec["settings"].get("interface", "SIMLIDAR"), Path(path))
+                if len(interfaces) > 1:
+                    first, second = interfaces.items()
+                    raise SystemExit(f"{second[1]} was recorded with --interface {second[0]} and {first[1]} with "
+                                     f"--interface {first[0]}: merge the records of one interface at a time")
                 for env, steps in rec["settings"]["budgets"].items():
                     budgets[env] = max(budgets.get(env, 0), int(steps))
                 continue
             if rec.get("kind") != "measure":
                 continue
             run = runs.setdefault((rec["case"], rec["side"], int(rec["round"])), {})
+            if "interface" in rec:
+                run["interface"] = rec["interface"]
             if rec["metric"] == "wall_s":
                 run["wall_s"] = rec["value"]
             elif rec["metric"] == "updates_per_s_in_train":
@@ -720,7 +928,7 @@ def merge_main(paths: list[Path]) -> None:
     if not results:
         raise SystemExit("no track_learning runs in " + ", ".join(map(str, paths)))
     envs = [e for e in (*TRACKS, "pendulum") if any(env == e for env, _ in results)]
-    labels = [lab for lab in VARIANTS if any(label == lab for _, label in results)]
+    labels = [lab for lab in (*PIXEL_VARIANTS, *VARIANTS) if any(label == lab for _, label in results)]
     _print_table(results, envs, labels, budgets, seeds)
     png = harness.OUT / f"track_learning-merged-{time.strftime('%Y%m%d-%H%M%S')}.png"
     png.parent.mkdir(parents=True, exist_ok=True)
@@ -755,8 +963,11 @@ def _print_table(results: dict[tuple[str, str], list[dict[str, Any]]], envs: lis
         within = overall * 1.1 if overall else None
         print(f"  reference lap {'-' if ref is None else f'{ref:.2f} s'}; best lap of any agent "
               f"{'-' if overall is None else f'{overall:.2f} s'}")
-        print(f"  {'agent':16s} {'steps to first lap':>30s} {'steps to lap <= best+10%':>30s} "
-              f"{'best lap s':>26s} {'best/ref':>9s} {'wall s':>8s}")
+        shown = {lab: _interface_of_rows(results.get((env, lab), [])) for lab in labels}
+        mixed = any(i != "SIMLIDAR" for i in shown.values())  # a lidar-only table keeps its columns
+        w = max(16, *map(len, labels)) if mixed else 16
+        print(f"  {'agent':{w}s} " + (f"{'interface':9s} " if mixed else "") + f"{'steps to first lap':>30s} "
+              f"{'steps to lap <= best+10%':>30s} {'best lap s':>26s} {'best/ref':>9s} {'wall s':>8s}")
         for label in labels:
             runs = results.get((env, label), [])
             firsts = [first_step(r) for r in runs]
@@ -764,5 +975,12 @@ def _print_table(results: dict[tuple[str, str], list[dict[str, Any]]], envs: lis
             best = [best_lap(r) for r in runs]
             med_best = median_or_none(best)
             ratio = "-" if ref is None or med_best is None else f"{med_best / ref:.2f}"
-            print(f"  {label:16s} {_span(firsts):>30s} {_span(near):>30s} {_span(best, '{:.2f}'):>26s} {ratio:>9s} "
+            print(f"  {label:{w}s} " + (f"{shown[label]:9s} " if mixed else "") + f"{_span(firsts):>30s} "
+                  f"{_span(near):>30s} {_span(best, '{:.2f}'):>26s} {ratio:>9s} "
                   f"{statistics.median(r['wall_s'] for r in runs):8.0f}")
+
+
+def _interface_of_rows(runs: list[dict[str, Any]]) -> str:
+    """The interface a table row's runs drove (records from before ``--interface``: ``SIMLIDAR``)."""
+    names = sorted({r.get("interface", "SIMLIDAR") for r in runs}) or ["SIMLIDAR"]
+    return "/".join(names)

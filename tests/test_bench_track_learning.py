@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -434,7 +435,8 @@ def test_the_settings_docs_trackmania_gives_are_the_ones_the_benchmark_measured(
 
     measured = {"SAC": "SAC-UTD4-FA", "REDQSAC": "REDQSAC-UTD8-CAP-R250"}
     doc = (REPO / "docs" / "trackmania.md").read_text(encoding="utf-8")
-    fragments = [json.loads("{" + b + "}") for b in re.findall(r"```json\n(.*?)```", doc, re.DOTALL) if '"ALGORITHM"' in b]
+    fragments = [json.loads("{" + b + "}") for b in re.findall(r"```json\n(.*?)```", doc, re.DOTALL)
+                 if '"ALGORITHM"' in b and '"DRQ"' not in b]  # DrQ: the pixel test below
     assert sorted(f["ALG"]["ALGORITHM"] for f in fragments) == sorted(measured)
     shipped = json.loads((REPO / "config" / "config_tm20lidar.json").read_text(encoding="utf-8"))
     env = gymnasium.make("Pendulum-v1")
@@ -455,3 +457,224 @@ def test_the_settings_docs_trackmania_gives_are_the_ones_the_benchmark_measured(
         assert cfg["ENVIRONMENT_STEPS_BEFORE_TRAINING"] == tl.start_steps_of(label), label
         built = agent_class(alg)(*spaces, "cpu", **arguments(cfg, AGENT_CLASSES[alg]))
         assert settings(built) == settings(tl._agent(label, spaces, "pendulum", tl.VARIANTS[label][2])), label
+
+
+# --- from pixels (--interface SIMFULL) ---------------------------------------------------------------
+
+
+def _agent_settings(agent):
+    """What makes two agents the same setting: their hyperparameters, optimizers' betas and classes."""
+    keys = ("lr_actor", "lr_critic", "lr_entropy", "gamma", "polyak", "alpha", "learn_entropy_coef",
+            "target_entropy", "alpha_max", "image_pad", "update_order")
+    betas = [g["betas"] for opt in (agent.pi_optimizer, agent.q_optimizer) for g in opt.param_groups]
+    return {k: getattr(agent, k, None) for k in keys} | {"betas": betas, "type": type(agent).__name__,
+                                                        "model": type(agent.model).__name__}
+
+
+def _pixel_agent(label):
+    """The agent, memory and worker parts a run of image variant ``label`` builds (on classic)."""
+    from tmrl.sim.interfaces import fast_env
+
+    parts = tl._pixel_parts(label, "classic", 8, 1000, "cpu")
+    env = fast_env(tl.pixel_config(label, "classic", 8))
+    return parts, parts["agent"]((env.observation_space, env.action_space), "cpu")
+
+
+def test_the_image_variants_are_what_a_simfull_config_builds():
+    """``DRQ``: DrQ's settings, uint8 frames (preprocessor and RawImageMemory), 8 updates per step
+    after 1,000 random steps. ``SAC-TMRL-CNN``: tmrl 0.7.1's TM20FULL file's ALG values (the anchor
+    file) on SAC with the CNN actor-critic and the float ImageMemory, 4 updates per step."""
+    from tmrl.algorithms.drq import DrQActor
+    from tmrl.driving import preprocessors
+    from tmrl.driving.memories import ImageMemory, RawImageMemory
+    from tmrl.driving.models import DEFAULT_CNN, SquashedGaussianCNNActor
+
+    cfg = tl.pixel_config("DRQ", "oval", 256)
+    env = cfg["ENV"]
+    assert (env["RTGYM_INTERFACE"], env["SIM_FAST_MODE"], env["IMG_HIST_LEN"], env["IMG_WIDTH"], env["IMG_HEIGHT"]) == \
+        ("SIMFULL", True, 4, 64, 64)
+    assert env["RTGYM_CONFIG"]["interface_kwargs"] == {"track": "oval"} and cfg["BATCH_SIZE"] == 256
+    parts, drq = _pixel_agent("DRQ")
+    assert type(parts["memory"]) is RawImageMemory and parts["actor_cls"] is DrQActor
+    assert parts["worker"]["obs_preprocessor"] is preprocessors.preprocess_full_obs_uint8
+    assert _agent_settings(drq) == {
+        "lr_actor": 1e-3, "lr_critic": 1e-3, "lr_entropy": 1e-3, "gamma": 0.99, "polyak": 0.99, "alpha": drq.alpha,
+        "learn_entropy_coef": True, "target_entropy": -3.0, "alpha_max": None, "image_pad": 4,
+        "update_order": "simultaneous", "betas": [(0.9, 0.999)] * 2, "type": "DrQAgent", "model": "DrQActorCritic"}
+    assert abs(float(drq.alpha) - 0.1) < 1e-6
+    assert (tl.utd_of("DRQ"), tl.start_steps_of("DRQ")) == (8, 1000)
+    assert (tl.utd_of("DRQ-UTD4"), tl.utd_of("DRQ-UTD1")) == (4, 1)
+
+    parts, cnn = _pixel_agent("SAC-TMRL-CNN")
+    assert type(parts["memory"]) is ImageMemory and parts["actor_cls"] is SquashedGaussianCNNActor
+    assert parts["worker"]["obs_preprocessor"] is preprocessors.preprocess_full_obs
+    assert type(cnn.model).__name__ == "CNNActorCritic" and len(cnn.model.qs) == 2
+    assert [m.out_channels for m in cnn.model.actor.modules() if type(m).__name__ == "Conv2d"] == \
+        list(DEFAULT_CNN["channels"])  # tmrl's VanillaCNN sizes
+    anchor = json.loads((REPO / "bench" / "anchors" / "tmrl-0.7.1-config.json").read_text(encoding="utf-8"))
+    alg = anchor["ALG"]
+    assert anchor["ENV"]["RTGYM_INTERFACE"] == "TM20FULL" and alg["ALGORITHM"] == "SAC"
+    got = _agent_settings(cnn)
+    assert (got["lr_actor"], got["lr_critic"], got["lr_entropy"], got["gamma"], got["polyak"]) == \
+        (alg["LR_ACTOR"], alg["LR_CRITIC"], alg["LR_ENTROPY"], alg["GAMMA"], alg["POLYAK"])
+    assert got["learn_entropy_coef"] is alg["LEARN_ENTROPY_COEF"] is False and float(cnn.alpha) == alg["ALPHA"]
+    assert got["target_entropy"] == alg["TARGET_ENTROPY"] and got["betas"] == [tuple(alg["BETAS_ACTOR"])] * 2
+    assert (tl.utd_of("SAC-TMRL-CNN"), tl.start_steps_of("SAC-TMRL-CNN")) == \
+        (anchor["MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP"], anchor["ENVIRONMENT_STEPS_BEFORE_TRAINING"])
+    # the lidar reference is docs/trackmania.md's recommendation for a GPU, and it stays on the lidar
+    assert tl.LIDAR_REFERENCE in tl.VARIANTS and tl.LIDAR_REFERENCE in tl.DEFAULT_PIXEL_AGENTS
+    assert tl.interface_of(tl.LIDAR_REFERENCE) == "SIMLIDAR" and tl.interface_of("DRQ") == "SIMFULL"
+    assert not set(tl.PIXEL_VARIANTS) & set(tl.VARIANTS)
+
+
+def test_the_pixel_quick_check_records_image_rows_beside_the_lidar_reference(tmp_path, monkeypatch, capsys):
+    """``--interface SIMFULL --quick``, run for real (one child process per row): the record says
+    the interface of the command and of every row, and the observation each row's environment
+    gave (frames for the image rows, lidar for the reference); every row trained, and has a curve."""
+    monkeypatch.setattr(tl.harness, "Recorder", functools.partial(tl.harness.Recorder, out_dir=tmp_path))
+    tl.main(["--interface", "SIMFULL", "--quick", "--device", "cpu"])
+    path = next(tmp_path.glob("track_learning-*.jsonl"))
+    records = [json.loads(line) for line in path.read_text().splitlines()]
+    settings = records[0]["settings"]
+    assert (settings["interface"], settings["device"], settings["profile"], settings["budgets"]) == \
+        ("SIMFULL", "cpu", "pixels-quick", {"classic": 200})
+    want = {"DRQ": "SIMFULL", "SAC-TMRL-CNN": "SIMFULL", tl.LIDAR_REFERENCE: "SIMLIDAR"}
+    assert settings["interfaces"] == want and set(settings["pixel_variants"]) == {"DRQ", "SAC-TMRL-CNN"}
+    measures = [r for r in records if r["kind"] == "measure"]
+    assert {r["side"] for r in measures} == set(want)
+    assert all(r["interface"] == want[r["side"]] for r in measures)
+    laps = {r["side"]: r for r in measures if r["metric"] == "steps_to_first_lap"}
+    for label, row in laps.items():
+        frames = [s for s in row["observation"] if len(s) == 3]
+        assert frames == ([[4, 64, 64]] if want[label] == "SIMFULL" else []), label
+        assert [4, 19] in row["observation"] or want[label] == "SIMFULL", label
+        assert [t[0] for t in row["tests"]] == [200] and row["episodes"], label  # a curve to draw
+    speeds = {r["side"]: r["value"] for r in measures if r["metric"] == "updates_per_s_in_train"}
+    assert all(v > 0 for v in speeds.values()), speeds  # the last 10 steps trained
+    assert path.with_suffix(".png").is_file()
+    out = capsys.readouterr().out  # the table: one row per variant, its interface beside it
+    assert re.search(r"agent +interface +steps to first lap", out)
+    for label, interface in want.items():
+        assert re.search(rf"^  {label} +{interface} +not reached", out, re.MULTILINE), label
+
+
+def _fake_children(monkeypatch, tmp_path, report=None):
+    """Each child run's keyword arguments; a child reports ``report(kwargs)`` as its interface."""
+    seen = []
+    real_run = tl.subprocess.run
+
+    class Done:
+        returncode = 0
+
+    def fake_run(cmd, **kwargs):
+        if "--run" not in cmd:
+            return real_run(cmd, **kwargs)
+        job = json.loads(cmd[cmd.index("--run") + 1])
+        seen.append(job)
+        done = Done()
+        res = {"episodes": [], "tests": [], "wall_s": 1.0, "updates": 0, "steps": 4, "updates_per_s": 0.0}
+        if report is not None:
+            res["interface"] = report(job)
+        done.stdout = json.dumps(res)
+        return done
+
+    monkeypatch.setattr(tl.harness, "Recorder", functools.partial(tl.harness.Recorder, out_dir=tmp_path))
+    monkeypatch.setattr(tl.subprocess, "run", fake_run)
+    return seen
+
+
+def test_a_simfull_run_drives_each_row_on_its_own_interface(tmp_path, monkeypatch):
+    seen = _fake_children(monkeypatch, tmp_path, report=lambda job: job.get("interface", "SIMLIDAR"))
+    tl.main(["--interface", "simfull", "--tracks", "classic", "--seeds", "2", "--steps", "3000", "--jobs", "1",
+             "--device", "cpu"])
+    got = {(k["label"], k["interface"]) for k in seen}
+    assert got == {("DRQ", "SIMFULL"), ("SAC-TMRL-CNN", "SIMFULL"), (tl.LIDAR_REFERENCE, "SIMLIDAR")}
+    assert len(seen) == 6 and {k["seed"] for k in seen} == {0, 1}
+    # every row on the same track, budget and batch; each variant's own ratio and random start
+    assert {(k["env_name"], k["steps"], k["batch_size"]) for k in seen} == {("classic", 3000, 256)}
+    assert {(k["label"], k["utd"], k["start_steps"]) for k in seen} == {
+        ("DRQ", 8, 1000), ("SAC-TMRL-CNN", 4, 1000), (tl.LIDAR_REFERENCE, 8, 250)}
+    seen.clear()
+    tl.main(["--tracks", "classic", "--seeds", "1", "--steps", "400", "--jobs", "1", "--agents", "SAC"])
+    assert ["interface" in k for k in seen] == [False]  # SIMLIDAR, the default: the child's arguments as before
+    with pytest.raises(SystemExit) as stop:  # an image variant needs --interface SIMFULL
+        tl.main(["--agents", "DRQ", "--tracks", "classic", "--seeds", "1"])
+    assert stop.value.code == 2
+
+
+def test_a_row_that_drove_another_interface_than_asked_stops_the_run(tmp_path, monkeypatch):
+    _fake_children(monkeypatch, tmp_path, report=lambda job: "SIMLIDAR")  # the images silently not used
+    with pytest.raises(SystemExit, match="the DRQ run on classic, seed 0, drove SIMLIDAR, not SIMFULL"):
+        tl.main(["--interface", "SIMFULL", "--agents", "DRQ", "--tracks", "classic", "--seeds", "1", "--steps", "300",
+                 "--jobs", "1", "--device", "cpu"])
+    with pytest.raises(SystemExit, match=f"{tl.LIDAR_REFERENCE} runs on SIMLIDAR, not SIMFULL"):
+        tl.run("classic", tl.LIDAR_REFERENCE, 0, 10, 8, 5, 10, 8, 5, interface="SIMFULL")
+    with pytest.raises(SystemExit, match="DRQ runs on SIMFULL, not SIMLIDAR"):
+        tl.run("classic", "DRQ", 0, 10, 8, 5, 10, 8, 5)
+
+
+def test_merge_refuses_records_of_two_interfaces(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(tl.harness, "OUT", tmp_path / "out")
+    run = {"episodes": [(3000, 150.0, 30.0)], "tests": [], "wall_s": 10.0}
+    _record(tmp_path / "lidar.jsonl", {"classic": 10000}, {("classic", "SAC-TMRL", 0): run})  # before --interface
+    _record(tmp_path / "pixels.jsonl", {"classic": 20000}, {("classic", "DRQ", 0): run})
+    lines = (tmp_path / "pixels.jsonl").read_text().splitlines()
+    head = json.loads(lines[0])
+    head["settings"]["interface"] = "SIMFULL"
+    (tmp_path / "pixels.jsonl").write_text("\n".join([json.dumps(head), *lines[1:]]) + "\n")
+    with pytest.raises(SystemExit, match=r"pixels.jsonl was recorded with --interface SIMFULL and .*lidar.jsonl with "
+                                         "--interface SIMLIDAR: merge the records of one interface at a time"):
+        tl.load_results([tmp_path / "lidar.jsonl", tmp_path / "pixels.jsonl"])
+    results, _, _ = tl.load_results([tmp_path / "pixels.jsonl", tmp_path / "pixels.jsonl"])  # one interface: fine
+    assert list(results) == [("classic", "DRQ")]
+    tl.main(["--merge", str(tmp_path / "pixels.jsonl")])
+    assert "DRQ" in capsys.readouterr().out
+
+
+def test_the_drq_settings_the_docs_give_are_the_ones_the_benchmark_runs():
+    """Each DrQ ``config.json`` block of docs/simulator.md (laid over the shipped SIMFULL file) and
+    docs/trackmania.md (over the shipped defaults, tmrl's TM20FULL file) builds the ``DRQ`` row's
+    agent, ratio, random start and batch size."""
+    from tmrl.assembly import assemble
+    from tmrl.config import loader
+    from tmrl.sim.interfaces import fast_env
+
+    _, measured = _pixel_agent("DRQ")
+    env = fast_env(tl.pixel_config("DRQ", "classic", 256))  # TM20FULL's observations are the same
+    found = 0
+    for page, file, interface in (("simulator.md", "config_simfull.json", "SIMFULL"),
+                                  ("trackmania.md", "config.json", "TM20FULL")):
+        shipped = json.loads((REPO / "config" / file).read_text(encoding="utf-8"))
+        assert shipped["ENV"]["RTGYM_INTERFACE"] == interface
+        doc = (REPO / "docs" / page).read_text(encoding="utf-8")
+        for block in re.findall(r"```json\n(.*?)```", doc, re.DOTALL):
+            if '"DRQ"' not in block:
+                continue
+            fragment = json.loads("{" + block + "}")
+            cfg = loader.validate(loader.deep_merge(shipped, fragment))
+            assert cfg["MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP"] == tl.utd_of("DRQ"), page
+            assert cfg["ENVIRONMENT_STEPS_BEFORE_TRAINING"] == tl.start_steps_of("DRQ"), page
+            assert cfg["BATCH_SIZE"] == 256, page  # the benchmark's batch
+            built = assemble(cfg).AGENT(env.observation_space, env.action_space, "cpu")  # assembling reaches no game
+            assert _agent_settings(built) == _agent_settings(measured), page
+            assert abs(float(built.alpha) - float(measured.alpha)) < 1e-7, page
+            found += 1
+    assert found == 2
+
+
+@pytest.mark.parametrize("label", ["DRQ", "SAC-TMRL-CNN"])
+def test_an_image_row_builds_its_memory_agent_and_actor_on_its_device(label):
+    from tmrl.sim.interfaces import fast_env
+
+    parts = tl._pixel_parts(label, "classic", 8, 1000, "meta")  # meta stands in for a GPU
+    env = fast_env(tl.pixel_config(label, "classic", 8))
+    agent = parts["agent"]((env.observation_space, env.action_space), "meta")
+    assert parts["memory"].device == "meta"
+    assert {p.device.type for p in agent.model.parameters()} == {"meta"}
+    assert torch_device(agent.get_actor().device) == "meta"  # the loop acts with it: observations collate there
+
+
+def torch_device(device):
+    import torch
+
+    return torch.device(device).type
