@@ -152,6 +152,10 @@ def test_sampling_on_the_device_gathers_nothing_on_the_host(monkeypatch):
 def test_auto_keeps_the_rings_on_the_host_of_a_cpu_trainer_and_modes_are_checked():
     assert GenericTorchMemory(device="cpu").device_ring is None
     assert GenericTorchMemory(device="cpu", on_device="off").device_ring is None
+    # item-by-item sampling (a sample_preprocessor, crc_debug) reads the host: no rings to copy
+    assert GenericTorchMemory(device="cpu", on_device="on", crc_debug=True).device_ring is None
+    assert GenericTorchMemory(device="cpu", on_device="on", sample_preprocessor=lambda *t: t).device_ring is None
+    assert GenericTorchMemory(device="cpu", on_device="on").device_ring is not None
     with pytest.raises(UserError, match="MEMORY_ON_DEVICE='gpu' is not known"):
         GenericTorchMemory(device="cpu", on_device="gpu")
 

@@ -115,7 +115,8 @@ class GenericTorchMemory(TorchMemory):
         self._sampler = SlotSampler(self._links)
         self.on_device = on_device
         self.device_ring: DeviceRing | None = None
-        if wants_device_ring(on_device, device):
+        if wants_device_ring(on_device, device) and sample_preprocessor is None and not crc_debug:
+            # (those two sample item by item on the host: rings on the device would go unused)
             if type(self).build_obs is not GenericTorchMemory.build_obs:
                 logger.info("%s overrides build_obs: its batches are built on the host and copied to %s",
                             type(self).__name__, device)
