@@ -309,3 +309,12 @@ def test_sampling_on_the_gpu_never_waits_for_it():
     finally:
         torch.cuda.set_sync_debug_mode(0)
     assert o[3].device.type == "cuda" and o[3].shape == (256, 4, 6, 5)
+
+
+def test_as_float32_scales_a_copy_never_its_input():
+    for x in (np.arange(4, dtype=np.uint8), np.ones(4, np.float32), torch.arange(4, dtype=torch.uint8),
+              torch.ones(4)):
+        before = x.copy() if isinstance(x, np.ndarray) else x.clone()
+        y = resident.as_float32(x, 0.5)
+        assert y.dtype in (np.float32, torch.float32) and float(y[1]) == 0.5 * float(before[1])
+        assert (x == before).all()
