@@ -31,7 +31,6 @@ import copy
 import importlib
 import inspect
 import json
-import logging
 import threading
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
@@ -44,7 +43,6 @@ from tmrl.util import partial
 
 __all__ = ["Assembly", "DropActionBuffer", "assemble", "check_interface_kwargs"]
 
-logger = logging.getLogger(__name__)
 
 _SIM = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
 _TM = ("TM20FULL", "TM20LIDAR", "TM20LIDARPROGRESS")
