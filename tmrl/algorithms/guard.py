@@ -127,7 +127,7 @@ class NonFiniteGuard:
 
     Args:
         device_side: decide on the device when the agent's update allows it (see the module's
-            notes; the agents set it on CUDA devices).
+            notes; the agents set it when they train off a CPU).
 
     Attributes:
         device_side: as the argument (may be changed between updates).
