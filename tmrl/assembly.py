@@ -31,7 +31,6 @@ import copy
 import importlib
 import inspect
 import json
-import logging
 import threading
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
@@ -44,7 +43,6 @@ from tmrl.util import partial
 
 __all__ = ["Assembly", "DropActionBuffer", "assemble", "check_interface_kwargs"]
 
-logger = logging.getLogger(__name__)
 
 _SIM = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
 _TM = ("TM20FULL", "TM20LIDAR", "TM20LIDARPROGRESS")
@@ -304,10 +302,6 @@ def _build(cfg: dict[str, Any]) -> Assembly:
     model = parts["TRAIN_MODEL"]
     # Every ALG key reaches its agent argument by the settings table (tmrl/config/schema.py, ``feeds``).
     agent_args = arguments(cfg, AGENT_CLASSES[alg_name])
-    if "compile" not in agent_args and cfg["ALG"].get("COMPILE", "off") != "off":
-        # An agent that does not take the argument (DrQ): its update cannot be compiled yet.
-        logger.warning("ALG.COMPILE=%r: %s cannot compile its update yet; the update runs eager",
-                       cfg["ALG"]["COMPILE"], AGENT_CLASSES[alg_name])
     agent = partial(_attr("tmrl.algorithms", "agent_class", interface)(alg_name), model_cls=model, **agent_args)
     device_training = _device(cfg["CUDA_TRAINING"])
     trainer = partial(

@@ -5,7 +5,9 @@ dimension; every element is flattened and the pieces are concatenated in order.
 
 The critics of an actor-critic are one :class:`EnsembleQFunction`: the weights of all ``n``
 Q networks are stacked, and one batched matrix product per layer evaluates them all, instead of
-a Python loop over ``n`` separate networks.
+a Python loop over ``n`` separate networks. Critics kept as separate modules (DroQ's, TQC's,
+CrossQ's, DrQ's heads, whose parameter names checkpoints hold) are evaluated the same way by
+:class:`StackedCritics`: their weights stacked at each call, one batched product per layer.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -32,9 +34,11 @@ __all__ = [
     "QMember",
     "REDQMLPActorCritic",
     "SquashedGaussianMLPActor",
+    "StackedCritics",
     "flatten_obs",
     "mlp",
     "space_dim",
+    "stacked_mlp",
 ]
 
 LOG_STD_MIN = -20.0
@@ -289,7 +293,8 @@ class EnsembleQFunction(nn.Module):
         weights: list[torch.Tensor] = list(self.weights)
         biases: list[torch.Tensor] = list(self.biases)
         if members is not None:
-            idx = torch.as_tensor(members, dtype=torch.long, device=weights[0].device)
+            # A subset drawn on the CPU (REDQ's) reaches the device without waiting for it.
+            idx = torch.as_tensor(members, dtype=torch.long).to(weights[0].device, non_blocking=True)
             weights = [w.index_select(0, idx) for w in weights]
             biases = [b.index_select(0, idx) for b in biases]
         if detach_params:
@@ -382,6 +387,201 @@ class QMember:
     forward = __call__
 
 
+# --- critics kept as separate modules, evaluated together ---------------------------------------
+
+_ELEMENTWISE = (nn.ReLU, nn.Tanh, nn.ELU, nn.LeakyReLU, nn.SiLU, nn.GELU, nn.Sigmoid, nn.Softplus, nn.Mish,
+                nn.Identity)
+"""Parameter-free layers that act on each element alone: applied to the stacked activations as they are."""
+
+
+def _layer_kind(layers: Sequence[nn.Module]) -> str | None:
+    """How the layers at one position of ``k`` networks are evaluated together (None: they cannot be)."""
+    first = layers[0]
+    kind = type(first)
+    if any(type(layer) is not kind for layer in layers):
+        return None
+    if kind is nn.Linear:
+        with_bias = first.bias is not None
+        same = all(layer.weight.shape == first.weight.shape and (layer.bias is not None) == with_bias
+                   for layer in layers)
+        return "linear" if same and with_bias else None
+    if kind is nn.Dropout:
+        return "dropout" if all(layer.p == first.p for layer in layers) else None
+    if kind is nn.LayerNorm:
+        same = all(layer.normalized_shape == first.normalized_shape and layer.eps == first.eps
+                   and layer.weight is not None and layer.bias is not None for layer in layers)
+        return "layernorm" if same and len(first.normalized_shape) == 1 else None
+    if kind in _ELEMENTWISE:
+        return "elementwise" if all(repr(layer) == repr(first) for layer in layers) else None
+    stacked = getattr(kind, "stacked_forward", None)
+    if callable(stacked) and getattr(kind, "stacks_with", lambda a, b: True)(first, layers):
+        return "custom"
+    return None
+
+
+def stacked_plan(nets: Sequence[nn.Sequential]) -> list[str] | None:
+    """The kind of each position of ``nets`` (``nn.Sequential`` networks of one architecture) for
+    :func:`stacked_mlp`, or None when they cannot be evaluated together: different lengths or
+    layers, or a layer other than ``Linear`` (with a bias), ``Dropout``, ``LayerNorm`` over the
+    last axis (affine), an elementwise activation, or a layer class with a ``stacked_forward``
+    classmethod (``tmrl.algorithms.crossq.BatchRenorm1d``)."""
+    if not nets or any(not isinstance(net, nn.Sequential) or len(net) != len(nets[0]) for net in nets):
+        return None
+    kinds = [_layer_kind([net[j] for net in nets]) for j in range(len(nets[0]))]
+    if any(kind is None for kind in kinds) or "linear" not in kinds:
+        return None
+    return cast(list[str], kinds)
+
+
+def _dropout_masks(layers: list[list[nn.Module]], kinds: list[str], x: torch.Tensor) -> dict[int, torch.Tensor]:
+    """The scaled dropout masks of every network, drawn in the order a loop over the networks
+    draws them (network by network, layer by layer), each as ``F.dropout`` does on a CPU: a
+    Bernoulli(1 - p) draw divided by 1 - p. Stacked per position: ``{j: (k, B, width)}``."""
+    rows = x.shape[-2]
+    width = x.shape[-1]
+    widths: dict[int, int] = {}
+    for j, kind in enumerate(kinds):
+        if kind == "linear":
+            width = cast(nn.Linear, layers[0][j]).out_features
+        elif kind == "dropout":
+            widths[j] = width
+    if not widths:
+        return {}
+    drawn: dict[int, list[torch.Tensor | None]] = {j: [] for j in widths}
+    for net in layers:
+        for j, w in widths.items():
+            layer = cast(nn.Dropout, net[j])
+            p = float(layer.p)
+            if not layer.training or p == 0.0:
+                drawn[j].append(None)
+            elif p == 1.0:
+                drawn[j].append(x.new_zeros((rows, w)))
+            else:
+                drawn[j].append(x.new_empty((rows, w)).bernoulli_(1.0 - p).div_(1.0 - p))
+    masks: dict[int, torch.Tensor] = {}
+    for j, per_net in drawn.items():
+        if all(m is None for m in per_net):
+            continue
+        ones = x.new_ones((rows, widths[j]))
+        masks[j] = torch.stack([ones if m is None else m for m in per_net])
+    return masks
+
+
+def stacked_mlp(nets: Sequence[nn.Sequential], x: torch.Tensor, kinds: Sequence[str] | None = None,
+                detach_params: bool = False) -> torch.Tensor:
+    """``torch.stack([net(x) for net in nets])`` with one batched matrix product per layer.
+
+    The weights of each layer are stacked at the call (gradients flow back to each network's own
+    parameters, whose names and shapes stay those of separate modules). Dropout masks are drawn
+    in the order of the loop (see :func:`_dropout_masks`), so that with the same generator state
+    both draw the same masks; normalisation layers with running statistics update each network's
+    own.
+
+    Args:
+        nets: ``k`` networks of one architecture (:func:`stacked_plan` accepts them).
+        x: their input: ``(B, D)`` shared by every network, or ``(k, B, D)``.
+        kinds: :func:`stacked_plan`'s result for ``nets`` (computed when None).
+        detach_params: use the weights as constants (no gradient reaches them).
+
+    Returns:
+        ``(k, B, out)``.
+
+    Raises:
+        ValueError: the networks cannot be evaluated together.
+    """
+    kinds = list(kinds) if kinds is not None else stacked_plan(nets)
+    if kinds is None:
+        raise ValueError("these networks cannot be evaluated together (stacked_plan)")
+    layers = [list(net) for net in nets]
+    k = len(layers)
+    masks = _dropout_masks(layers, kinds, x)
+    # The input is shared by all networks: broadcast it instead of copying it k times.
+    h = x.unsqueeze(0).expand(k, -1, -1) if x.dim() == 2 else x
+    last_linear = max(j for j, kind in enumerate(kinds) if kind == "linear")
+    for j, kind in enumerate(kinds):
+        at = [net[j] for net in layers]
+        if kind == "linear":
+            w = torch.stack([cast(nn.Linear, layer).weight for layer in at])  # (k, out, in)
+            b = torch.stack([cast(torch.Tensor, cast(nn.Linear, layer).bias) for layer in at]).unsqueeze(1)
+            if detach_params:
+                w, b = w.detach(), b.detach()
+            scalar_out = (w.shape[1] == 1 and j == last_linear
+                          and all(kd == "elementwise" and isinstance(layers[0][i], nn.Identity)
+                                  for i, kd in enumerate(kinds[j + 1:], start=j + 1)))
+            if scalar_out:
+                h = _ScalarOutput.apply(h, w.transpose(1, 2), b).unsqueeze(-1)
+            else:
+                h = torch.baddbmm(b, h, w.transpose(1, 2))
+        elif kind == "dropout":
+            if j in masks:
+                h = h * masks[j]
+        elif kind == "layernorm":
+            norm = cast(nn.LayerNorm, at[0])
+            h = F.layer_norm(h, norm.normalized_shape, None, None, norm.eps)
+            gamma = torch.stack([cast(torch.Tensor, cast(nn.LayerNorm, layer).weight) for layer in at]).unsqueeze(1)
+            beta = torch.stack([cast(torch.Tensor, cast(nn.LayerNorm, layer).bias) for layer in at]).unsqueeze(1)
+            if detach_params:
+                gamma, beta = gamma.detach(), beta.detach()
+            h = h * gamma + beta
+        elif kind == "elementwise":
+            h = at[0](h)
+        else:
+            h = type(at[0]).stacked_forward(at, h, detach_params)  # type: ignore[attr-defined]
+    return h
+
+
+class StackedCritics:
+    """``k`` critics of one architecture, kept as separate modules, evaluated together by
+    :func:`stacked_mlp`: ``Q(obs, act)`` of all of them in one batched product per layer.
+
+    A critic takes part when it has ``net`` (an ``nn.Sequential`` that :func:`stacked_plan`
+    accepts), ``critic_input(obs, act)`` (the ``(B, D)`` input of ``net``, the same for every
+    critic) and ``squeeze_output`` (whether its forward drops the last axis): DroQ's, TQC's and
+    CrossQ's critics, their lidar wrappers. Build it with :meth:`of`.
+
+    Args:
+        modules: the critics.
+        kinds: :func:`stacked_plan` of their networks.
+    """
+
+    def __init__(self, modules: Sequence[nn.Module], kinds: list[str]) -> None:
+        self.modules = list(modules)
+        self.kinds = kinds
+        self.squeeze = bool(getattr(modules[0], "squeeze_output", True))
+
+    @classmethod
+    def of(cls, modules: Sequence[nn.Module]) -> StackedCritics | None:
+        """:class:`StackedCritics` of ``modules``, or None when they cannot be evaluated together
+        (then evaluate them one by one)."""
+        if not modules:
+            return None
+        first = modules[0]
+        for m in modules:
+            if (type(m) is not type(first) or not callable(getattr(m, "critic_input", None))
+                    or not isinstance(getattr(m, "net", None), nn.Sequential)
+                    or getattr(m, "input_key", None) != getattr(first, "input_key", None)
+                    or getattr(m, "squeeze_output", True) != getattr(first, "squeeze_output", True)):
+                return None
+        kinds = stacked_plan([cast(nn.Sequential, m.net) for m in modules])
+        return None if kinds is None else cls(modules, kinds)
+
+    def __call__(self, obs: Any, act: torch.Tensor, members: Sequence[int] | torch.Tensor | None = None,
+                 detach_params: bool = False) -> torch.Tensor:
+        """Values ``(k, B)`` (``(k, B, out)`` for critics that keep their last axis) of the
+        selected critics (all when ``members`` is None).
+
+        Args:
+            obs: a batched observation.
+            act: actions ``(B, act_dim)``.
+            members: indices of the critics to evaluate (all when None).
+            detach_params: use the weights as constants (for the actor's loss).
+        """
+        mods = self.modules if members is None else [self.modules[int(i)] for i in members]
+        x = mods[0].critic_input(obs, act)  # type: ignore[operator]
+        out = stacked_mlp([cast(nn.Sequential, m.net) for m in mods], x, self.kinds, detach_params)
+        return out.squeeze(-1) if self.squeeze else out
+
+
 class MLPQFunction(nn.Module):
     """One MLP Q function ``Q(obs, act) -> (B,)``, for models composed by hand (tmrl 0.7's
     ``MLPQFunction``; the built-in actor-critics use :class:`EnsembleQFunction` instead).
@@ -399,6 +599,23 @@ class MLPQFunction(nn.Module):
         dim_in = space_dim(observation_space) + int(np.prod(action_space.shape))
         self.q = mlp([dim_in, *hidden_sizes, 1], activation)
 
+    squeeze_output = True
+    """:meth:`forward` drops the output's last axis (for :class:`~tmrl.models.StackedCritics`)."""
+
+    def critic_input(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
+        """The input of ``q``: the observation then the action, as one ``(B, D)`` float32 tensor.
+
+        Args:
+            obs: a batched observation.
+            act: actions ``(B, act_dim)``.
+        """
+        return flatten_obs((obs, act))
+
+    @property
+    def net(self) -> nn.Sequential:
+        """The network (``q``, tmrl 0.7's name), for :class:`StackedCritics`."""
+        return self.q
+
     def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
         """Q values of shape ``(B,)``.
 
@@ -406,8 +623,7 @@ class MLPQFunction(nn.Module):
             obs: a batched observation.
             act: actions ``(B, act_dim)``.
         """
-        x = flatten_obs((obs, act))  # the observation then the action, as one (B, D) float32 input
-        return self.q(x).squeeze(-1)
+        return self.q(self.critic_input(obs, act)).squeeze(-1)
 
 
 class MLPActorCritic(nn.Module):

@@ -73,11 +73,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import nn
 
+from tmrl.algorithms.guard import GuardedUpdate, stepped_tensors
 from tmrl.algorithms.sac import SACAgent, _build_model
 from tmrl.batch import Batch
 from tmrl.errors import UserError
@@ -166,6 +167,52 @@ class BatchRenorm1d(nn.Module):
     def extra_repr(self) -> str:
         return f"{self.num_features}, momentum={self.momentum}, eps={self.eps}, warmup_steps={self.warmup_steps}"
 
+    # --- several critics' layers at once (tmrl.models.stacked_mlp) ----------------------------
+
+    @staticmethod
+    def stacks_with(first: BatchRenorm1d, layers: Sequence[nn.Module]) -> bool:
+        """Whether ``layers`` (all of this class) have ``first``'s settings, hence can be
+        evaluated together by :meth:`stacked_forward`."""
+        key = (first.num_features, first.momentum, first.eps, first.warmup_steps, first.r_max, first.d_max)
+        return all(isinstance(m, BatchRenorm1d)
+                   and (m.num_features, m.momentum, m.eps, m.warmup_steps, m.r_max, m.d_max) == key for m in layers)
+
+    @staticmethod
+    def stacked_forward(layers: Sequence[BatchRenorm1d], x: torch.Tensor, detach_params: bool = False) -> torch.Tensor:
+        """``torch.stack([layer(x[i]) for i, layer in enumerate(layers)])`` for ``x`` of shape
+        ``(k, B, C)``: each layer normalises its own slice with its own statistics and updates its
+        own running statistics (in training mode), as :meth:`forward` does, in batched operations.
+
+        Args:
+            layers: ``k`` layers with the same settings (:meth:`stacks_with`).
+            x: ``(k, B, C)``.
+            detach_params: use the affine weights as constants.
+        """
+        first = layers[0]
+        weight = torch.stack([m.weight for m in layers]).unsqueeze(1)  # (k, 1, C)
+        bias = torch.stack([m.bias for m in layers]).unsqueeze(1)
+        if detach_params:
+            weight, bias = weight.detach(), bias.detach()
+        running_mean = torch.stack([m.running_mean for m in layers])  # (k, C)
+        running_var = torch.stack([m.running_var for m in layers])
+        if not first.training:
+            x_hat = (x - running_mean.unsqueeze(1)) / torch.sqrt(running_var + first.eps).unsqueeze(1)
+            return x_hat * weight + bias
+        mean = x.mean(1)  # (k, C)
+        var = x.var(1, unbiased=False)
+        std = torch.sqrt(var + first.eps)
+        with torch.no_grad():
+            running_std = torch.sqrt(running_var + first.eps)
+            counts = torch.stack([m.num_batches_tracked for m in layers])  # (k,)
+            warm = (counts >= first.warmup_steps).unsqueeze(1)
+            r = torch.where(warm, (std / running_std).clamp(1.0 / first.r_max, first.r_max), 1.0)
+            d = torch.where(warm, ((mean - running_mean) / running_std).clamp(-first.d_max, first.d_max), 0.0)
+            torch._foreach_lerp_([m.running_mean for m in layers], list(mean.unbind(0)), first.momentum)
+            torch._foreach_lerp_([m.running_var for m in layers], list(var.unbind(0)), first.momentum)
+            torch._foreach_add_([m.num_batches_tracked for m in layers], 1)
+        x_hat = (x - mean.unsqueeze(1)) / std.unsqueeze(1) * r.unsqueeze(1) + d.unsqueeze(1)
+        return x_hat * weight + bias
+
 
 class CrossQQFunction(nn.Module):
     """CrossQ's critic ``Q(obs, act) -> (B,)``: an MLP with :class:`BatchRenorm1d` on its input and
@@ -206,6 +253,18 @@ class CrossQQFunction(nn.Module):
         layers.append(nn.Linear(width, 1))
         self.net = nn.Sequential(*layers)
 
+    squeeze_output = True
+    """:meth:`forward` drops the output's last axis (for :class:`~tmrl.models.StackedCritics`)."""
+
+    def critic_input(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
+        """The input of ``net``: the observation then the action, as one ``(B, D)`` float32 tensor.
+
+        Args:
+            obs: a batched observation.
+            act: actions ``(B, act_dim)``.
+        """
+        return flatten_obs((obs, act))
+
     def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
         """Q values of shape ``(B,)``.
 
@@ -213,8 +272,7 @@ class CrossQQFunction(nn.Module):
             obs: a batched observation.
             act: actions ``(B, act_dim)``.
         """
-        x = flatten_obs((obs, act))  # the observation then the action, as one (B, D) float32 input
-        return self.net(x).squeeze(-1)
+        return self.net(self.critic_input(obs, act)).squeeze(-1)
 
 
 class CrossQActorCritic(nn.Module):
@@ -405,38 +463,75 @@ class CrossQAgent(SACAgent):
     def train(self, batch: tuple) -> dict[str, Any]:
         """One CrossQ update on ``batch`` (see the module's notes): the joint critic pass and
         target, the critics' step, then (when :meth:`policy_update_due`) the actor's and the
-        entropy coefficient's step against the updated critics in evaluation mode.
+        entropy coefficient's step against the updated critics in evaluation mode
+        (:meth:`_update_with`; with ``ALG.COMPILE`` on, its two loss functions compiled).
 
         Returns:
             The metrics of :meth:`SACAgent.train`.
         """
-        b = Batch(*batch)
-        alpha = self._entropy_coef()
-        update_policy = self.policy_update_due()
-        saved = [buf.clone() for buf in self._norm_buffers]
+        if self._compile_state.mode != "off":
+            return self._compiled_train(batch)
+        return self._update_off(batch, self.policy_update_due())
+
+    def _update_off(self, batch: tuple, update_policy: bool) -> dict[str, Any]:
+        return self._update_with(self._eager_functions(), batch, update_policy)
+
+    COMPILED = ("_critic_losses", "_policy_losses")
+    """The two loss functions of an update (``ALG.COMPILE`` compiles both)."""
+
+    def _critic_losses(self, b: Batch, alpha: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The joint pass and the critics' loss: ``(loss_critic, stats)`` (``debug_q``,
+        ``debug_backup``). Runs with the critics in training mode."""
         q, backup = self.joint_critic_pass(b, alpha)
-        loss_critic = self.critic_loss(q, backup)
+        return self.critic_loss(q, backup), {"debug_q": q.detach().mean(), "debug_backup": backup.mean()}
+
+    def _policy_losses(self, b: Batch, alpha: torch.Tensor) -> tuple[Any, ...]:
+        """The actor's and the entropy coefficient's losses against the critics, as constants, in
+        evaluation mode (the caller's): ``(loss_actor, loss_alpha, stats)`` (``debug_log_pi``)."""
+        pi, logp_pi = self.actor(b.obs)
+        q_pi_all = self.critics(b.obs, pi, detach_params=True)
+        return self.actor_loss(alpha, logp_pi, q_pi_all), self.entropy_loss(logp_pi), {
+            "debug_log_pi": logp_pi.detach().mean()}
+
+    def _update_with(self, fns: dict[str, Callable[..., Any]], batch: tuple, update_policy: bool) -> dict[str, Any]:
+        """One CrossQ update whose losses come from ``fns`` (eager or compiled); backward passes,
+        the non-finite guard, the steps and the switches of the critics' mode run eager."""
+        b = self._prepare_batch(Batch(*batch))
+        g = self._begin_update(update_policy)
+        alpha = self._entropy_coef()
+        # Statistics of a non-finite pass would poison evaluation mode: kept to put back.
+        saved = None if g.on_device else [buf.clone() for buf in self._norm_buffers]
+        g.keep(self._norm_buffers)
+        with self.critics_mode(training=True):
+            loss_critic, stats = fns["_critic_losses"](b, alpha)
         self.q_optimizer.zero_grad(set_to_none=True)
         loss_critic.backward()
-        if not self.guard.update_ok(loss_critic, self.critics.parameters()):
-            with torch.no_grad():  # statistics of a non-finite pass would poison evaluation mode
-                for buf, old in zip(self._norm_buffers, saved):
+        if not g.check(loss_critic, self.critics.parameters()):
+            with torch.no_grad():
+                for buf, old in zip(self._norm_buffers, cast(list, saved)):
                     buf.copy_(old)
             return self.guard.skipped_metrics()
+        if g.on_device:
+            g.keep(stepped_tensors([self.q_optimizer]))
         self.q_optimizer.step()
-        logp_pi = None
+        g.restore()  # on the device: the critics' step stands alone, before the policy reads them
+        own = self._owned
+        loss_critic = own(loss_critic)
+        metrics: dict[str, Any] = {}
         if update_policy:
-            pi, logp_pi = self.actor(b.obs)
             with self.critics_mode(training=False):
-                q_pi_all = self.critics(b.obs, pi, detach_params=True)
-            loss_actor = self.actor_loss(alpha, logp_pi, q_pi_all)
-            loss_alpha = self.entropy_loss(logp_pi)
-            if not self._policy_step(loss_actor, loss_alpha):
+                loss_actor, loss_alpha, policy_stats = fns["_policy_losses"](b, alpha)
+            if not self._policy_step(loss_actor, loss_alpha, g):
                 return self.guard.skipped_metrics()
-            self.loss_pi = loss_actor.detach()
+            self.loss_pi = g.pick(own(loss_actor), self.loss_pi)
             if loss_alpha is not None:
-                self.loss_alpha = loss_alpha.detach()
-        return self._metrics(alpha, loss_critic, q, backup, logp_pi)
+                self.loss_alpha = g.pick(own(loss_alpha), self.loss_alpha)
+            metrics.update((k, own(v)) for k, v in policy_stats.items())
+        metrics = {"loss_actor": self.loss_pi, "loss_critic": loss_critic, "entropy_coef": own(alpha), **metrics}
+        metrics.update((k, own(v)) for k, v in stats.items())
+        if self.log_alpha is not None:
+            metrics["loss_entropy_coef"] = self.loss_alpha
+        return g.finish(metrics)
 
     # --- the steps that differ from SAC ---------------------------------------------------------
 
@@ -502,18 +597,24 @@ class CrossQAgent(SACAgent):
 
     # policy_q is SAC's: the minimum over the critics (the reference code's actor loss).
 
-    def _policy_step(self, loss_actor: torch.Tensor, loss_alpha: torch.Tensor | None) -> bool:
+    def _policy_step(self, loss_actor: torch.Tensor, loss_alpha: torch.Tensor | None,
+                     guard: GuardedUpdate | None = None) -> bool:
         """One backward pass through the actor's and the entropy coefficient's losses (their
-        parameters are disjoint), then both steps; False (no step) when not finite."""
+        parameters are disjoint), then both steps; False (no step) when not finite and ``guard``
+        (default: on the host) decides on the host. On the device the steps run and ``guard``
+        puts their changes back unless the whole update was finite."""
+        g = guard if guard is not None else GuardedUpdate(self.guard, False)
         loss = loss_actor if loss_alpha is None else loss_actor + loss_alpha
         optimizers = [self.pi_optimizer] + ([self.alpha_optimizer] if loss_alpha is not None else [])
         for opt in optimizers:
             opt.zero_grad(set_to_none=True)  # type: ignore[union-attr]
         loss.backward()
         params = list(self.actor.parameters()) + ([self.log_alpha] if self.log_alpha is not None else [])
-        if not self.guard.update_ok(loss, params):
+        if not g.check(loss, params):
             return False
-        held = loss_alpha is not None and self._at_alpha_max()
+        if g.on_device:
+            g.keep(stepped_tensors(cast(list[torch.optim.Optimizer], optimizers)))
+        held = loss_alpha is not None and self._at_alpha_max(g.on_device)
         for opt in optimizers:
             opt.step()  # type: ignore[union-attr]
         self._hold_alpha(held)

@@ -92,6 +92,18 @@ class DropoutQFunction(nn.Module):
         layers.append(nn.Linear(width, 1))
         self.net = nn.Sequential(*layers)
 
+    squeeze_output = True
+    """:meth:`forward` drops the output's last axis (for :class:`~tmrl.models.StackedCritics`)."""
+
+    def critic_input(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
+        """The input of ``net``: the observation then the action, as one ``(B, D)`` float32 tensor.
+
+        Args:
+            obs: a batched observation.
+            act: actions ``(B, act_dim)``.
+        """
+        return flatten_obs((obs, act))
+
     def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
         """Q values of shape ``(B,)``.
 
@@ -99,8 +111,7 @@ class DropoutQFunction(nn.Module):
             obs: a batched observation.
             act: actions ``(B, act_dim)``.
         """
-        x = flatten_obs((obs, act))  # the observation then the action, as one (B, D) float32 input
-        return self.net(x).squeeze(-1)
+        return self.net(self.critic_input(obs, act)).squeeze(-1)
 
 
 class DroQMLPActorCritic(nn.Module):

@@ -18,7 +18,9 @@ weights alone. The frames stay uint8 from the worker to the batch
 (:func:`tmrl.driving.preprocessors.preprocess_full_obs_uint8`,
 :class:`tmrl.driving.memories.RawImageMemory`); the encoder divides them by 255.
 
-One update (:meth:`DrQAgent.train`), step by step, with the equation of the papers each implements:
+One update (SAC's :meth:`~tmrl.algorithms.sac.SACAgent.train` on :meth:`DrQAgent._prepare_batch`, the
+shifts, and :meth:`DrQAgent._update_losses`, the losses), step by step, with the equation of the
+papers each implements:
 
 - augmentation ``aug``, DrQ's random shift (the image transformation of that paper, whose
   parameter is the offset): each sampled ``o`` and, independently, each ``o'`` is padded by
@@ -69,7 +71,7 @@ from tmrl.actor import TorchActorModule
 from tmrl.algorithms.sac import SACAgent, _build_model, make_optimizer
 from tmrl.batch import Batch
 from tmrl.errors import UserError
-from tmrl.models import mlp, space_dim, squashed_gaussian
+from tmrl.models import mlp, space_dim, squashed_gaussian, stacked_mlp, stacked_plan
 
 __all__ = ["DRQ_CNN", "DrQActor", "DrQActorCritic", "DrQAgent", "DrQCritics", "DrQEncoder", "random_shift"]
 
@@ -104,7 +106,8 @@ def random_shift(imgs: torch.Tensor, pad: int, generator: torch.Generator | None
     if pad <= 0:
         return imgs.clone()
     b, _, h, w = imgs.shape
-    offsets = torch.randint(0, 2 * pad + 1, (b, 2), generator=generator).to(imgs.device)
+    # Drawn on the CPU; sent to the device without waiting for it.
+    offsets = torch.randint(0, 2 * pad + 1, (b, 2), generator=generator).to(imgs.device, non_blocking=True)
     # Padding with repeated edges then cropping at (dy, dx) reads row i of the output from row
     # clamp(i + dy - pad) of the input (and likewise for columns).
     rows = (torch.arange(h, device=imgs.device) + offsets[:, :1] - pad).clamp_(0, h - 1)  # (B, h)
@@ -275,7 +278,9 @@ class DrQActor(TorchActorModule):
 
 
 class DrQCritics(nn.ModuleList):
-    """``n`` Q heads on ``(features, other observation elements, action)``, each an MLP.
+    """``n`` Q heads on ``(features, other observation elements, action)``, each an MLP; on a GPU
+    evaluated together (one batched product per layer, :func:`~tmrl.models.stacked_mlp`), on a CPU
+    one by one (faster there, as :class:`~tmrl.algorithms.critics.CriticSet` explains).
 
     Args:
         in_dim: features plus other observation elements.
@@ -286,6 +291,9 @@ class DrQCritics(nn.ModuleList):
 
     def __init__(self, in_dim: int, act_dim: int, hidden_sizes: Sequence[int], n: int) -> None:
         super().__init__(mlp([in_dim + act_dim, *hidden_sizes, 1], nn.ReLU) for _ in range(int(n)))
+        self.kinds = stacked_plan(list(self))  # type: ignore[arg-type]
+        self.stack: bool | None = None
+        """Evaluate the heads together: True, False, or None (when the input is not on a CPU)."""
 
     def values(self, features: torch.Tensor, others: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         """Q values ``(n, B)``.
@@ -296,7 +304,10 @@ class DrQCritics(nn.ModuleList):
             act: actions ``(B, act_dim)``.
         """
         x = torch.cat((features, others, act.reshape(act.shape[0], -1).to(torch.float32)), dim=-1)
-        return torch.stack([q(x).squeeze(-1) for q in self])
+        stack = self.stack if self.stack is not None else x.device.type != "cpu"
+        if self.kinds is None or not stack:  # one by one
+            return torch.stack([q(x).squeeze(-1) for q in self])
+        return stacked_mlp(list(self), x, self.kinds).squeeze(-1)  # type: ignore[arg-type]
 
     @contextlib.contextmanager
     def frozen(self) -> Iterator[None]:
@@ -389,6 +400,7 @@ class DrQAgent(SACAgent):
         betas_critic: Sequence[float] | None = None,
         l2_actor: float | None = None,
         l2_critic: float | None = None,
+        compile: str = "off",
         image_pad: int = 4,
     ) -> None:
         self.image_pad = int(image_pad)
@@ -416,6 +428,7 @@ class DrQAgent(SACAgent):
             l2_critic=l2_critic,
             update_order="simultaneous",
             fused=False,
+            compile=compile,
         )
         self.image_index = int(getattr(self.model, "image_index", 3))
 
@@ -465,9 +478,16 @@ class DrQAgent(SACAgent):
             batch: a :class:`~tmrl.batch.Batch` or any 6-tuple ``(obs, act, rew, next_obs,
                 terminated, truncated)``.
         """
-        b = Batch(*batch)
+        return self._losses_on(self._prepare_batch(Batch(*batch)))
+
+    def _prepare_batch(self, b: Batch) -> Batch:
+        """The random shifts of ``o`` then ``o'`` (:meth:`augment`), eager in every mode: their
+        offsets come from the CPU generator, before the policy's noise."""
+        return b._replace(obs=self.augment(b.obs), next_obs=self.augment(b.next_obs))
+
+    def _losses_on(self, b: Batch) -> dict[str, Any]:
+        """:meth:`losses` on a batch already augmented."""
         alpha = self._entropy_coef()
-        b = b._replace(obs=self.augment(b.obs), next_obs=self.augment(b.next_obs))
         imgs, others = split_obs(b.obs, self.image_index)
         features = self.model.encoder(imgs)  # the critics' path: the encoder learns from it
         # The actor reads the features detached: no actor gradient reaches the encoder.
@@ -483,22 +503,20 @@ class DrQAgent(SACAgent):
             "alpha": alpha, "q": q, "backup": backup, "logp_pi": logp_pi,
         }
 
-    def train(self, batch: tuple) -> dict[str, Any]:
-        """One DrQ update on ``batch`` (a :class:`~tmrl.batch.Batch` with uint8 or float frames):
-        :meth:`losses`, one backward pass and the three optimizers' steps, Polyak averaging of
-        the target encoder and critics.
+    def _update_losses(self, b: Batch, update_policy: bool) -> tuple[Any, ...]:
+        """:meth:`losses` on the augmented batch in :meth:`SACAgent._update_losses
+        <tmrl.algorithms.sac.SACAgent._update_losses>`'s form: what :meth:`train` (SAC's: one
+        backward pass, the three optimizers' steps, Polyak averaging of the target encoder and
+        critics) runs, and what ``ALG.COMPILE`` compiles. DrQ updates its policy at every update.
 
-        Returns:
-            The metrics of :meth:`SACAgent.train`.
+        Args:
+            b: the batch, augmented (:meth:`_prepare_batch`).
+            update_policy: always True for DrQ.
         """
-        out = self.losses(batch)
-        if not self._step(out["loss_critic"], out["loss_actor"], out["loss_alpha"], True):
-            return self.guard.skipped_metrics()
-        self._update_targets()
-        self.loss_pi = out["loss_actor"].detach()
-        if out["loss_alpha"] is not None:
-            self.loss_alpha = out["loss_alpha"].detach()
-        return self._metrics(out["alpha"], out["loss_critic"], out["q"], out["backup"], out["logp_pi"])
+        out = self._losses_on(b)
+        stats = {"debug_log_pi": out["logp_pi"].detach().mean(), "debug_q": out["q"].detach().mean(),
+                 "debug_backup": out["backup"].mean()}
+        return out["alpha"], out["loss_critic"], out["loss_actor"], out["loss_alpha"], stats
 
     # --- the steps that differ from SAC ---------------------------------------------------------
 

@@ -29,6 +29,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from tmrl.algorithms.guard import stepped_tensors
 from tmrl.models import (
     _HALF_LOG_2PI,
     LOG_STD_MAX,
@@ -342,11 +343,15 @@ class FusedSACUpdate:
             loss_alpha = -(agent.log_alpha.detach() * shifted).mean()
             torch.neg(shifted.mean(), out=self.alpha_grads.grads[0])
             check = check + loss_alpha
-        if not agent.guard.finite(check):
+        g = agent._begin_update(True)
+        if not g.check_sum(check):
             return agent.guard.skipped_metrics()
+        if g.on_device:  # what the steps and Polyak averaging change, put back unless finite
+            stepping = [cg.optimizer, ag.optimizer] + ([self.alpha_grads.optimizer] if self.alpha_grads else [])
+            g.keep(stepped_tensors(stepping) + agent._target_params)
         cg.step()
         if self.alpha_grads is not None:
-            held = agent._at_alpha_max()
+            held = agent._at_alpha_max(g.on_device)
             self.alpha_grads.step()
             agent._hold_alpha(held)
         ag.step()
@@ -361,7 +366,7 @@ class FusedSACUpdate:
         }
         if loss_alpha is not None:
             metrics["loss_entropy_coef"] = loss_alpha
-        return metrics
+        return g.finish(metrics)
 
 
 def _span(flat: torch.Tensor, view: torch.Tensor, numel: int) -> torch.Tensor:

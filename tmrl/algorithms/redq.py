@@ -77,6 +77,8 @@ class REDQSACAgent(SACAgent):
                 "(ALG.REDQ_Q_UPDATES_PER_POLICY_UPDATE)"
             )
         self.i_update = 0
+        # The target subset drawn ahead (off a CPU): on the CPU and on the device.
+        self._subset: tuple[torch.Tensor, torch.Tensor] | None = None
         super().__init__(
             observation_space=observation_space,
             action_space=action_space,
@@ -123,8 +125,21 @@ class REDQSACAgent(SACAgent):
             next_obs: the batch's next observations ``o'``.
             next_act: actions ``a'`` drawn from the current policy at ``o'``.
         """
-        subset = torch.randperm(self.n)[: self.m]
+        if self._subset is None:
+            subset = torch.randperm(self.n)[: self.m]
+        else:  # the device's copy for an ensemble, the CPU's to pick modules from
+            subset = self._subset[1] if self.critics_target.ensemble is not None else self._subset[0]
         return self.critics_target(next_obs, next_act, members=subset).min(0).values
+
+    def _prepare_batch(self, b: Any) -> Any:
+        """Off a CPU, the target subset is drawn here, before the forward pass, and sent to the
+        device without waiting: the CPU generator it comes from is not the device's, whose draws
+        (the actions) it would follow on a CPU, so the subset is the one :meth:`target_q` would
+        draw, and a compiled or captured forward pass holds no CPU operation."""
+        if self.device.type != "cpu":
+            subset = torch.randperm(self.n)[: self.m]
+            self._subset = (subset, subset.to(self.device, non_blocking=True))
+        return b
 
     def policy_q(self, q_pi_all: torch.Tensor) -> torch.Tensor:
         """The mean over all ``n`` critics.

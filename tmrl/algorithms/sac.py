@@ -19,12 +19,11 @@ then the actor loss on the updated critics, with a backward pass of its own.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import inspect
 import logging
 import math
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, cast
 
 import numpy as np
@@ -34,15 +33,16 @@ from tmrl.actor import TorchActorModule
 from tmrl.algorithms.compiled_sac import (
     CompileState,
     compile_mode_for,
-    compiled_losses,
+    compiled_functions,
     first_compiled_update,
 )
+from tmrl.algorithms.critics import CriticSet
 from tmrl.algorithms.fused_sac import FusedSACUpdate
-from tmrl.algorithms.guard import NonFiniteGuard
+from tmrl.algorithms.guard import GuardedUpdate, NonFiniteGuard, optimizer_state, stepped_tensors
 from tmrl.batch import Batch
 from tmrl.config.schema import COMPILE_MODES, OPTIMIZERS, UPDATE_ORDERS
 from tmrl.errors import UserError
-from tmrl.models import EnsembleQFunction, MLPActorCritic
+from tmrl.models import MLPActorCritic
 from tmrl.nn import copy_shared, no_grad
 from tmrl.training import TrainingAgent
 from tmrl.util import cached_property
@@ -108,96 +108,6 @@ def make_optimizer(
     raise AssertionError("unreachable: plain optimizer construction failed")
 
 
-class CriticSet:
-    """Uniform access to the critics of an actor-critic model.
-
-    The fast path is a model whose ``qs`` is an :class:`EnsembleQFunction`. A model written like
-    the tutorial's (separate ``q1`` and ``q2`` modules, or a ``ModuleList`` ``qs``) also works,
-    evaluated one critic at a time.
-
-    Args:
-        model: the actor-critic module.
-
-    Raises:
-        UserError: the model has neither ``qs`` nor ``q1``/``q2``.
-    """
-
-    def __init__(self, model: torch.nn.Module) -> None:
-        qs = getattr(model, "qs", None)
-        self.ensemble: EnsembleQFunction | None = qs if isinstance(qs, EnsembleQFunction) else None
-        if self.ensemble is not None:
-            self.modules: list[torch.nn.Module] = []
-        elif qs is not None:
-            self.modules = list(qs)
-        elif hasattr(model, "q1") and hasattr(model, "q2"):
-            self.modules = [cast(torch.nn.Module, model.q1), cast(torch.nn.Module, model.q2)]
-        else:
-            raise UserError(
-                f"{type(model).__name__} has no critics: an actor-critic model needs `qs` "
-                "(tmrl.models.EnsembleQFunction or a ModuleList) or `q1` and `q2`"
-            )
-        self._params = [p for m in self.modules for p in m.parameters()]
-        # Critics split into observation features and a head on (features, action) (the CNN
-        # critics) let Q(obs, act) and Q(obs, pi) share one pass over the observation.
-        self._split = bool(self.modules) and all(
-            callable(getattr(m, "features", None)) and callable(getattr(m, "head", None)) for m in self.modules
-        )
-
-    def __len__(self) -> int:
-        return self.ensemble.n if self.ensemble is not None else len(self.modules)
-
-    def parameters(self) -> list[torch.nn.Parameter]:
-        """The critics' parameters."""
-        return list(self.ensemble.parameters()) if self.ensemble is not None else list(self._params)
-
-    def __call__(
-        self,
-        obs: Any,
-        act: torch.Tensor,
-        members: torch.Tensor | None = None,
-        detach_params: bool = False,
-    ) -> torch.Tensor:
-        """Q values ``(k, B)`` of the selected critics (all when ``members`` is None); with
-        ``detach_params`` no gradient reaches the critics' parameters."""
-        if self.ensemble is not None:
-            return self.ensemble(obs, act, members=members, detach_params=detach_params)
-        chosen = self.modules if members is None else [self.modules[int(i)] for i in members]
-        with self._frozen() if detach_params else contextlib.nullcontext():
-            return torch.stack([q(obs, act) for q in chosen])
-
-    @contextlib.contextmanager
-    def _frozen(self) -> Iterator[None]:
-        flags = [p.requires_grad for p in self._params]
-        for p in self._params:
-            p.requires_grad_(False)
-        try:
-            yield
-        finally:
-            for p, f in zip(self._params, flags):
-                p.requires_grad_(f)
-
-    def with_policy_values(
-        self, obs: Any, act: torch.Tensor, pi: torch.Tensor | None
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """``(self(obs, act), self(obs, pi, detach_params=True))`` in one go (the second is None
-        when ``pi`` is None).
-
-        Critics that expose ``features(obs)`` and ``head(features, act)`` (the CNN critics)
-        compute the features of ``obs`` once for both: same values and gradients, one image pass
-        per critic instead of two. The policy values see the features detached, which is exact:
-        the features depend on the critic's own parameters and ``obs`` only, never on ``pi``.
-        """
-        if pi is None:
-            return self(obs, act), None
-        if not self._split:
-            return self(obs, act), self(obs, pi, detach_params=True)
-        feats = [m.features(obs) for m in self.modules]
-        q = torch.stack([m.head(f, act) for m, f in zip(self.modules, feats)])
-        with self._frozen():
-            q_pi = torch.stack([m.head(f.detach(), pi) for m, f in zip(self.modules, feats)])
-        return q, q_pi
-
-
 def _build_model(
     model_cls: Callable[..., torch.nn.Module], observation_space: Any, action_space: Any, **extra: Any
 ) -> torch.nn.Module:
@@ -257,10 +167,11 @@ class SACAgent(TrainingAgent):
             hand-written gradients, about twice as fast on a CPU) when the model and settings
             allow it; False always takes the autograd path.
         compile: ``ALG.COMPILE``: ``"off"`` (eager; the fused update where it applies),
-            ``"compile"`` (the update's forward pass and losses through :func:`torch.compile`) or
-            ``"cudagraph"`` (the same, replayed as CUDA graphs; CUDA devices only). Applies to
-            SAC's own update (no step of :attr:`STEPS` overridden); another agent logs one
-            warning and runs eager. See :mod:`tmrl.algorithms.compiled_sac`.
+            ``"compile"`` (the update's forward passes and losses, the methods of
+            :attr:`COMPILED`, through :func:`torch.compile`) or ``"cudagraph"`` (the same,
+            replayed as CUDA graphs; CUDA devices only). Every built-in agent's update compiles;
+            the sequential order, or a subclass with a ``train`` of its own, logs one warning and
+            runs eager. See :mod:`tmrl.algorithms.compiled_sac`.
 
     Raises:
         UserError: an unknown optimizer, malformed betas, an unknown device, an unknown
@@ -362,8 +273,9 @@ class SACAgent(TrainingAgent):
         # Same order in both lists: Polyak averaging pairs them up.
         self._params: list[torch.Tensor] = list(self.model.parameters())
         self._target_params: list[torch.Tensor] = list(self.model_target.parameters())
-        # Non-finite losses or gradients skip the update (tmrl/algorithms/guard.py).
-        self.guard = NonFiniteGuard()
+        # Non-finite losses or gradients skip the update (tmrl/algorithms/guard.py), decided on
+        # the device off a CPU (no synchronisation per update).
+        self.guard = NonFiniteGuard(device_side=device.type != "cpu")
         self._guarded: list[torch.Tensor] = self._params + ([self.log_alpha] if self.log_alpha is not None else [])
         # The losses of the latest policy update (reported by updates that do not update it).
         self.loss_pi = torch.zeros((), device=device)
@@ -414,16 +326,26 @@ class SACAgent(TrainingAgent):
             return self.log_alpha.detach().exp()
         return self.alpha_t
 
-    def _at_alpha_max(self) -> bool:
-        """Whether the learned coefficient is at or under ``alpha_max`` (read before its step)."""
+    def _at_alpha_max(self, on_device: bool = False) -> bool | torch.Tensor:
+        """Whether the learned coefficient is at or under ``alpha_max`` (read before its step):
+        a bool, or with ``on_device`` a 0-d boolean tensor (nothing read on the host)."""
         cap = self._log_alpha_max
-        return cap is not None and float(cast(torch.Tensor, self.log_alpha).detach()) <= cap
+        if cap is None:
+            return False
+        log_alpha = cast(torch.Tensor, self.log_alpha).detach()
+        if on_device:
+            return log_alpha <= cap
+        return float(log_alpha) <= cap
 
     @torch.no_grad()
-    def _hold_alpha(self, was_at_max: bool) -> None:
-        """After the coefficient's step: back to ``alpha_max`` if it was at or under it before."""
-        if was_at_max:
-            cast(torch.Tensor, self.log_alpha).clamp_(max=self._log_alpha_max)
+    def _hold_alpha(self, was_at_max: bool | torch.Tensor) -> None:
+        """After the coefficient's step: back to ``alpha_max`` if it was at or under it before
+        (``was_at_max`` as :meth:`_at_alpha_max` returned it)."""
+        log_alpha = cast(torch.Tensor, self.log_alpha)
+        if isinstance(was_at_max, torch.Tensor):
+            log_alpha.copy_(torch.where(was_at_max, log_alpha.clamp(max=self._log_alpha_max), log_alpha))
+        elif was_at_max:
+            log_alpha.clamp_(max=self._log_alpha_max)
 
     @torch.no_grad()
     def _update_targets(self) -> None:
@@ -439,6 +361,10 @@ class SACAgent(TrainingAgent):
         :meth:`policy_update_due`) the actor and the entropy coefficient, and Polyak averaging.
         Subclasses change the steps below, not this method.
 
+        With ``ALG.COMPILE`` off the update runs eager: the fused update where it applies, else
+        :meth:`_update_with` on :meth:`_update_losses` (the simultaneous order) or the sequential
+        order below; with it on, :meth:`_update_with` on the compiled :meth:`_update_losses`.
+
         Returns:
             ``loss_actor`` and ``loss_entropy_coef`` (SAC v2) of the latest policy update,
             ``loss_critic``, ``entropy_coef`` (the coefficient used in this update) and a few
@@ -446,34 +372,45 @@ class SACAgent(TrainingAgent):
         """
         if self._compile_state.mode != "off":
             return self._compiled_train(batch)
+        return self._update_off(batch, self.policy_update_due())
+
+    def _update_off(self, batch: tuple, update_policy: bool) -> dict[str, Any]:
+        """The eager update (``ALG.COMPILE`` off), :meth:`policy_update_due` already asked."""
         fused = self._fused()
         if fused is not None:
             return fused(batch)
+        if self.update_order == "simultaneous":
+            return self._update_with(self._eager_functions(), batch, update_policy)
+        return self._sequential_update(batch, update_policy)
+
+    def _sequential_update(self, batch: tuple, update_policy: bool) -> dict[str, Any]:
+        """The sequential order (the original tmrl SAC): the critics' and the entropy
+        coefficient's step, then the actor loss on the updated critics with a backward pass of
+        its own, then Polyak averaging."""
         b = Batch(*batch)
         alpha = self._entropy_coef()
-        update_policy = self.policy_update_due()
-        simultaneous = self.update_order == "simultaneous"
+        g = self._begin_update(update_policy)
         # a ~ pi(.|o), reparameterised: what the actor and entropy losses differentiate through
         pi, logp_pi = self.actor(b.obs) if update_policy else (None, None)
         backup = self.target_value(b, alpha)
-        # Q(o, a) of every critic; in the simultaneous order also Q(o, pi) with the critic weights
-        # detached, so that the actor loss moves the actor only.
-        q, q_pi_all = self.critics.with_policy_values(b.obs, b.act, pi if simultaneous else None)
+        q, _ = self.critics.with_policy_values(b.obs, b.act, None)
         loss_critic = self.critic_loss(q, backup)
         loss_alpha = self.entropy_loss(logp_pi) if logp_pi is not None else None
-        loss_actor = self.actor_loss(alpha, logp_pi, q_pi_all) if q_pi_all is not None else None
-        if not self._step(loss_critic, loss_actor, loss_alpha, update_policy):
+        if not self._step(loss_critic, None, loss_alpha, update_policy, g, targets=False):
             return self.guard.skipped_metrics()
-        if update_policy and not simultaneous:
-            loss_actor = self._actor_step_after_critics(b.obs, alpha, pi, logp_pi)
+        g.restore()  # on the device: the critics' step stands alone when finite, as on the host
+        loss_actor = None
+        if update_policy:
+            loss_actor = self._actor_step_after_critics(b.obs, alpha, pi, logp_pi, g)
             if loss_actor is None:
                 return self.guard.skipped_metrics()
+        g.keep(self._target_params)
         self._update_targets()
         if loss_actor is not None:
-            self.loss_pi = loss_actor.detach()
+            self.loss_pi = g.pick(loss_actor.detach(), self.loss_pi)
         if loss_alpha is not None:
-            self.loss_alpha = loss_alpha.detach()
-        return self._metrics(alpha, loss_critic, q, backup, logp_pi)
+            self.loss_alpha = g.pick(loss_alpha.detach(), self.loss_alpha)
+        return g.finish(self._metrics(alpha, loss_critic, q, backup, logp_pi))
 
     # --- the steps (REDQ and other agents override these) -------------------------------------
 
@@ -556,16 +493,39 @@ class SACAgent(TrainingAgent):
             fused = self.fused_update = FusedSACUpdate.for_agent(self)
         return fused
 
+    def _stepping_optimizers(self, update_policy: bool) -> list[torch.optim.Optimizer]:
+        """The optimizers that step in an update (the actor's and the coefficient's only when
+        ``update_policy``)."""
+        optimizers = [self.q_optimizer]
+        if update_policy:
+            if self.alpha_optimizer is not None:
+                optimizers.append(self.alpha_optimizer)
+            optimizers.append(self.pi_optimizer)
+        return optimizers
+
+    def _begin_update(self, update_policy: bool) -> GuardedUpdate:
+        """The non-finite guard of one update: on the device when the guard is device-side and
+        the state of every optimizer that steps exists on its parameters' device (Adam creates
+        it at its first step: that update is checked on the host)."""
+        on_device = self.guard.device_side and optimizer_state(self._stepping_optimizers(update_policy)) is not None
+        return GuardedUpdate(self.guard, on_device)
+
     def _step(
         self,
         loss_critic: torch.Tensor,
         loss_actor: torch.Tensor | None,
         loss_alpha: torch.Tensor | None,
         update_policy: bool,
+        guard: GuardedUpdate | None = None,
+        targets: bool = True,
     ) -> bool:
         """One backward pass through the sum of the losses, then a step of each optimizer whose
         loss is in it (the entropy coefficient's and the actor's only when ``update_policy``);
-        False (and no step) when a loss or gradient is not finite."""
+        False (and no step) when a loss or gradient is not finite and ``guard`` (default: on the
+        host) decides on the host. On the device the steps run, and what they change (with the
+        target parameters when ``targets``: the caller's Polyak averaging follows) is kept for
+        ``guard`` to put back."""
+        g = guard if guard is not None else GuardedUpdate(self.guard, False)
         if not update_policy:
             loss_actor = loss_alpha = None
         loss = loss_critic
@@ -578,26 +538,37 @@ class SACAgent(TrainingAgent):
             optimizers.append(self.pi_optimizer)
         for opt in optimizers:
             opt.zero_grad(set_to_none=True)
+        if g.on_device:
+            # The host check clears the gradients of a skipped update; the device's cannot, so
+            # a NaN gradient left on a parameter that does not step now must not be checked again.
+            for p in self._guarded:
+                p.grad = None
         loss.backward()
-        if not self.guard.update_ok(loss, self._guarded):
+        if not g.check(loss, self._guarded):
             return False
-        held = loss_alpha is not None and self._at_alpha_max()
+        if g.on_device:
+            g.keep(stepped_tensors(optimizers) + (self._target_params if targets else []))
+        held = loss_alpha is not None and self._at_alpha_max(g.on_device)
         for opt in optimizers:
             opt.step()
         self._hold_alpha(held)
         return True
 
     def _actor_step_after_critics(
-        self, obs: Any, alpha: torch.Tensor, pi: torch.Tensor, logp_pi: torch.Tensor
+        self, obs: Any, alpha: torch.Tensor, pi: torch.Tensor, logp_pi: torch.Tensor,
+        guard: GuardedUpdate | None = None,
     ) -> torch.Tensor | None:
         """The sequential order (the original tmrl SAC): the actor loss reads the critics after
         their step, with a backward pass of its own. None when its gradient is not finite (the
         critics have stepped already; the actor and the targets do not)."""
+        g = guard if guard is not None else GuardedUpdate(self.guard, False)
         loss_actor = self.actor_loss(alpha, logp_pi, self.critics(obs, pi, detach_params=True))
         self.pi_optimizer.zero_grad(set_to_none=True)
         loss_actor.backward()
-        if not self.guard.update_ok(loss_actor, self.actor.parameters()):
+        if not g.check(loss_actor, self.actor.parameters()):
             return None
+        if g.on_device:
+            g.keep(stepped_tensors([self.pi_optimizer]))
         self.pi_optimizer.step()
         return loss_actor
 
@@ -622,57 +593,103 @@ class SACAgent(TrainingAgent):
             metrics["loss_entropy_coef"] = self.loss_alpha
         return metrics
 
-    # --- ALG.COMPILE (tmrl/algorithms/compiled_sac.py) ---------------------------------------------
+    # --- one update as functions of the batch (ALG.COMPILE, tmrl/algorithms/compiled_sac.py) -----
 
-    def _sac_losses(self, b: Batch) -> tuple[Any, ...]:
-        """SAC's forward pass and losses in the simultaneous order, as :meth:`train` computes
-        them: ``(alpha, loss_critic, loss_actor, loss_alpha, stats)``, ``stats`` the ``debug_*``
-        means. The function that ``ALG.COMPILE`` compiles."""
+    COMPILED: tuple[str, ...] = ("_update_losses",)
+    """The methods :meth:`_update_with` calls with the batch, which ``ALG.COMPILE`` compiles
+    (:func:`~tmrl.algorithms.compiled_sac.compiled_functions`)."""
+
+    def _eager_functions(self) -> dict[str, Callable[..., Any]]:
+        """The methods of :attr:`COMPILED`, eager."""
+        return {name: getattr(self, name) for name in self.COMPILED}
+
+    def _prepare_batch(self, b: Batch) -> Batch:
+        """What an update does with the batch before its forward pass, eager in every mode (the
+        random draws that must reach the device before a compiled or captured function runs):
+        nothing for SAC; DrQ's random shifts, REDQ's target subset on a GPU."""
+        return b
+
+    def _update_losses(self, b: Batch, update_policy: bool) -> tuple[Any, ...]:
+        """The forward pass and losses of the simultaneous order, in the order of :meth:`train`:
+        ``(alpha, loss_critic, loss_actor, loss_alpha, stats)``, the actor's and the entropy
+        coefficient's losses None when not ``update_policy``, ``stats`` the ``debug_*`` means.
+        The function that ``ALG.COMPILE`` compiles."""
         alpha = self._entropy_coef()
-        pi, logp_pi = self.actor(b.obs)
+        # a ~ pi(.|o), reparameterised: what the actor and entropy losses differentiate through
+        pi, logp_pi = self.actor(b.obs) if update_policy else (None, None)
         backup = self.target_value(b, alpha)
+        # Q(o, a) of every critic and Q(o, pi) with the critic weights detached, so that the
+        # actor loss moves the actor only.
         q, q_pi_all = self.critics.with_policy_values(b.obs, b.act, pi)
         loss_critic = self.critic_loss(q, backup)
-        loss_alpha = self.entropy_loss(logp_pi)
-        loss_actor = self.actor_loss(alpha, logp_pi, q_pi_all)
-        stats = {"debug_log_pi": logp_pi.detach().mean(), "debug_q": q.detach().mean(), "debug_backup": backup.mean()}
+        loss_alpha = self.entropy_loss(logp_pi) if logp_pi is not None else None
+        loss_actor = self.actor_loss(alpha, logp_pi, q_pi_all) if q_pi_all is not None else None
+        stats: dict[str, torch.Tensor] = {}
+        if logp_pi is not None:
+            stats["debug_log_pi"] = logp_pi.detach().mean()
+        stats["debug_q"] = q.detach().mean()
+        stats["debug_backup"] = backup.mean()
         return alpha, loss_critic, loss_actor, loss_alpha, stats
 
-    def _update_with(self, losses: Callable[[Batch], tuple[Any, ...]], batch: tuple) -> dict[str, Any]:
-        """One SAC update whose forward pass and losses come from ``losses`` (:meth:`_sac_losses`
-        or its compiled version); the backward pass, the non-finite guard, the optimizer steps
-        (fused or foreach kernels, :func:`make_optimizer`) and Polyak averaging run eager. The
-        kept tensors are cloned: a CUDA graph's outputs are overwritten by its next replay."""
-        alpha, loss_critic, loss_actor, loss_alpha, stats = losses(Batch(*batch))
-        if not self._step(loss_critic, loss_actor, loss_alpha, True):
+    def _update_with(self, fns: dict[str, Callable[..., Any]], batch: tuple, update_policy: bool) -> dict[str, Any]:
+        """One update in the simultaneous order whose forward pass and losses come from
+        ``fns["_update_losses"]`` (eager or compiled); the backward pass, the non-finite guard,
+        the optimizer steps (fused or foreach kernels, :func:`make_optimizer`) and Polyak
+        averaging run eager. Under ``"cudagraph"`` the kept tensors are cloned: a CUDA graph's
+        outputs are overwritten by its next replay."""
+        b = self._prepare_batch(Batch(*batch))
+        g = self._begin_update(update_policy)
+        alpha, loss_critic, loss_actor, loss_alpha, stats = fns["_update_losses"](b, update_policy)
+        if not self._step(loss_critic, loss_actor, loss_alpha, update_policy, g):
             return self.guard.skipped_metrics()
         self._update_targets()
-        self.loss_pi = loss_actor.detach().clone()
-        metrics: dict[str, Any] = {
-            "loss_actor": self.loss_pi,
-            "loss_critic": loss_critic.detach().clone(),
-            "entropy_coef": alpha.detach().clone(),
-        }
-        metrics.update((k, v.clone()) for k, v in stats.items())
+        own = self._owned
+        if loss_actor is not None:
+            self.loss_pi = g.pick(own(loss_actor), self.loss_pi)
         if loss_alpha is not None:
-            self.loss_alpha = loss_alpha.detach().clone()
+            self.loss_alpha = g.pick(own(loss_alpha), self.loss_alpha)
+        metrics: dict[str, Any] = {"loss_actor": self.loss_pi, "loss_critic": own(loss_critic), "entropy_coef": own(alpha)}
+        metrics.update((k, own(v)) for k, v in stats.items())
+        if self.log_alpha is not None:
             metrics["loss_entropy_coef"] = self.loss_alpha
-        return metrics
+        return g.finish(metrics)
+
+    def _owned(self, t: torch.Tensor) -> torch.Tensor:
+        """``t`` detached, cloned under ``"cudagraph"`` (out of the graph's memory)."""
+        t = t.detach()
+        return t.clone() if self._compile_state.mode == "cudagraph" else t
 
     def _compiled_train(self, batch: tuple) -> dict[str, Any]:
-        """One update with ``ALG.COMPILE`` on: :meth:`_sac_losses` compiled, the rest eager
-        (:mod:`tmrl.algorithms.compiled_sac` says why); the first update checked against eager."""
+        """One update with ``ALG.COMPILE`` on: the functions of :attr:`COMPILED` compiled, the rest
+        eager (:mod:`tmrl.algorithms.compiled_sac` says why); the first update of each kind (with
+        and without a policy update) checked against eager."""
+        update_policy = self.policy_update_due()
         st = self._compile_state
-        if st.fn is None:
-            st.fn = compiled_losses(self._sac_losses, st.mode)
-        if not st.checked:
-            return first_compiled_update(self, batch)
-        return self._update_with(st.fn, batch)
+        if st.fns is None:
+            st.fns = compiled_functions(self, st.mode)
+        if update_policy not in st.checked:
+            return first_compiled_update(self, batch, update_policy)
+        return self._update_with(st.fns, batch, update_policy)
+
+    def _compile_unsupported(self) -> str | None:
+        """Why this agent's update cannot be compiled (None: it can): ``train`` overridden by a
+        class that does not also define :meth:`_update_with`, or SAC's update in the sequential
+        order, which backpropagates twice through one forward pass."""
+        def owner(name: str) -> type:
+            return next(c for c in type(self).__mro__ if name in vars(c))
+
+        if owner("train") is not owner("_update_with"):
+            return f"{type(self).__name__} overrides train"
+        if owner("_update_with") is SACAgent and self.update_order != "simultaneous":
+            return "update_order='sequential' backpropagates twice through one forward pass"
+        return None
 
     def _checked_tensors(self) -> list[torch.Tensor]:
-        """What the first compiled update must agree on: parameters, target parameters, log(alpha)."""
+        """What the first compiled update must agree on: parameters, target parameters, the
+        model's floating-point buffers (running statistics), log(alpha)."""
         extra = [self.log_alpha] if self.log_alpha is not None else []
-        return self._params + self._target_params + extra
+        buffers = [b for b in self.model.buffers() if b.is_floating_point()]
+        return self._params + self._target_params + buffers + extra
 
     # --- checkpointing ------------------------------------------------------------------------
 

@@ -111,6 +111,18 @@ class QuantileQFunction(nn.Module):
         self.n_quantiles = int(n_quantiles)
         self.net = mlp([dim_in, *hidden_sizes, self.n_quantiles], activation)
 
+    squeeze_output = False
+    """:meth:`forward` keeps the output's last axis (the quantiles) (for :class:`~tmrl.models.StackedCritics`)."""
+
+    def critic_input(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
+        """The input of ``net``: the observation then the action, as one ``(B, D)`` float32 tensor.
+
+        Args:
+            obs: a batched observation.
+            act: actions ``(B, act_dim)``.
+        """
+        return flatten_obs((obs, act))
+
     def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
         """Quantiles of shape ``(B, n_quantiles)``, ascending fractions.
 
@@ -118,8 +130,7 @@ class QuantileQFunction(nn.Module):
             obs: a batched observation.
             act: actions ``(B, act_dim)``.
         """
-        x = flatten_obs((obs, act))  # the observation then the action, as one (B, D) float32 input
-        return self.net(x)
+        return self.net(self.critic_input(obs, act))
 
 
 class TQCActorCritic(nn.Module):

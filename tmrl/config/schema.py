@@ -108,7 +108,7 @@ UPDATE_ORDERS = ("simultaneous", "sequential")
 """Values of ``ALG.UPDATE_ORDER`` (``SACAgent(update_order=...)``)."""
 
 COMPILE_MODES = ("off", "compile", "cudagraph")
-"""Values of ``ALG.COMPILE`` (``SACAgent(compile=...)``)."""
+"""Values of ``ALG.COMPILE`` (``compile=`` of every agent)."""
 
 ON_DEVICE_MODES = ("auto", "on", "off")
 """Values of ``MEMORY_ON_DEVICE`` (the built-in memories' ``on_device``, :mod:`tmrl.memory.resident`)."""
@@ -185,12 +185,12 @@ _ALG = Section(
                                "before their step (one backward pass), \"sequential\" after it (the original tmrl "
                                "SAC)", UPDATE_ORDERS, feeds=("SACAgent.update_order",),
                                class_default="simultaneous"),
-        "COMPILE": Choice("off", "SAC's update without Python in the loop: \"off\" (eager), \"compile\" "
-                          "(torch.compile of the forward pass and losses) or \"cudagraph\" (the same, replayed as "
-                          "CUDA graphs; CUDA only); the first update is checked against eager and a mismatch falls "
-                          "back to eager; the other agents (their updates cannot be compiled yet) warn and run eager",
+        "COMPILE": Choice("off", "the agent's update without Python in the loop: \"off\" (eager), \"compile\" "
+                          "(torch.compile of its forward passes and losses) or \"cudagraph\" (the same, replayed as "
+                          "CUDA graphs; CUDA only), for every agent; the first update of each kind is checked "
+                          "against eager and a mismatch falls back to eager",
                           COMPILE_MODES,
-                          feeds=tuple(f"{cls}.compile" for cls in AGENT_CLASSES.values() if cls != "DrQAgent"),
+                          feeds=tuple(f"{cls}.compile" for cls in AGENT_CLASSES.values()),
                           class_default="off"),
     },
     "the training algorithm and its hyperparameters",

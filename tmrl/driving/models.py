@@ -307,7 +307,8 @@ class CNNActorCritic(nn.Module):
         super().__init__()
         if int(n) < 1:
             raise UserError(f"an actor-critic needs at least one critic, got n={n}")
-        sizes = dict(channels=channels, kernels=kernels, strides=strides, hidden_sizes=hidden_sizes, image_index=image_index)
+        sizes = {"channels": channels, "kernels": kernels, "strides": strides, "hidden_sizes": hidden_sizes,
+                 "image_index": image_index}
         self.actor = SquashedGaussianCNNActor(observation_space, action_space, **sizes)
         self.qs = nn.ModuleList(CNNQFunction(observation_space, action_space, **sizes) for _ in range(int(n)))
 
@@ -557,6 +558,34 @@ class ScaledCritic(nn.Module):
         super().__init__()
         self.critic = critic
         self.obs_scales = tuple(float(s) for s in obs_scales)
+
+    # What tmrl.models.StackedCritics needs to evaluate several of them together: the wrapped
+    # critic's network, on its input from the scaled observation.
+
+    @property
+    def net(self) -> nn.Module | None:
+        """The wrapped critic's network (None when it has none, or no ``critic_input``)."""
+        net = getattr(self.critic, "net", None)
+        return net if isinstance(net, nn.Module) and callable(getattr(self.critic, "critic_input", None)) else None
+
+    @property
+    def squeeze_output(self) -> bool:
+        """Whether the wrapped critic drops its output's last axis."""
+        return bool(getattr(self.critic, "squeeze_output", True))
+
+    @property
+    def input_key(self) -> tuple:
+        """Critics with equal keys read the same input (same scales, same kind of critic)."""
+        return self.obs_scales, type(self.critic), getattr(self.critic, "input_key", None)
+
+    def critic_input(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
+        """The wrapped critic's network input from the scaled observation.
+
+        Args:
+            obs: a batched observation, in the environment's units.
+            act: actions ``(B, act_dim)``.
+        """
+        return self.critic.critic_input(_scaled(obs, self.obs_scales), act)  # type: ignore[operator]
 
     def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
         """``critic(scaled obs, act)``.
