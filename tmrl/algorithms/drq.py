@@ -106,8 +106,12 @@ def random_shift(imgs: torch.Tensor, pad: int, generator: torch.Generator | None
     if pad <= 0:
         return imgs.clone()
     b, _, h, w = imgs.shape
-    # Drawn on the CPU; sent to the device without waiting for it.
-    offsets = torch.randint(0, 2 * pad + 1, (b, 2), generator=generator).to(imgs.device, non_blocking=True)
+    # Drawn on the CPU; sent to the device without waiting for it (from pinned memory: a copy from
+    # pageable memory would wait for the device's queue first).
+    offsets = torch.randint(0, 2 * pad + 1, (b, 2), generator=generator)
+    if imgs.device.type == "cuda":
+        offsets = offsets.pin_memory()
+    offsets = offsets.to(imgs.device, non_blocking=True)
     # Padding with repeated edges then cropping at (dy, dx) reads row i of the output from row
     # clamp(i + dy - pad) of the input (and likewise for columns).
     rows = (torch.arange(h, device=imgs.device) + offsets[:, :1] - pad).clamp_(0, h - 1)  # (B, h)

@@ -138,7 +138,8 @@ class REDQSACAgent(SACAgent):
         draw, and a compiled or captured forward pass holds no CPU operation."""
         if self.device.type != "cpu":
             subset = torch.randperm(self.n)[: self.m]
-            self._subset = (subset, subset.to(self.device, non_blocking=True))
+            staged = subset.pin_memory() if self.device.type == "cuda" else subset  # pageable would wait
+            self._subset = (subset, staged.to(self.device, non_blocking=True))
         return b
 
     def policy_q(self, q_pi_all: torch.Tensor) -> torch.Tensor:
