@@ -318,3 +318,19 @@ def test_as_float32_scales_a_copy_never_its_input():
         y = resident.as_float32(x, 0.5)
         assert y.dtype in (np.float32, torch.float32) and float(y[1]) == 0.5 * float(before[1])
         assert (x == before).all()
+
+
+def test_copies_to_the_device_go_in_pieces_and_keep_every_row(monkeypatch, tmp_path):
+    # a restore of a big memory is copied chunk_bytes at a time; here a few frames per piece
+    monkeypatch.setattr(resident.DeviceRing, "chunk_bytes", 100)
+    host, dev, kind = twins("image", "cpu", memory_size=41)
+    samples, sources = stream(np.random.default_rng(6), 70, kind)
+    host.append(buf(samples, sources))
+    dev.append(buf(samples, sources))
+    assert_same_batch(host.sample(host.valid_slots()), dev.sample(host.valid_slots()))
+    dev.device_ring.reload()
+    ring, st = dev.device_ring, dev._storage
+    for d, h in zip(ring.obs, st.obs):
+        assert np.array_equal(d.numpy(), h)
+    assert np.array_equal(ring.act.numpy(), st.act) and np.array_equal(ring.rew.numpy(), st.rew)
+    assert_same_batch(host.sample(host.valid_slots()), dev.sample(host.valid_slots()))

@@ -167,14 +167,22 @@ class DeviceRing:
 
     # --- copies --------------------------------------------------------------------------------
 
+    chunk_bytes = 64 << 20
+    """The largest copy to the device at once: a restore of a million frames (4 GB) goes over in
+    pieces, so that no more than this is pinned on the host at a time."""
+
     def _put(self, dst: torch.Tensor, lo: int, hi: int, rows: np.ndarray) -> None:
-        """Copy host ``rows`` into ``dst[lo:hi]`` (through pinned memory, without waiting, on CUDA)."""
-        src = torch.from_numpy(np.ascontiguousarray(rows))
-        if src.dtype != dst.dtype:
-            src = src.to(dst.dtype)
-        if self._pin:
-            src = src.pin_memory()
-        dst[lo:hi].copy_(src, non_blocking=self._pin)
+        """Copy host ``rows`` into ``dst[lo:hi]`` (through pinned memory, without waiting, on
+        CUDA), :attr:`chunk_bytes` at a time."""
+        step = max(1, self.chunk_bytes // max(1, rows[:1].nbytes))
+        for a in range(0, hi - lo, step):
+            b = min(a + step, hi - lo)
+            src = torch.from_numpy(np.ascontiguousarray(rows[a:b]))
+            if src.dtype != dst.dtype:
+                src = src.to(dst.dtype)
+            if self._pin:
+                src = src.pin_memory()
+            dst[lo + a : lo + b].copy_(src, non_blocking=self._pin)
 
     def _pairs(self) -> list[tuple[torch.Tensor, np.ndarray]]:
         st = self.storage
