@@ -349,3 +349,19 @@ def test_cuda_updates_do_not_synchronise(name: str, mode: str):
         torch.cuda.set_sync_debug_mode("default")
     assert agent.guard.skipped == 1
     assert all(bool(torch.isfinite(p).all()) for p in agent.model.parameters())
+
+
+@pytest.mark.parametrize("foreach", [True, False])
+def test_a_rollback_puts_back_only_what_a_false_flag_refuses(monkeypatch, foreach):
+    from tmrl.algorithms.guard import Rollback
+
+    if not foreach:  # an older PyTorch without torch._foreach_copy_
+        monkeypatch.delattr(torch, "_foreach_copy_")
+    a, b = torch.arange(4.0), torch.ones(2, 3, dtype=torch.float64)
+    saved = Rollback([a, b, a])
+    a.add_(10.0)
+    b.mul_(3.0)
+    saved.restore_unless(torch.tensor(True))
+    assert torch.equal(a, torch.arange(4.0) + 10) and torch.equal(b, torch.full((2, 3), 3.0, dtype=torch.float64))
+    saved.restore_unless(torch.tensor(False))
+    assert torch.equal(a, torch.arange(4.0)) and torch.equal(b, torch.ones(2, 3, dtype=torch.float64))

@@ -273,7 +273,12 @@ class Rollback:
         (bit for bit) where it is true."""
         for ts, sizes, saved in self._groups:
             kept = torch.where(ok, _flat(ts), saved)
-            torch._foreach_copy_(ts, [part.view(t.shape) for part, t in zip(kept.split(sizes), ts)])
+            parts = [part.view(t.shape) for part, t in zip(kept.split(sizes), ts)]
+            if hasattr(torch, "_foreach_copy_"):
+                torch._foreach_copy_(ts, parts)
+            else:  # an older PyTorch: one copy per tensor
+                for t, part in zip(ts, parts):
+                    t.copy_(part)
 
 
 def _flat(tensors: list[torch.Tensor]) -> torch.Tensor:

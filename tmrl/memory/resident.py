@@ -95,6 +95,10 @@ def as_float32(array: Any, scale: float | None = None) -> Any:
     return out
 
 
+# torch.OutOfMemoryError (PyTorch 2.5 on), or the CUDA one it names (older versions)
+_OUT_OF_MEMORY = getattr(torch, "OutOfMemoryError", None) or torch.cuda.OutOfMemoryError
+
+
 def _device_zeros(shape: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """The one allocation on the device (the seam tests use to make the device run out of memory)."""
     return torch.zeros(shape, dtype=dtype, device=device)
@@ -148,7 +152,7 @@ class DeviceRing:
         size = int(np.prod(shape, dtype=np.int64)) * torch.empty((), dtype=dtype).element_size()
         try:
             t = _device_zeros(shape, dtype, self.device)
-        except torch.OutOfMemoryError:
+        except _OUT_OF_MEMORY:
             raise RingDoesNotFit(
                 f"the replay memory's rings need {_gib(self.nbytes + size)} on {self.device} "
                 f"(at least; {_gib(self.nbytes)} allocated before this array of {_gib(size)}) and do not fit"
