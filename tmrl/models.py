@@ -29,6 +29,7 @@ __all__ = [
     "LOG_STD_MAX",
     "LOG_STD_MIN",
     "EnsembleQFunction",
+    "FlatInputCritic",
     "MLPActorCritic",
     "MLPQFunction",
     "QMember",
@@ -38,6 +39,7 @@ __all__ = [
     "flatten_obs",
     "mlp",
     "space_dim",
+    "split_image_obs",
     "stacked_mlp",
 ]
 
@@ -83,6 +85,20 @@ def space_dim(space: Any) -> int:
             "(or Tuple/Dict of them); write an obs_preprocessor or a custom model"
         )
     return int(np.prod(shape, dtype=np.int64))
+
+
+def split_image_obs(obs: Sequence[torch.Tensor], image_index: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The frames of a batched image observation, as given, and its other elements flattened into
+    one float32 ``(B, k)`` tensor (``k`` may be 0).
+
+    Args:
+        obs: the batched observation's elements.
+        image_index: position of the frames among them.
+    """
+    imgs = obs[image_index]
+    b = imgs.shape[0]
+    rest = [o.reshape(b, -1).to(torch.float32) for i, o in enumerate(obs) if i != image_index]
+    return imgs, torch.cat(rest, dim=-1) if rest else imgs.new_zeros((b, 0), dtype=torch.float32)
 
 
 def flatten_obs(obs: Any) -> torch.Tensor:
@@ -582,7 +598,27 @@ class StackedCritics:
         return out.squeeze(-1) if self.squeeze else out
 
 
-class MLPQFunction(nn.Module):
+class FlatInputCritic:
+    """What :class:`StackedCritics` reads of a critic whose ``net`` takes the observation then the
+    action as one flat vector: :meth:`critic_input` and :attr:`squeeze_output`. Mixed into
+    :class:`MLPQFunction` and the DroQ, TQC and CrossQ critics."""
+
+    squeeze_output = True
+    """Whether :meth:`forward` drops the output's last axis (a critic with several outputs per
+    sample, TQC's quantiles, sets it False)."""
+
+    def critic_input(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
+        """The input of the critic's network: the observation then the action, as one ``(B, D)``
+        float32 tensor.
+
+        Args:
+            obs: a batched observation.
+            act: actions ``(B, act_dim)``.
+        """
+        return flatten_obs((obs, act))
+
+
+class MLPQFunction(FlatInputCritic, nn.Module):
     """One MLP Q function ``Q(obs, act) -> (B,)``, for models composed by hand (tmrl 0.7's
     ``MLPQFunction``; the built-in actor-critics use :class:`EnsembleQFunction` instead).
 
@@ -598,18 +634,6 @@ class MLPQFunction(nn.Module):
         super().__init__()
         dim_in = space_dim(observation_space) + int(np.prod(action_space.shape))
         self.q = mlp([dim_in, *hidden_sizes, 1], activation)
-
-    squeeze_output = True
-    """:meth:`forward` drops the output's last axis (for :class:`~tmrl.models.StackedCritics`)."""
-
-    def critic_input(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
-        """The input of ``q``: the observation then the action, as one ``(B, D)`` float32 tensor.
-
-        Args:
-            obs: a batched observation.
-            act: actions ``(B, act_dim)``.
-        """
-        return flatten_obs((obs, act))
 
     @property
     def net(self) -> nn.Sequential:

@@ -82,7 +82,7 @@ from tmrl.algorithms.guard import GuardedUpdate, stepped_tensors
 from tmrl.algorithms.sac import SACAgent, _build_model
 from tmrl.batch import Batch
 from tmrl.errors import UserError
-from tmrl.models import SquashedGaussianMLPActor, flatten_obs, space_dim
+from tmrl.models import FlatInputCritic, SquashedGaussianMLPActor, space_dim
 from tmrl.util import partial
 
 __all__ = ["PAPER_BETAS", "BatchRenorm1d", "CrossQActorCritic", "CrossQAgent", "CrossQQFunction"]
@@ -214,7 +214,7 @@ class BatchRenorm1d(nn.Module):
         return x_hat * weight + bias
 
 
-class CrossQQFunction(nn.Module):
+class CrossQQFunction(FlatInputCritic, nn.Module):
     """CrossQ's critic ``Q(obs, act) -> (B,)``: an MLP with :class:`BatchRenorm1d` on its input and
     after every hidden activation (``BRN -> Linear -> act -> BRN -> ... -> Linear``).
 
@@ -252,18 +252,6 @@ class CrossQQFunction(nn.Module):
             width = int(size)
         layers.append(nn.Linear(width, 1))
         self.net = nn.Sequential(*layers)
-
-    squeeze_output = True
-    """:meth:`forward` drops the output's last axis (for :class:`~tmrl.models.StackedCritics`)."""
-
-    def critic_input(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
-        """The input of ``net``: the observation then the action, as one ``(B, D)`` float32 tensor.
-
-        Args:
-            obs: a batched observation.
-            act: actions ``(B, act_dim)``.
-        """
-        return flatten_obs((obs, act))
 
     def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
         """Q values of shape ``(B,)``.

@@ -55,12 +55,12 @@ from torch import nn
 
 from tmrl.algorithms.sac import SACAgent, _build_model
 from tmrl.errors import UserError
-from tmrl.models import SquashedGaussianMLPActor, flatten_obs, space_dim
+from tmrl.models import FlatInputCritic, SquashedGaussianMLPActor, space_dim
 
 __all__ = ["DroQAgent", "DroQMLPActorCritic", "DropoutQFunction"]
 
 
-class DropoutQFunction(nn.Module):
+class DropoutQFunction(FlatInputCritic, nn.Module):
     """A dropout Q-function ``Q^Dr(obs, act) -> (B,)``: every hidden layer is
     ``Linear -> Dropout -> LayerNorm -> activation``, then a linear output layer.
 
@@ -91,18 +91,6 @@ class DropoutQFunction(nn.Module):
             width = size
         layers.append(nn.Linear(width, 1))
         self.net = nn.Sequential(*layers)
-
-    squeeze_output = True
-    """:meth:`forward` drops the output's last axis (for :class:`~tmrl.models.StackedCritics`)."""
-
-    def critic_input(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
-        """The input of ``net``: the observation then the action, as one ``(B, D)`` float32 tensor.
-
-        Args:
-            obs: a batched observation.
-            act: actions ``(B, act_dim)``.
-        """
-        return flatten_obs((obs, act))
 
     def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
         """Q values of shape ``(B,)``.

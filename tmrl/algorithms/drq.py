@@ -71,7 +71,7 @@ from tmrl.actor import TorchActorModule
 from tmrl.algorithms.sac import SACAgent, _build_model, make_optimizer
 from tmrl.batch import Batch
 from tmrl.errors import UserError
-from tmrl.models import mlp, space_dim, squashed_gaussian, stacked_mlp, stacked_plan
+from tmrl.models import mlp, space_dim, split_image_obs, squashed_gaussian, stacked_mlp, stacked_plan
 
 __all__ = ["DRQ_CNN", "DrQActor", "DrQActorCritic", "DrQAgent", "DrQCritics", "DrQEncoder", "random_shift"]
 
@@ -132,14 +132,6 @@ def _image_layout(observation_space: Any, image_index: int) -> tuple[tuple[int, 
     hist, h, w = (int(s) for s in elements[image_index].shape)
     others = sum(space_dim(s) for i, s in enumerate(elements) if i != image_index)
     return (hist, h, w), others
-
-
-def split_obs(obs: Sequence[torch.Tensor], image_index: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The frames (as given) and the other elements flattened into one float32 ``(B, k)`` tensor."""
-    imgs = obs[image_index]
-    b = imgs.shape[0]
-    rest = [o.reshape(b, -1).to(torch.float32) for i, o in enumerate(obs) if i != image_index]
-    return imgs, torch.cat(rest, dim=-1) if rest else imgs.new_zeros((b, 0), dtype=torch.float32)
 
 
 class DrQEncoder(nn.Module):
@@ -263,7 +255,7 @@ class DrQActor(TorchActorModule):
             test: the Gaussian's mean instead of a sample.
             with_logprob: also return the log-density of the action.
         """
-        imgs, others = split_obs(obs, self.image_index)
+        imgs, others = split_image_obs(obs, self.image_index)
         return self.head(self.encoder(imgs), others, test, with_logprob)
 
     def act(self, obs: Any, test: bool = False) -> np.ndarray:
@@ -492,7 +484,7 @@ class DrQAgent(SACAgent):
     def _losses_on(self, b: Batch) -> dict[str, Any]:
         """:meth:`losses` on a batch already augmented."""
         alpha = self._entropy_coef()
-        imgs, others = split_obs(b.obs, self.image_index)
+        imgs, others = split_image_obs(b.obs, self.image_index)
         features = self.model.encoder(imgs)  # the critics' path: the encoder learns from it
         # The actor reads the features detached: no actor gradient reaches the encoder.
         pi, logp_pi = self.actor.head(features.detach(), others)
@@ -533,7 +525,7 @@ class DrQAgent(SACAgent):
             next_act: actions ``a'`` drawn from the current policy at ``o'``.
         """
         target = self.model_target
-        imgs, others = split_obs(next_obs, self.image_index)
+        imgs, others = split_image_obs(next_obs, self.image_index)
         return target.qs.values(target.encoder(imgs), others, next_act).min(0).values
 
     # target_value, critic_loss, actor_loss, policy_q and entropy_loss are SAC's.

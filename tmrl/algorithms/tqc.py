@@ -54,7 +54,7 @@ from torch import nn
 from tmrl.algorithms.sac import SACAgent, _build_model
 from tmrl.batch import Batch
 from tmrl.errors import UserError
-from tmrl.models import SquashedGaussianMLPActor, flatten_obs, mlp, space_dim
+from tmrl.models import FlatInputCritic, SquashedGaussianMLPActor, mlp, space_dim
 
 __all__ = ["QuantileQFunction", "TQCActorCritic", "TQCAgent", "quantile_huber_loss"]
 
@@ -86,7 +86,7 @@ def quantile_huber_loss(quantiles: torch.Tensor, atoms: torch.Tensor, kappa: flo
     return (weight * huber).mean()
 
 
-class QuantileQFunction(nn.Module):
+class QuantileQFunction(FlatInputCritic, nn.Module):
     """A distributional critic: an MLP from ``(obs, act)`` to ``n_quantiles`` quantiles of the
     return, ``(B, n_quantiles)``.
 
@@ -113,15 +113,6 @@ class QuantileQFunction(nn.Module):
 
     squeeze_output = False
     """:meth:`forward` keeps the output's last axis (the quantiles) (for :class:`~tmrl.models.StackedCritics`)."""
-
-    def critic_input(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
-        """The input of ``net``: the observation then the action, as one ``(B, D)`` float32 tensor.
-
-        Args:
-            obs: a batched observation.
-            act: actions ``(B, act_dim)``.
-        """
-        return flatten_obs((obs, act))
 
     def forward(self, obs: Any, act: torch.Tensor) -> torch.Tensor:
         """Quantiles of shape ``(B, n_quantiles)``, ascending fractions.

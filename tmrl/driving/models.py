@@ -39,6 +39,7 @@ from tmrl.models import (
     SquashedGaussianMLPActor,
     mlp,
     space_dim,
+    split_image_obs,
     squashed_gaussian,
 )
 
@@ -94,12 +95,10 @@ def _split_space(observation_space: Any, image_index: int) -> tuple[tuple[int, .
 
 
 def _split_obs(obs: Sequence[torch.Tensor], image_index: int) -> tuple[torch.Tensor, torch.Tensor]:
-    imgs = obs[image_index]
+    imgs, scalars = split_image_obs(obs, image_index)
     if imgs.dtype == torch.uint8:  # raw frames: apply the preprocessor's scaling
         imgs = imgs.to(torch.float32) / 256.0
-    b = imgs.shape[0]
-    scalars = [o.reshape(b, -1).to(torch.float32) for i, o in enumerate(obs) if i != image_index]
-    return imgs.to(torch.float32), torch.cat(scalars, dim=-1) if scalars else imgs.new_zeros((b, 0))
+    return imgs.to(torch.float32), scalars
 
 
 class ImageEncoder(nn.Module):
