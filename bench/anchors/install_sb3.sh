@@ -10,20 +10,9 @@
 set -euo pipefail
 DIR=${1:-/tmp/sb3-anchor}
 if [ -n "${TMRL_WHEELS:-}" ]; then
-    # Offline (a GPU machine without a package registry): SB3 and Gymnasium from the wheels of
-    # bench/anchors/gpu_wheels.sh into DIR/site; DIR/venv/bin/python runs this machine's python3 (its
-    # torch, numpy, pandas, matplotlib) with them. No venv: see install_tmrl.sh.
-    wheels=$(cd "$TMRL_WHEELS" && pwd)
-    if [ -L "$DIR/venv/bin/python" ]; then  # a venv made online: never write through its python's link
-        echo "$DIR holds a virtual environment already: give another DIR" >&2
-        exit 2
-    fi
-    python3 -m pip install -q --no-index --no-deps --target "$DIR/site" \
-        "$wheels"/stable_baselines3-*.whl "$wheels"/gymnasium-*.whl "$wheels"/farama_notifications-*.whl
-    mkdir -p "$DIR/venv/bin"
-    printf '#!/bin/sh\nPYTHONPATH="%s" exec "%s" "$@"\n' "$DIR/site" "$(python3 -c 'import sys; print(sys.executable)')" \
-        > "$DIR/venv/bin/python"
-    chmod +x "$DIR/venv/bin/python"
+    # Offline (bench/anchors/offline.sh): SB3 and Gymnasium; the machine's python3 has the rest.
+    . "$(cd "$(dirname "$0")" && pwd)/offline.sh"
+    offline_install "$DIR" 'stable_baselines3-*' 'gymnasium-*' 'farama*'
 else
     python3 -m venv "$DIR/venv"
     "$DIR/venv/bin/pip" install -q torch==2.13.0

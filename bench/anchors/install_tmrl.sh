@@ -15,22 +15,12 @@ set -euo pipefail
 DIR=${1:-/tmp/tmrl-anchor}
 here=$(cd "$(dirname "$0")" && pwd)
 if [ -n "${TMRL_WHEELS:-}" ]; then
-    # Offline, on a machine without a package registry (a GPU machine): tmrl 0.7.1 and what its
-    # runtime needs beyond a scientific Python (torch, numpy, pandas...) go from the wheels of
-    # bench/anchors/gpu_wheels.sh into DIR/site, without dependencies (tmrl 0.7.1's own would ask
-    # for pywin32), and DIR/venv/bin/python runs this machine's python3 with them. No venv: one made
-    # from a venv's python (the GPU image's is one) would not see that venv's CUDA torch.
-    wheels=$(cd "$TMRL_WHEELS" && pwd)
-    if [ -L "$DIR/venv/bin/python" ]; then  # a venv made online: never write through its python's link
-        echo "$DIR holds a virtual environment already: give another DIR" >&2
-        exit 2
-    fi
-    python3 -m pip install -q --no-index --no-deps --target "$DIR/site" \
-        $(cd "$wheels" && ls | grep -E '^(tmrl-0\.7\.1|rtgym|tlspyo|twisted|automat|constantly|hyperlink|incremental|zope|pyopenssl|cryptography|cffi|pycparser|service_identity|pyasn1|pyinstrument|chardet|mss|gymnasium|farama)' | sed "s|^|$wheels/|")
-    mkdir -p "$DIR/venv/bin"
-    printf '#!/bin/sh\nPYTHONPATH="%s" exec "%s" "$@"\n' "$DIR/site" "$(python3 -c 'import sys; print(sys.executable)')" \
-        > "$DIR/venv/bin/python"
-    chmod +x "$DIR/venv/bin/python"
+    # Offline (bench/anchors/offline.sh): tmrl 0.7.1 and what its runtime needs beyond a
+    # scientific Python, without dependencies (tmrl 0.7.1's own would ask for pywin32).
+    . "$here/offline.sh"
+    offline_install "$DIR" 'tmrl-0.7.1-*' 'rtgym-*' 'tlspyo-*' 'twisted-*' 'automat-*' 'constantly-*' \
+        'hyperlink-*' 'incremental-*' 'zope*' 'pyopenssl-*' 'cryptography-*' 'cffi-*' 'pycparser-*' \
+        'service_identity-*' 'pyasn1*' 'pyinstrument-*' 'chardet-*' 'mss-*' 'gymnasium-*' 'farama*'
 else
     python3 -m venv "$DIR/venv"
     "$DIR/venv/bin/pip" install -q torch==2.13.0

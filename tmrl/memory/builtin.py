@@ -121,14 +121,15 @@ class GenericTorchMemory(TorchMemory):
                 logger.info("%s overrides build_obs: its batches are built on the host and copied to %s",
                             type(self).__name__, device)
             else:
-                self._to_device(lambda: setattr(self, "device_ring", DeviceRing(self._storage, device)))
+                self.device_ring = self._to_device(lambda: DeviceRing(self._storage, device))
         load_dataset(self, dataset_path)
 
-    def _to_device(self, step: Callable[[], Any]) -> None:
-        """Run ``step`` (an allocation or copy of the device rings); when the rings do not fit,
-        go on without them (``"auto"``: one warning) or stop (``"on"``: one line)."""
+    def _to_device(self, step: Callable[[], Any]) -> Any:
+        """Run ``step`` (an allocation or copy of the device rings) and return what it returns;
+        when the rings do not fit, go on without them (``"auto"``: one warning, None returned) or
+        stop (``"on"``: one line)."""
         try:
-            step()
+            return step()
         except RingDoesNotFit as e:
             self.device_ring = None
             if self.on_device == "on":
@@ -137,6 +138,7 @@ class GenericTorchMemory(TorchMemory):
                            "without trying)", e)
             if torch.device(self.device).type == "cuda":
                 torch.cuda.empty_cache()
+            return None
 
     # --- storage -------------------------------------------------------------------------------
 
