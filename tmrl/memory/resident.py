@@ -32,14 +32,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from tmrl.batch import to_torch
 from tmrl.config.schema import ON_DEVICE_MODES
 from tmrl.errors import UserError
 from tmrl.memory.storage import RingStorage
 
 __all__ = ["ON_DEVICE_MODES", "DeviceRing", "RingDoesNotFit", "as_float32", "take", "wants_device_ring"]
-
-# MEMORY_ON_DEVICE: "auto" (the rings on the memory's device when it is a GPU), "on" (on the
-# memory's device, whatever it is: on a CPU a second copy, for tests), "off" (host only).
 
 
 class RingDoesNotFit(Exception):
@@ -130,10 +128,15 @@ class DeviceRing:
         self.storage = storage
         self.device = torch.device(device)
         self._pin = self.device.type == "cuda"
+        self._fresh()
+
+    def _fresh(self) -> None:
+        """No rings but the per-slot scalars (observations and actions follow the host's arrays,
+        :meth:`_allocate`)."""
         self.obs: list[torch.Tensor] = []
         self.act: torch.Tensor | None = None
         self.nbytes = 0
-        cap = storage.capacity
+        cap = self.storage.capacity
         self.rew = self._zeros(cap, torch.float32)
         self.terminated = self._zeros(cap, torch.float32)
         self.truncated = self._zeros(cap, torch.float32)
@@ -220,12 +223,9 @@ class DeviceRing:
         Raises:
             RingDoesNotFit: the rings do not fit on the device.
         """
-        self.obs, self.act, self.nbytes = [], None, 0
-        cap = self.storage.capacity
-        self.rew = self._zeros(cap, torch.float32)
-        self.terminated = self._zeros(cap, torch.float32)
-        self.truncated = self._zeros(cap, torch.float32)
+        self._fresh()  # the old arrays are released before the new ones are allocated
         self._allocate()
+        cap = self.storage.capacity
         for dst, host in self._pairs():
             self._put(dst, 0, cap, host)
 
@@ -235,7 +235,4 @@ class DeviceRing:
         Args:
             slots: the host indices.
         """
-        t = torch.from_numpy(np.ascontiguousarray(slots, dtype=np.int64))
-        if self._pin:
-            return t.pin_memory().to(self.device, non_blocking=True)
-        return t.to(self.device)
+        return to_torch(np.ascontiguousarray(slots, dtype=np.int64), self.device)
