@@ -512,13 +512,20 @@ def test_tls_with_tmrls_certificate_and_plain_tcp_refused_beyond_this_machine(tm
 # python -m tmrl --server
 
 
+@pytest.mark.parametrize("emulate", ["", "windows"], ids=["native", "emulated-windows"])
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
-def test_cli_server_supervises_a_local_nats_server_and_leaves_none_behind(tmp_path, port_factory, made, sig):
+def test_cli_server_supervises_a_local_nats_server_and_leaves_none_behind(tmp_path, port_factory, made, sig, emulate):
+    """Also with the server's process emulating Windows (no parent-death signal, no process
+    groups; tests/emulation): the nats-server then runs under tmrl.platform's guard process, and
+    still ends with tmrl, within 10 s, however tmrl ended."""
     import socket
 
     port = port_factory()
     env = dict(os.environ, TMRL_CONFIG_OVERRIDE=json.dumps(
         {"PORT": port, "TLS": False, "PASSWORD": PW, "TRANSPORT": "nats"}))
+    if emulate:
+        env.update(TMRL_EMULATE=emulate, PYTHONPATH=os.pathsep.join(
+            [str(HERE / "emulation"), str(HERE.parent), env.get("PYTHONPATH", "")]))
     proc = subprocess.Popen([sys.executable, "-m", "tmrl", "--server"], env=env, stderr=subprocess.PIPE,
                             stdout=subprocess.DEVNULL, cwd=str(tmp_path))
     lines: list[str] = []
@@ -558,7 +565,7 @@ def test_cli_server_supervises_a_local_nats_server_and_leaves_none_behind(tmp_pa
                 return False
             return True
 
-    _wait_for(port_free, 30.0, what="the nats-server to end with tmrl")
+    _wait_for(port_free, 10.0 if emulate else 30.0, what="the nats-server to end with tmrl")
     assert (tmp_path / "TmrlData" / "nats" / "jetstream").is_dir()  # the store is in the data folder
 
 

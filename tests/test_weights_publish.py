@@ -110,29 +110,41 @@ def test_the_trainer_broadcasts_the_bytes_that_save_writes(tmp_path, port_factor
     assert (tmp_path / "trainer.tmod").read_text() == '{"bias": 0.25}'
 
 
-def test_a_file_is_moved_to_a_free_name_never_renamed_over_another(tmp_path, monkeypatch):
-    """A rename over an existing file makes ext4 write the new one out at once (about a
-    millisecond per broadcast on a busy disk): the old file is removed first."""
-    renames: list[bool] = []
-    real_rename = os.rename
+def test_a_copy_replaces_the_old_one_atomically_and_waits_for_a_reader_that_holds_it(tmp_path, monkeypatch):
+    """Windows refuses to replace a file that another process holds open (PermissionError): the
+    copy is retried until the file is free, the old one is never removed first (a reader would find
+    none), and a file held for good leaves the old copy and no temporary file, in one error."""
+    from tmrl import platform
 
-    def rename(src: Any, dst: Any) -> None:
-        renames.append(os.path.exists(dst))
-        real_rename(src, dst)
+    monkeypatch.setattr(platform, "BUSY_DELAYS", (0.0,) * 4)
+    target = tmp_path / "model.tmod"
+    target.write_bytes(b"old")
+    real_replace, real_unlink = os.replace, os.unlink
+    held = {"left": 3, "calls": 0}
 
     def replace(src: Any, dst: Any) -> None:
-        raise AssertionError("os.replace renames over the old file")
+        held["calls"] += 1
+        if held["left"] > 0:
+            held["left"] -= 1
+            raise PermissionError(13, "held by another process (emulated)", str(dst))
+        real_replace(src, dst)
 
-    monkeypatch.setattr(os, "rename", rename)
+    def unlink(path: Any, *args: Any, **kwargs: Any) -> None:
+        assert os.fspath(path) != os.fspath(target), "the old copy was removed before the new one was in place"
+        real_unlink(path, *args, **kwargs)
+
     monkeypatch.setattr(os, "replace", replace)
-    target = tmp_path / "model.tmod"
-    for k in range(3):
-        replace_file(target, b"weights %d" % k)
-        assert target.read_bytes() == b"weights %d" % k
+    monkeypatch.setattr(os, "unlink", unlink)
+    replace_file(target, b"weights 1")
+    assert target.read_bytes() == b"weights 1" and held["calls"] == 4
     (tmp_path / "incoming").write_bytes(b"new")
+    held["left"] = 2
     move_over(tmp_path / "incoming", target)
     assert target.read_bytes() == b"new" and not (tmp_path / "incoming").exists()
-    assert renames == [False] * 4
+    held["left"] = 100  # held for good
+    with pytest.raises(platform.FileBusy, match="held by another process"):
+        replace_file(target, b"weights 2")
+    assert target.read_bytes() == b"new"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.tmod"]
 
 

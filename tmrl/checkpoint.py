@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from tmrl import platform
 from tmrl.errors import UserError
 from tmrl.util import atomic_write_bytes, atomic_write_text
 
@@ -146,12 +147,9 @@ def _write_segment(folder: Path, name: str, arrays: dict[str, list[np.ndarray]],
                     size += view.nbytes
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, folder / name)
+        platform.replace(tmp, folder / name)  # retried while a reader holds the old one (Windows)
     except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
+        platform.remove(tmp)
         raise
     return {"file": name, "size": size, "crc32": crc}
 
@@ -192,7 +190,7 @@ def _read_header(folder: Path) -> dict[str, Any]:
             "move it away or choose another checkpoint path"
         )
     try:
-        header = json.loads(path.read_text(encoding="utf-8"))
+        header = json.loads(platform.read_bytes(path).decode("utf-8"))  # retried while held (Windows)
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise CheckpointError(
             f"{path} is corrupt ({_one_line(err)}); restore the folder from a backup or delete it"
@@ -573,10 +571,8 @@ def _remove_unreferenced(folder: Path, header: dict[str, Any]) -> None:
         name = entry.name
         # Only files this module writes (or the temporaries of an interrupted write) are removed.
         if name not in keep and (_OWN_FILE.match(name) or _TMP_FILE.match(name)):
-            try:
-                entry.unlink()
-            except FileNotFoundError:
-                pass
+            # A file an antivirus or a backup tool holds stays until the next checkpoint removes it.
+            platform.remove(entry)
 
 
 def _build(training: Any) -> Any:

@@ -32,8 +32,8 @@ validated, then stored as JSON in ``$TMRL_CONFIG_OVERRIDE`` so that
 
 Exit codes: 0 success, 2 a user mistake (:class:`tmrl.errors.UserError`, one line on stderr, no
 traceback) or a command that has not landed yet, 1 a bug (traceback and a request to report it),
-3 ``--doctor`` found a problem, 129 stopped by SIGHUP (its terminal closed), 130 interrupted
-(Ctrl-C), 143 stopped by SIGTERM.
+3 ``--doctor`` found a problem, 129 stopped by SIGHUP (its terminal closed; POSIX), 130 interrupted
+(Ctrl-C), 143 stopped by SIGTERM, 149 stopped by Ctrl-Break (SIGBREAK; Windows).
 """
 
 from __future__ import annotations
@@ -114,8 +114,8 @@ examples:
 
 exit codes: 0 success, 1 a bug in tmrl (please report it), 2 a mistake in the command or the
 configuration (one line says what to change), 3 --doctor found a problem (its report says what to
-fix), 129 stopped by SIGHUP (the terminal was closed), 130 interrupted (Ctrl-C), 143 stopped by
-SIGTERM.
+fix), 130 interrupted (Ctrl-C), 143 stopped by SIGTERM, 129 stopped by SIGHUP (the terminal was
+closed; Linux and macOS), 149 stopped by Ctrl-Break (Windows).
 
 threads: each role sizes its PyTorch threads to this machine's cores (a worker 1, a trainer all
 cores but one); --threads N or TMRL_THREADS=N sets them.
@@ -512,7 +512,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UserError as e:
         return _report_user_error(e)
     except KeyboardInterrupt as err:
-        # Ctrl-C, or SIGTERM / SIGHUP turned into a KeyboardInterrupt that carries its number
+        # Ctrl-C, or SIGTERM / SIGHUP / SIGBREAK turned into a KeyboardInterrupt that carries its number
         signum = int(getattr(err, "signum", 2))
         try:
             print("tmrl: interrupted" if signum == 2 else f"tmrl: stopped (signal {signum})", file=sys.stderr)

@@ -150,6 +150,7 @@ class MetricsLogger:
         self.console = console
         self._columns: list[str] | None = None
         self._rows = 0
+        self._waiting: list[Mapping[str, Any]] = []  # CSV rows not yet written: the file was held
         self._tb_writer: Any = None
         self._tb_cls: Any = None
         if tensorboard is not False and self.folder is not None:
@@ -223,31 +224,44 @@ class MetricsLogger:
             self._wandb.log(numeric, step=step)
 
     def _write_csv(self, row: Mapping[str, Any]) -> None:
+        """Append ``row`` and any row that waited. While another program holds the file (a
+        spreadsheet that has it open, on Windows), the rows wait in memory, said once, and go in
+        at the first round it is free again: the trainer never waits for it."""
+        self._waiting.append(dict(row))
+        try:
+            self._append_rows(self._waiting)
+        except PermissionError as err:
+            if len(self._waiting) == 1:
+                logger.warning("%s is held by another program (%s): its rows wait in memory until it is free",
+                               self.csv_path, err.strerror or err)
+            return
+        if len(self._waiting) > 1:
+            logger.info("%s is free again: wrote the %d rows that waited", self.csv_path, len(self._waiting))
+        self._waiting.clear()
+
+    def _append_rows(self, rows: list[Mapping[str, Any]]) -> None:
         path = self.csv_path
         assert path is not None
-        header = ""
-        if self._columns is None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            existing = self._existing_columns(path)
-            if existing is None:
-                standard = [c for c in STANDARD_COLUMNS if c in row]
-                self._columns = standard + sorted(k for k in row if k not in standard)
-                out = io.StringIO()
-                csv.writer(out, lineterminator="\n").writerow(self._columns)
-                header = out.getvalue()
-            else:
-                self._columns = existing
         out = io.StringIO()
+        writer = csv.writer(out, lineterminator="\n")
+        columns = self._columns
+        if columns is None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            columns = self._existing_columns(path)
+            if columns is None:
+                standard = [c for c in STANDARD_COLUMNS if c in rows[0]]
+                columns = standard + sorted(k for k in rows[0] if k not in standard)
+                writer.writerow(columns)  # the header, in the same write as the rows
         # Keys unknown to the header (new metrics mid-run) stay out of the CSV; TensorBoard and
         # wandb still get them.
-        csv.writer(out, lineterminator="\n").writerow(
-            ["" if row.get(c) is None else _fmt_csv(row.get(c)) for c in self._columns]
-        )
+        for row in rows:
+            writer.writerow(["" if row.get(c) is None else _fmt_csv(row.get(c)) for c in columns])
         # One append of whole lines per round: rewriting the file atomically every round would cost
         # I/O quadratic in the run length; a crash can at worst cut the last line.
         with open(path, "a", encoding="utf-8", newline="") as f:
-            f.write(header + out.getvalue())
+            f.write(out.getvalue())
             f.flush()
+        self._columns = columns  # known once written (a held file wrote nothing, header included)
 
     @staticmethod
     def _existing_columns(path: Path) -> list[str] | None:
@@ -265,7 +279,16 @@ class MetricsLogger:
         return columns or None
 
     def close(self) -> None:
-        """Flush and close TensorBoard and wandb (the CSV is never left open)."""
+        """Write the CSV rows that waited (retried for a moment), flush and close TensorBoard and
+        wandb (the CSV is never left open)."""
+        if self._waiting and self.csv_path is not None:
+            from tmrl.platform import when_free
+
+            try:
+                when_free(self._append_rows, self._waiting, what=str(self.csv_path))
+                self._waiting.clear()
+            except OSError as err:
+                logger.warning("%d rows of %s were not written: %s", len(self._waiting), self.csv_path, err)
         if self._tb_writer is not None:
             self._tb_writer.close()
             self._tb_writer = None

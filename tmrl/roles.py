@@ -4,9 +4,10 @@ Each function builds its object from the process's configuration
 (:func:`tmrl.config.loader.process_config`, read once, the one ``tmrl.config.config_constants``
 exposes) through :func:`tmrl.assembly.assemble` (the objects ``tmrl.config.config_objects`` hands
 out too), runs it until it is done or interrupted, and returns the process exit code (0 done,
-130 Ctrl-C, 143 SIGTERM, 129 SIGHUP). Ctrl-C, SIGTERM and SIGHUP (a closed terminal; ignored
-under ``nohup``) stop the role cleanly within a few seconds, in every state: the network link or
-relay is closed (no child process keeps a port) and one line says which signal stopped what.
+130 Ctrl-C, 143 SIGTERM, 129 SIGHUP, 149 Ctrl-Break). Ctrl-C, SIGTERM, SIGHUP (a closed terminal,
+Linux and macOS; ignored under ``nohup``) and Ctrl-Break (Windows) stop the role cleanly within a
+few seconds, in every state: the network link or relay is closed (no child process keeps a port)
+and one line says which signal stopped what.
 """
 
 from __future__ import annotations
@@ -45,8 +46,10 @@ WORKER_MODES = ("train", "expert", "test")
 INTERRUPTED = 130
 #: Exit code of a role stopped by SIGTERM (128 + SIGTERM).
 TERMINATED = 143
-#: Exit code of a role stopped by SIGHUP (128 + SIGHUP): its terminal was closed.
+#: Exit code of a role stopped by SIGHUP (128 + SIGHUP): its terminal was closed (POSIX).
 HUNG_UP = 129
+#: Exit code of a role stopped by Ctrl-Break (128 + SIGBREAK, Windows).
+BROKEN = 149
 
 
 class Terminated(KeyboardInterrupt):
@@ -61,6 +64,12 @@ class HungUp(Terminated):
     signum = 1  # SIGHUP
 
 
+class CtrlBreak(Terminated):
+    """Ctrl-Break arrived (Windows' SIGBREAK): stop like Ctrl-C, and say which it was."""
+
+    signum = 21  # SIGBREAK
+
+
 def _interrupt_on_sigterm() -> None:
     """Make SIGTERM and SIGHUP stop a role like Ctrl-C: cleanly, within a few seconds. A SIGHUP
     inherited as ignored (``nohup``) stays ignored."""
@@ -70,11 +79,15 @@ def _interrupt_on_sigterm() -> None:
         # A second signal during the clean-up would interrupt it half-way: the first one is enough.
         for other in stop_signals:
             signal.signal(other, signal.SIG_IGN)
-        raise HungUp if signum == getattr(signal, "SIGHUP", None) else Terminated
+        if signum == getattr(signal, "SIGHUP", None):
+            raise HungUp
+        raise CtrlBreak if signum == getattr(signal, "SIGBREAK", None) else Terminated
 
     stop_signals = [signal.SIGTERM]
-    if hasattr(signal, "SIGHUP") and signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:
-        stop_signals.append(signal.SIGHUP)
+    for name in ("SIGHUP", "SIGBREAK"):  # where they exist: POSIX, Windows
+        signum = getattr(signal, name, None)
+        if signum is not None and signal.getsignal(signum) is not signal.SIG_IGN:
+            stop_signals.append(signum)
     if threading.current_thread() is threading.main_thread():
         for signum in stop_signals:
             signal.signal(signum, handler)
@@ -84,6 +97,8 @@ def _stopped(role: str, err: KeyboardInterrupt, detail: str = "") -> int:
     """Say in one line that ``role`` stopped and why; return the exit code."""
     if isinstance(err, HungUp):
         name, code = "SIGHUP", HUNG_UP
+    elif isinstance(err, CtrlBreak):
+        name, code = "Ctrl-Break", BROKEN
     elif isinstance(err, Terminated):
         name, code = "SIGTERM", TERMINATED
     else:
@@ -211,14 +226,15 @@ def run_server(cfg: Mapping[str, Any] | None = None, stop_event: threading.Event
 def _set_aside(path: str) -> None:
     """Move a checkpoint out of the way (``RESET_TRAINING``), keeping one previous copy."""
     import os
-    import shutil
+
+    from tmrl import platform
 
     old = f"{path}.previous"
     if os.path.isdir(old):
-        shutil.rmtree(old)
+        platform.remove_tree(old)
     elif os.path.exists(old):
-        os.unlink(old)
-    os.replace(path, old)
+        platform.remove(old)
+    platform.replace(path, old)
     logger.warning("RESET_TRAINING is true: starting a new run; the previous checkpoint is now %s", old)
 
 

@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
+from tmrl import platform
+
 __all__ = [
     "partial",
     "partial_to_dict",
@@ -189,12 +191,9 @@ def atomic_write_bytes(
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        platform.replace(tmp, path)  # retried while a reader holds ``path`` (Windows)
     except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
+        platform.remove(tmp)
         raise
     _fsync_folder(path.parent)
     return path
@@ -312,7 +311,7 @@ def reuse_freed_memory() -> bool:
     return _malloc_tuned
 
 
-DEVICE_CHOICES = ("auto", "cpu", "cuda", "cuda:N")
+DEVICE_CHOICES = ("auto", "cpu", "cuda", "cuda:N", "mps")
 """What :func:`resolve_device` accepts (``N``: a GPU's index)."""
 
 
@@ -320,12 +319,13 @@ def resolve_device(device: str, option: str = "--device") -> str:
     """The torch device a ``--device`` option (or a setting) names, checked against this machine.
 
     Args:
-        device: ``"auto"`` (``"cuda"`` when PyTorch sees a CUDA GPU, else ``"cpu"``), ``"cpu"``,
-            ``"cuda"`` or ``"cuda:N"``.
+        device: ``"auto"`` (``"cuda"`` when PyTorch sees a CUDA GPU, else ``"mps"`` on a Mac whose
+            PyTorch has Apple's Metal backend, else ``"cpu"``), ``"cpu"``, ``"cuda"``, ``"cuda:N"``
+            or ``"mps"``.
         option: the option or setting the value came from, named in the error.
 
     Returns:
-        ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
+        ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"mps"``.
 
     Raises:
         UserError: the value is none of these, or names a GPU that PyTorch does not see.
@@ -333,15 +333,22 @@ def resolve_device(device: str, option: str = "--device") -> str:
     from tmrl.errors import UserError
 
     name = str(device).strip().lower()
-    if name not in ("auto", "cpu", "cuda") and not (name.startswith("cuda:") and name[5:].isdigit()):
+    if name not in ("auto", "cpu", "cuda", "mps") and not (name.startswith("cuda:") and name[5:].isdigit()):
         raise UserError(f"{option} {device!r} is not a device: use {', '.join(DEVICE_CHOICES)}")
     if name == "cpu":
         return name
     import torch
 
     available = torch.cuda.is_available()
+    mps = getattr(getattr(torch, "backends", None), "mps", None)
+    mps_available = bool(mps is not None and mps.is_available())
     if name == "auto":
-        return "cuda" if available else "cpu"
+        return "cuda" if available else "mps" if mps_available else "cpu"
+    if name == "mps":
+        if not mps_available:
+            raise UserError(f"{option} mps: PyTorch {torch.__version__} has no usable Metal backend here (Apple "
+                            f"GPUs on macOS only); use {option} cpu, or {option} auto")
+        return name
     count = torch.cuda.device_count() if available else 0
     index = int(name[5:]) if ":" in name else 0
     if index >= count:

@@ -25,13 +25,14 @@ from __future__ import annotations
 import os
 import sys
 
-#: POSIX-only names that Windows' ``os`` lacks (those tmrl or its dependencies could reach for;
-#: what CPython's own POSIX subprocess module needs to start and reap children stays).
+#: POSIX-only names that Windows' ``os`` lacks: process groups, sessions, non-blocking pipes,
+#: affinity and file modes, what tmrl could reach for. What CPython's own POSIX subprocess module
+#: needs to start and reap children stays, and so do the user ids that third-party POSIX code
+#: (platformdirs' unix paths) reads at import: on Windows that code never runs.
 OS_NAMES = (
     "killpg", "getpgid", "getpgrp", "setpgrp", "setpgid", "setsid", "getsid", "set_blocking",
-    "get_blocking", "sched_getaffinity", "sched_setaffinity", "fchmod", "fchown", "chown", "lchown",
-    "getuid", "geteuid", "getgid", "getegid", "nice", "mkfifo", "openpty", "forkpty", "pipe2",
-    "getloadavg", "sync",
+    "get_blocking", "sched_getaffinity", "sched_setaffinity", "fchmod", "fchown", "nice", "mkfifo",
+    "openpty", "forkpty", "pipe2", "getloadavg",
 )
 #: POSIX-only names of ``signal``.
 SIGNAL_NAMES = (

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from tmrl import platform
 from tmrl.config import schema
 from tmrl.config.schema import ConfigError, SchemaViolation
 
@@ -198,10 +199,7 @@ def _create_exclusive(path: Path, text: str) -> bool:
                 return False
         return True
     finally:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
+        platform.remove(tmp)
 
 
 ENVIRONMENTS: dict[str, str] = {

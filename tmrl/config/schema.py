@@ -266,8 +266,10 @@ _ENV = Section(
 
 SCHEMA = Section(
     {
-        "RUN_NAME": Str("SAC_4_imgs_pretrained", "name of the run; names the weights and checkpoint files",
-                        nonempty=True, forbid="/\\"),
+        "RUN_NAME": Str("SAC_4_imgs_pretrained", "name of the run; names the weights and checkpoint files (so "
+                                                 "none of < > : \" / \\ | ? *, no device name such as CON or NUL, "
+                                                 "no trailing dot or space: Windows refuses them)",
+                        nonempty=True, forbid="/\\", filename=True),
         "RESET_TRAINING": Bool(False, "start training from scratch instead of resuming the checkpoint"),
         "BUFFERS_MAXLEN": Int(500000, "maximum number of samples held in a network buffer (not the replay memory)",
                               min=1, feeds=("Buffer.maxlen",)),
@@ -304,10 +306,11 @@ SCHEMA = Section(
             {
                 "URLS": Str("", "comma-separated URLs of an existing NATS cluster (nats://host:4222,...); empty: "
                                 "the server (--server) starts and supervises a local nats-server on PORT"),
-                "STREAM": Str("tmrl-samples", "JetStream stream of the sample batches", nonempty=True,
-                              forbid=".*>/\\"),
-                "BUCKET": Str("tmrl-weights", "object-store and key-value bucket of the weights", nonempty=True,
-                              forbid=".*>/\\"),
+                "STREAM": Str("tmrl-samples", "JetStream stream of the sample batches (it names a folder of "
+                                              "the store)", nonempty=True, forbid=".*>/\\", filename=True),
+                "BUCKET": Str("tmrl-weights", "object-store and key-value bucket of the weights (it names a "
+                                              "folder of the store)", nonempty=True, forbid=".*>/\\",
+                              filename=True),
                 "MAX_BYTES": Int(1024 * _MIB, "bound of the samples stream in bytes: beyond it the oldest batches "
                                               "are discarded (the trainer counts them)", min=_MIB),
                 "MAX_MSGS": Int(100000, "bound of the samples stream in batches: beyond it the oldest are "

@@ -315,6 +315,9 @@ class Str(Spec):
         nonempty: the empty string (or only spaces) is refused.
         forbid: characters the string may not contain (for names used in file names); when not
             empty, ``"."`` and ``".."`` are refused too.
+        filename: the string becomes a file or folder name: what any of Linux, Windows and macOS
+            refuses is refused everywhere (:func:`tmrl.platform.name_problem`), so that a config
+            written on one system works on the others.
         nullable: see :class:`Spec`.
         **table: ``feeds`` and ``class_default``, see :class:`Spec`.
     """
@@ -322,16 +325,19 @@ class Str(Spec):
     kind = "string"
 
     def __init__(self, default: Any, doc: str, *, nonempty: bool = False, forbid: str = "",
-                 nullable: bool = False, **table: Any):
+                 filename: bool = False, nullable: bool = False, **table: Any):
         super().__init__(default, doc, nullable=nullable, **table)
         self.nonempty = nonempty
         self.forbid = forbid
+        self.filename = filename
 
     @property
     def expected(self) -> str:
         text = "a non-empty string" if self.nonempty else "a string"
         if self.forbid:
             text += " without " + " or ".join(self.forbid)
+        if self.filename:
+            text += " that every system accepts as a file name"
         return text
 
     def _check(self, value: Any, path: str, *, fill: bool) -> Any:
@@ -341,6 +347,13 @@ class Str(Spec):
             raise self.fail(path, value)
         if any(c in value for c in self.forbid) or (self.forbid and value.strip() in (".", "..")):
             raise self.fail(path, value)
+        if self.filename:
+            from tmrl.platform import name_problem
+
+            problem = name_problem(value)
+            if problem is not None:
+                raise SchemaViolation(path, f"{path} {show(value)} cannot name a file on every system: {problem}; "
+                                            f"choose another {path}")
         return value
 
 

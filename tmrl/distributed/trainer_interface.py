@@ -5,7 +5,6 @@ checks them against the run's schema, drops second copies and batches of other r
 from __future__ import annotations
 
 import collections
-import contextlib
 import logging
 import os
 import tempfile
@@ -14,6 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from tmrl import platform
 from tmrl.config.settings import NetSettings
 from tmrl.distributed._common import FROM_CONFIG, LOGGER_NAME, _given, _make_link, _settings
 from tmrl.distributed.buffer import Buffer, unpack_buffer
@@ -98,8 +98,7 @@ def _actor_bytes(model: Any, model_path: Path) -> bytes:
         model.save(tmp)
         return Path(tmp).read_bytes()
     finally:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+        platform.remove(tmp)
 
 
 class _Publisher:
@@ -260,6 +259,7 @@ class TrainerInterface:
         self.foreign_batches = 0
         self.received_samples = 0
         self.skipped_broadcasts = 0
+        self._copy_problems = 0  # the trainer's copy of the weights not written (file held)
         self.weights_version = 0
         self.pace_source: Callable[[], dict[str, Any] | None] | None = None
         """Gives the pacing fields broadcast with the weights (``TrainingOffline.pace``)."""
@@ -409,8 +409,14 @@ class TrainerInterface:
         self._publisher.put((data, spaces, self.weights_version, self.run_id, pace))
 
     def _publish(self, data: bytes, spaces: Any, version: int, run: str | None, pace: Any) -> None:
-        """On the publishing thread: keep the trainer's copy, then send the signed envelope."""
-        replace_file(self.model_path, data)
+        """On the publishing thread: keep the trainer's copy, then send the signed envelope (also
+        when the copy could not be written: another process holds the file, Windows)."""
+        try:
+            replace_file(self.model_path, data)
+        except OSError as err:
+            self._copy_problems += 1
+            logger.warning("could not write the trainer's copy of the weights %s (%s); the next broadcast "
+                           "writes it again (%d so far)", self.model_path, err, self._copy_problems)
         envelope = pack_weights(data, spaces, version, run=run, meta=pace, key=self._key)
         with self._weights_lock:
             self._last_weights = envelope

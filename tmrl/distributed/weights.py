@@ -9,7 +9,6 @@ sees it and keeps the previous actor on any problem.
 
 from __future__ import annotations
 
-import contextlib
 import datetime
 import hashlib
 import logging
@@ -21,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from tmrl import platform
 from tmrl.distributed._common import LOGGER_NAME, _one_line
 from tmrl.errors import UserError
 from tmrl.spaces import check_spaces
@@ -52,8 +52,7 @@ def replace_file(path: str | os.PathLike[str], data: bytes | memoryview) -> None
             f.write(data)
         move_over(tmp, path)
     except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+        platform.remove(tmp)
         raise
 
 
@@ -77,8 +76,7 @@ def remove_stale_temporaries(path: str | os.PathLike[str]) -> int:
         pid_text = name[len(prefix):].split("-", 1)[0]
         if not pid_text.isdigit() or _pid_alive(int(pid_text)):
             continue
-        with contextlib.suppress(OSError):
-            os.unlink(entry.path)
+        if platform.remove(entry.path):
             removed += 1
     if removed:
         logger.info("removed %d temporary weights files left by stopped processes beside %s", removed, path)
@@ -100,15 +98,14 @@ def _pid_alive(pid: int) -> bool:
 
 
 def move_over(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> None:
-    """Move ``src`` to ``dst``, removing ``dst`` first: a reader finds the old file, the new one,
-    or for an instant none.
+    """Move ``src`` over ``dst`` atomically (``os.replace``): a reader finds the old file or the new
+    one, on every system. Retried while another process holds ``dst`` (Windows refuses to replace
+    an open file); :class:`tmrl.platform.FileBusy` when it stays held.
 
-    Not ``os.replace``: on ext4 (``auto_da_alloc``) a rename over an existing file starts writing
-    the new file out at once, which cost a millisecond or more per broadcast on each side while
-    the machine's disk was busy; a rename to a free name does not."""
-    with contextlib.suppress(FileNotFoundError):
-        os.unlink(dst)
-    os.rename(src, dst)
+    (A removal then a rename to the free name cost less on ext4, whose ``auto_da_alloc`` writes a
+    file renamed over another out at once, about a millisecond per broadcast on a busy disk; but
+    on Windows the rename fails whenever the removal did, and a reader could find no file.)"""
+    platform.replace(src, dst)
 
 
 def pack_weights(
@@ -298,10 +295,12 @@ class WeightsInstaller:
             return actor
         logger.debug("loading weights from %s", self.model_path)
         try:
-            problem = _weights_problem(actor, self.model_path.read_bytes())
+            problem = _weights_problem(actor, platform.read_bytes(self.model_path))
             if problem is not None:
                 raise UserError(problem)
-            return actor.load(str(self.model_path), device=self.device)
+            # retried while another process holds the file (Windows: the trainer replacing it)
+            return platform.when_free(lambda: actor.load(str(self.model_path), device=self.device),
+                                      what=str(self.model_path))
         except Exception as err:  # noqa: BLE001 (any failure of a replaceable file: one line, go on)
             logger.error(
                 "ignored the weights file %s (%s); starting with a fresh actor until the trainer's weights arrive",
@@ -363,10 +362,13 @@ class WeightsInstaller:
                 _one_line(err),
                 self.rejected,
             )
-            with contextlib.suppress(OSError):
-                candidate.unlink()
+            platform.remove(candidate)
             return None
-        move_over(candidate, self.model_path)
+        try:
+            move_over(candidate, self.model_path)
+        except OSError as err:  # the actor has them: only the copy on disk waits for the next weights
+            self._log("kept the new weights without their copy in %s (%s)", self.model_path, _one_line(err))
+            platform.remove(candidate)
         if self.model_history > 0:
             self._history_count += 1
             if self._history_count >= self.model_history:

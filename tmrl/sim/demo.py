@@ -4,7 +4,7 @@ The demo starts a server, a trainer and a worker as three processes on localhost
 driving the built-in simulator (lidar observations, fast mode, the default track unless told
 otherwise). While it trains it shows a live status line: elapsed time, episodes, last and best
 return, laps completed, updates/s and samples/s. It stops at the end of its budget (time or
-environment steps) or on Ctrl-C, SIGTERM or SIGHUP (exit codes 130, 143, 129), then writes to its
+environment steps) or on Ctrl-C, SIGTERM, SIGHUP or Ctrl-Break (exit codes 130, 143, 129, 149), then writes to its
 output folder the trained weights, a learning-curve PNG, a top-down PNG of the best lap (or of the
 farthest run when no lap was completed) and the roles' logs, removes its run folder, and prints a
 summary with the time to the first completed lap and the best lap time. Its roles also stop, and
@@ -20,13 +20,13 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import logging
 import math
 import os
 import secrets
 import shutil
 import signal
 import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -36,9 +36,10 @@ from typing import Any
 
 import numpy as np
 
+from tmrl import platform
 from tmrl.config.schema import ALGORITHMS
 from tmrl.errors import UserError
-from tmrl.util import atomic_write_bytes, atomic_write_text
+from tmrl.util import atomic_write_bytes
 
 __all__ = ["DEMO_SETTINGS", "GPU_REALTIME_SETTINGS", "main"]
 
@@ -74,9 +75,7 @@ GPU_REALTIME_SETTINGS: dict[str, Any] = {
 }
 
 _INTERFACES = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
-# The demo's process id, in its roles' environment: a role whose parent changed stops.
-_PARENT_ENV = "TMRL_DEMO_PARENT"
-# Seconds the roles get to stop after the parent's SIGINT, all together, before SIGKILL.
+# Seconds the roles get to stop after the parent's stop request, all together, before they are ended.
 _ROLES_GRACE = 7.0
 
 
@@ -147,6 +146,7 @@ def _stats_env(interface: str, track: str, workdir: Path, realtime: bool = False
             self.first_lap_s: float | None = None
             self.best_progress = -1.0
             self.last_write = 0.0
+            self.best_path: bytes | None = None  # the best lap's path, until it is written
 
         def reset(self, **kwargs: Any) -> Any:
             out = self.env.reset(**kwargs)
@@ -185,15 +185,30 @@ def _stats_env(interface: str, track: str, workdir: Path, realtime: bool = False
                 self.best_progress = max(self.best_progress, race.progress)
                 buf = io.BytesIO()
                 np.save(buf, np.asarray(self.path, dtype=np.float64), allow_pickle=False)
-                atomic_write_bytes(workdir / "best_path.npy", buf.getvalue())
+                self.best_path = buf.getvalue()
 
         def _write(self, now: float) -> None:
             self.last_write = now
-            status = {"steps": self.steps, "episodes": len(self.returns), "returns": self.returns[-2000:],
-                      "laps": self.laps, "best_lap": self.best_lap, "first_lap_s": self.first_lap_s}
-            atomic_write_text(workdir / "worker.json", json.dumps(status))
+            # The path first: the status that counts its lap must never be read before it exists.
+            if self.best_path is not None and _publish(workdir / "best_path.npy", self.best_path):
+                self.best_path = None
+            if self.best_path is None:
+                status = {"steps": self.steps, "episodes": len(self.returns), "returns": self.returns[-2000:],
+                          "laps": self.laps, "best_lap": self.best_lap, "first_lap_s": self.first_lap_s}
+                _publish(workdir / "worker.json", json.dumps(status).encode())
 
     return Stats(env)
+
+
+def _publish(path: Path, data: bytes) -> bool:
+    """Replace a status file; False (and nothing lost: the caller writes again soon) while another
+    process holds it longer than :data:`tmrl.platform.BUSY_DELAYS` allow (Windows)."""
+    try:
+        atomic_write_bytes(path, data)
+        return True
+    except OSError as err:
+        logging.getLogger(__name__).debug("could not write %s yet: %s", path.name, err)
+        return False
 
 
 def _agent_cls(interface: str, algorithm: str, realtime: bool = False) -> Any:
@@ -225,7 +240,7 @@ def _agent_cls(interface: str, algorithm: str, realtime: bool = False) -> Any:
             now = time.monotonic()
             if Counting.workdir is not None and now - Counting.last_write > 0.5:
                 Counting.last_write = now
-                atomic_write_text(Counting.workdir / "trainer.json", json.dumps({"updates": Counting.updates}))
+                _publish(Counting.workdir / "trainer.json", json.dumps({"updates": Counting.updates}).encode())
             return out
 
     Counting.__name__ = Counting.__qualname__ = f"Counting{base.__name__}"
@@ -315,7 +330,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _wait_listening(port: int, timeout: float, proc: subprocess.Popen, logs_dir: Path | None = None) -> None:
+def _wait_listening(port: int, timeout: float, proc: platform.Child, logs_dir: Path | None = None) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -330,7 +345,7 @@ def _wait_listening(port: int, timeout: float, proc: subprocess.Popen, logs_dir:
 
 def _read_json(path: Path) -> dict[str, Any]:
     try:
-        return json.loads(path.read_text())
+        return json.loads(platform.read_bytes(path))  # retried while the writer replaces it (Windows)
     except (OSError, ValueError):
         return {}
 
@@ -378,7 +393,7 @@ def _finish(workdir: Path, out: Path, track: str, interface: str, worker: dict[s
     weights = workdir / "weights.tmod"
     if weights.exists():
         paths["weights"] = out / "weights.safetensors"
-        atomic_write_bytes(paths["weights"], weights.read_bytes())
+        atomic_write_bytes(paths["weights"], platform.read_bytes(weights))
     paths["curve"] = out / "learning_curve.png"
     rewards = {**DEFAULT_REWARD_CONFIG, **(_demo_config(interface, track, config_path)["ENV"].get("REWARD_CONFIG") or {})}
     write_png(paths["curve"], learning_curve_image(worker.get("returns") or [],
@@ -386,7 +401,7 @@ def _finish(workdir: Path, out: Path, track: str, interface: str, worker: dict[s
                                                    return_note(float(rewards["END_OF_TRACK"]))))
     path = np.zeros((0, 2))
     try:
-        path = np.load(workdir / "best_path.npy", allow_pickle=False)
+        path = np.load(io.BytesIO(platform.read_bytes(workdir / "best_path.npy")), allow_pickle=False)
     except (OSError, ValueError):
         pass
     best = worker.get("best_lap")
@@ -467,8 +482,9 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--threads", type=_number(int, 1, False),
                    help="PyTorch threads of the trainer and the worker (default 1 each; TMRL_THREADS)")
     p.add_argument("--device", default="auto",
-                   help="where the trainer trains: auto (a CUDA GPU when PyTorch sees one, else the CPU; the "
-                        "default), cpu, cuda, cuda:N; the worker always acts on the CPU")
+                   help="where the trainer trains: auto (a CUDA GPU when PyTorch sees one, else an Apple GPU "
+                        "(mps) on a Mac, else the CPU; the default), cpu, cuda, cuda:N, mps; the worker always acts "
+                        "on the CPU")
     p.add_argument("--realtime", action="store_true",
                    help="run the simulator in real time through tmrl.realtime (20 steps/s) instead of fast mode")
     p.add_argument("--gpu-setting", action="store_true", help=argparse.SUPPRESS)  # set by the demo for its roles
@@ -479,32 +495,31 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
 
 
 def _role_main(args: argparse.Namespace) -> int:
-    """A role's process (``--role``): it stops on the parent's SIGINT, on SIGTERM or SIGHUP, and
-    when its parent dies (even by SIGKILL); then, with the parent gone, it removes the run folder,
-    which nobody else will."""
+    """A role's process (``--role``): it stops when the parent asks through its lifeline, on
+    SIGTERM, SIGHUP or Ctrl-Break, and when its parent dies (even killed outright); then, with the
+    parent gone, it removes the run folder, which nobody else will."""
     from tmrl.realtime.timeouts import summarised_timeouts
-    from tmrl.sim.lifeline import die_with_parent, parent_gone, stop_on_signals
+    from tmrl.sim.lifeline import stop_on_signals
 
     workdir = Path(args.workdir)
-    parent = os.environ.get(_PARENT_ENV, "")
-    parent_pid = int(parent) if parent.isdigit() else None
-    if parent_pid is not None:
-        die_with_parent(parent_pid, on_orphaned=lambda: shutil.rmtree(workdir, ignore_errors=True))
+    # The lifeline's stop request arrives as a KeyboardInterrupt: SIGINT must have Python's handler
+    # before it is watched, even in a role started with SIGINT ignored (`nohup ... &`).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    lifeline = platform.watch_lifeline(on_orphaned=lambda: platform.remove_tree(workdir))
     if args.gpu_setting:
         DEMO_SETTINGS.update(GPU_REALTIME_SETTINGS)
     DEMO_SETTINGS["start_training"] = max(1, int(args.start_training or DEMO_SETTINGS["start_training"]))
     DEMO_SETTINGS["algorithm"] = args.algorithm or DEMO_SETTINGS["algorithm"]
     try:
-        # stop_on_signals: SIGINT raises KeyboardInterrupt even when a shell started the demo with
-        # it ignored (`nohup ... &`), SIGTERM and SIGHUP raise a KeyboardInterrupt too.
+        # stop_on_signals: SIGTERM, SIGHUP and Ctrl-Break raise a KeyboardInterrupt too.
         with stop_on_signals(force_sigint=True), summarised_timeouts():  # --realtime: one line per 10 s
             _run_role(args.role, args.interface, args.track, workdir, args.port,
                       os.environ.get("TMRL_DEMO_PASSWORD", ""), args.realtime, args.device)
-    except KeyboardInterrupt:  # the parent stops its roles with SIGINT: a normal end
+    except KeyboardInterrupt:  # the parent stops its roles through their lifelines: a normal end
         pass
     finally:
-        if parent_pid is not None and parent_gone(parent_pid):
-            shutil.rmtree(workdir, ignore_errors=True)
+        if lifeline is not None and lifeline.orphaned.is_set():
+            platform.remove_tree(workdir)
     return 0
 
 
@@ -553,19 +568,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1", TMRL_DEMO_PASSWORD=secrets.token_hex(16),
                TMRL_DEMO_CONFIG=args.config or "")
     env.setdefault("TMRL_DATA", str(workdir / "TmrlData"))
-    env[_PARENT_ENV] = str(os.getpid())
     if args.threads:
         env["TMRL_THREADS"] = str(args.threads)  # tmrl.roles.size_threads in each role
-    procs: list[subprocess.Popen] = []
+    procs: list[platform.Child] = []
     logs = []
 
-    def start(role: str) -> subprocess.Popen:
+    def start(role: str) -> platform.Child:
         log = open(workdir / f"{role}.log", "wb")
         logs.append(log)
         cmd = _role_command(role, args, workdir, port, device, gpu_setting)
-        # A session of its own: Ctrl-C in the terminal reaches the demo only, which stops the roles
-        # in order. The role stops by itself when the demo dies (tmrl.sim.lifeline).
-        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=log, start_new_session=True)
+        # A process group of its own: Ctrl-C in the terminal reaches the demo only, which stops the
+        # roles in order through their lifelines; a role stops by itself when the demo dies.
+        proc = platform.Child(cmd, env=env, stdout=log, stderr=log)
         procs.append(proc)
         return proc
 
@@ -609,7 +623,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 stopped = err
             finally:
                 ignore_stop_signals()  # the clean-up below finishes, whatever comes next
-                _stop_roles(procs)
+                platform.stop_children(procs, _ROLES_GRACE)  # newest first; ended after the grace
                 for log in logs:
                     log.close()
                 _keep_logs(workdir, logs_dir)
@@ -619,7 +633,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             worker = _read_json(workdir / "worker.json") or worker
             paths = _finish(workdir, out, args.track, args.interface, worker, args.config)
     finally:
-        shutil.rmtree(workdir, ignore_errors=True)
+        if not platform.remove_tree(workdir):
+            _say(f"tmrl demo: could not remove the run folder {workdir} (another program holds a file in it)")
     returns = worker.get("returns") or []
     first, best = worker.get("first_lap_s"), worker.get("best_lap")
     how = "finished" if stopped is None else f"stopped ({signal_name(stopped)})"
@@ -633,29 +648,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name, path in {**paths, "logs": logs_dir}.items():
         _say(f"  {name}: {path}")
     return 0 if stopped is None else exit_code(stopped)
-
-
-def _stop_roles(procs: list[subprocess.Popen]) -> None:
-    """SIGINT to each role, newest first (a role closes its network process itself; a process
-    that is just starting would die of it with a traceback); SIGKILL to the roles' process groups
-    still there after :data:`_ROLES_GRACE` seconds, all roles together."""
-    for p in reversed(procs):
-        if p.poll() is None:
-            try:
-                p.send_signal(signal.SIGINT)
-            except ProcessLookupError:
-                pass
-    deadline = time.monotonic() + _ROLES_GRACE
-    for p in reversed(procs):
-        try:
-            p.wait(timeout=max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            pass
-        try:  # what the role left in its group (its network process) goes too
-            os.killpg(p.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
-        p.wait()
 
 
 def _keep_logs(workdir: Path, logs_dir: Path) -> None:

@@ -16,12 +16,12 @@ import re
 import secrets
 import shutil
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
+from tmrl import platform
 from tmrl.errors import UserError
 
 logger = logging.getLogger("tmrl.transport.nats")
@@ -197,24 +197,7 @@ def _write_private(path: Path, text: str) -> None:
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w", encoding="utf-8") as f:
         f.write(text)
-    os.replace(tmp, path)
-
-
-def _die_with_parent_hook() -> Any:
-    """A pre-exec function that makes the child receive SIGTERM when the thread that started it
-    ends (Linux ``PR_SET_PDEATHSIG``), or None elsewhere. Resolved in the parent: the child runs
-    a bare C call between fork and exec."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        import ctypes
-        import signal
-
-        prctl = ctypes.CDLL("libc.so.6", use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
-    sigterm = int(signal.SIGTERM)
-    return lambda: prctl(1, sigterm)  # PR_SET_PDEATHSIG = 1
+    platform.replace(tmp, path)
 
 
 # --- the server process ----------------------------------------------------------------------------
@@ -234,7 +217,6 @@ class ServerProcess:
 
     def __init__(self, config: dict[str, Any], folder: Path, start_timeout: float = 30.0):
         self._binary = find_server_binary()
-        self._pre_exec = _die_with_parent_hook()
         self._config = dict(config)
         self._folder = folder
         self._conf_path = folder / "nats-server.conf"
@@ -247,22 +229,21 @@ class ServerProcess:
         self._last_problem, self._held_problems = -1e9, 0
         self._started = threading.Event()
         self._start_error: BaseException | None = None
-        # The supervisor starts every server process: a child dies with the thread that forked it
-        # (PR_SET_PDEATHSIG), so the server never outlives this process, even one killed.
+        # The supervisor starts every server process: on Linux a child dies with the thread that
+        # forked it (PR_SET_PDEATHSIG), so the server never outlives this process, even one killed
+        # (tmrl.platform.start_guarded: a job object on Windows, a guard process elsewhere).
         self._supervisor = threading.Thread(target=self._supervise, daemon=True, name="tmrl-nats-supervisor")
         self._supervisor.start()
-        self._started.wait()
+        while not self._started.wait(0.5):  # timed: Ctrl-C reaches a waiting main thread on Windows too
+            pass
         if self._start_error is not None:
             raise self._start_error
 
     def _start(self) -> None:
         _write_private(self._conf_path, json.dumps(self._config, indent=2) + "\n")
-        proc = subprocess.Popen(
-            [self._binary, "-c", str(self._conf_path)],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-            start_new_session=True,  # a Ctrl-C in the terminal reaches tmrl, which stops the server
-            preexec_fn=self._pre_exec,  # noqa: PLW1509
-        )
+        # In a process group of its own: a Ctrl-C in the terminal reaches tmrl, which stops the server.
+        proc = platform.start_guarded([self._binary, "-c", str(self._conf_path)],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         ready = threading.Event()
         found: dict[str, Any] = {}
         lines: list[str] = []
@@ -292,8 +273,7 @@ class ServerProcess:
             if time.monotonic() > deadline:
                 break
         if proc.poll() is not None or "port" not in found:
-            proc.kill()
-            proc.wait()
+            platform.stop_guarded(proc, 0.0)
             detail = next((ln for ln in reversed(lines) if "[FTL]" in ln or "[ERR]" in ln), lines[-1] if lines else "")
             detail = detail.split("] ", 2)[-1] if detail else "no output"
             if "address already in use" in detail:
@@ -329,7 +309,12 @@ class ServerProcess:
             proc = self._proc
             if proc is None:
                 return
-            code = proc.wait()
+            code = None
+            while code is None:
+                try:
+                    code = proc.wait(0.5)
+                except subprocess.TimeoutExpired:
+                    pass
             if self._stopping.is_set():
                 return
             logger.error("nats-server exited unexpectedly (code %s); restarting it", code)
@@ -357,16 +342,12 @@ class ServerProcess:
         return not self._stopping.is_set()
 
     def stop(self, timeout: float = 15.0) -> None:
-        """Stop the server (SIGTERM: it flushes its store; SIGKILL after ``timeout``). Idempotent."""
+        """Stop the server cleanly (it flushes its store: SIGTERM on POSIX, Ctrl-Break on
+        Windows; :func:`tmrl.platform.stop_guarded`), ended after ``timeout``. Idempotent."""
         self._stopping.set()
         with self._lock:
             proc = self._proc
             if proc is not None and proc.poll() is None:
-                proc.terminate()
-                try:
-                    proc.wait(max(timeout - 0.5, 0.1))
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+                platform.stop_guarded(proc, max(timeout - 0.5, 0.1))
         if threading.current_thread() is not self._supervisor:
             self._supervisor.join(max(timeout, 1.0))

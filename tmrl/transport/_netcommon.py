@@ -45,11 +45,12 @@ import math
 import os
 import signal
 import struct
-import sys
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
+
+from tmrl import platform
 
 log_relay = logging.getLogger("tmrl.transport.relay")
 log_link = logging.getLogger("tmrl.transport.link")
@@ -74,23 +75,16 @@ def _parse_length(raw: bytes) -> int | None:
 
 def _tune(transport: Any) -> None:
     """Read in large pieces (fewer Python calls per megabyte) and detect a peer whose machine
-    vanished (no FIN, no RST) within about a minute."""
-    import socket
-
+    vanished (no FIN, no RST) within a minute on every system (:func:`tmrl.platform.keep_alive`)."""
     tcp = getattr(transport, "transport", None) or transport  # under TLS, the TCP transport
     try:
         tcp.bufferSize = 1 << 20
     except AttributeError:
         pass
     try:
-        sock = transport.getHandle()
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-        if hasattr(socket, "TCP_KEEPIDLE"):
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPIDLE, 30)
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPINTVL, 10)
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT, 3)
+        platform.keep_alive(transport.getHandle())
     except (AttributeError, OSError):
-        pass  # not a TCP socket (tests with fake transports) or an OS without these options
+        pass  # not a TCP socket (tests with fake transports)
 
 
 def session_token(password: bytes, nonce: bytes) -> bytes:
@@ -222,7 +216,7 @@ def _request_shutdown(budget: float) -> None:
 
 
 def _parent_gone() -> bool:
-    return os.getppid() != _PARENT_PID
+    return platform.parent_changed(_PARENT_PID)
 
 
 def _on_signal(signum: int, frame: Any) -> None:
@@ -233,8 +227,9 @@ def _on_signal(signum: int, frame: Any) -> None:
 
 
 def _watch_parent() -> None:
-    """Stop when the parent dies, checked twice a second (the fallback where no parent-death
-    signal exists, and a second line of defence where it does)."""
+    """Stop when the parent dies, checked twice a second: on POSIX a second line of defence
+    beside the parent-death signal; everywhere the pipe from the parent, which its death closes,
+    is the first (``_control_loop``)."""
     while True:
         time.sleep(0.5)
         if _parent_gone():
@@ -243,19 +238,6 @@ def _watch_parent() -> None:
             except SystemExit:
                 os._exit(0)
             return
-
-
-def _set_parent_death_signal() -> None:
-    """Ask Linux to send SIGUSR2 when the parent dies (prctl PR_SET_PDEATHSIG)."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGUSR2), 0, 0, 0)  # 1: PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass  # the polling watch still applies
 
 
 def _serve(shutdown: Callable[[float], None], control_loop: Callable[[], None]) -> None:
@@ -276,12 +258,13 @@ def arm_parent_watch() -> bool:
     process stops (or dies, closing its stdin), so that pending objects are flushed and no port
     stays held."""
     global _PARENT_PID
-    _PARENT_PID = os.getppid()
+    _PARENT_PID = platform.parent_pid()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_signal)
-    if hasattr(signal, "SIGUSR2"):
-        signal.signal(signal.SIGUSR2, _on_signal)
-    _set_parent_death_signal()
+    usr2 = getattr(signal, "SIGUSR2", None)  # POSIX: the parent-death signal (Linux arms it)
+    if usr2 is not None:
+        signal.signal(usr2, _on_signal)
+        platform.set_parent_death_signal(usr2)
     if _parent_gone():  # died before the death signal was armed
         return False
     threading.Thread(target=_watch_parent, daemon=True, name="tmrl-parent-watch").start()

@@ -78,14 +78,16 @@ def peer_closed(f: Any) -> bool:
         fd = f.fileno()
     except (OSError, ValueError):
         return True
-    try:
-        import select
+    import select
 
+    if not hasattr(select, "poll"):  # Windows: ask the pipe itself
+        return _windows_pipe_broken(fd)
+    try:
         poller = select.poll()
         poller.register(fd, select.POLLHUP | select.POLLERR)
         return any(ev & (select.POLLHUP | select.POLLERR) for _, ev in poller.poll(0))
-    except (AttributeError, OSError, ValueError):  # no poll() (Windows): ask the pipe itself
-        return _windows_pipe_broken(fd)
+    except (OSError, ValueError):
+        return False
 
 
 def _windows_pipe_broken(fd: int) -> bool:
@@ -152,9 +154,11 @@ class PipeWriter:
             self.lock.release()
 
     def _write_before(self, data: bytes, deadline: float) -> bool:
+        if not hasattr(os, "set_blocking"):  # Windows before Python 3.12: a thread that may block
+            return self._write_in_thread(data, deadline)
         try:
             os.set_blocking(self.fd, False)
-        except (OSError, AttributeError):
+        except OSError:
             return False  # cannot write without risking a block: let the caller signal instead
         try:
             while True:
@@ -172,6 +176,26 @@ class PipeWriter:
                 os.set_blocking(self.fd, True)
             except OSError:
                 pass
+
+    def _write_in_thread(self, data: bytes, deadline: float) -> bool:
+        """Write ``data`` (at most ``PIPE_BUF`` bytes: all or nothing) from a helper thread, and
+        say whether it was written by ``deadline``. A write still blocked then (the reader is not
+        reading) leaves the writer broken: nothing else may be written after it."""
+        done = threading.Event()
+        failed: list[OSError] = []
+
+        def write() -> None:
+            try:
+                os.write(self.fd, data)
+            except OSError as e:
+                failed.append(e)
+            done.set()
+
+        threading.Thread(target=write, name="tmrl-pipe-stop", daemon=True).start()
+        if done.wait(max(0.0, deadline - time.monotonic())):
+            return not failed
+        self.broken = True
+        return False
 
     def close(self, timeout: float) -> bool:
         """Close the descriptor (the reader sees end of file) unless another thread is writing

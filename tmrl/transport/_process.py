@@ -149,7 +149,10 @@ class NetProcess:
         except subprocess.TimeoutExpired:
             logger.warning("the %s network process did not exit in %.0f s; killing it", self.name, timeout)
             self.proc.kill()
-            self.proc.wait()
+            try:
+                self.proc.wait(5.0)
+            except subprocess.TimeoutExpired:
+                logger.error("the %s network process (pid %d) outlived its kill", self.name, self.proc.pid)
         self._reader.join(timeout=5.0)
         try:
             self._stdout.close()
