@@ -117,6 +117,8 @@ def _unpack(contents: res.ArchiveContents, folder: Path) -> dict[str, Path]:
         _write_if_changed(folder / "Plugins" / name, data)
     _write_if_changed(folder / "reward.pkl", contents.reward_pickle)
     _write_if_changed(folder / "config.json", contents.config)
+    if contents.map is not None:
+        _write_if_changed(folder / Path(res.MAP_MEMBER).name, contents.map)
     weights = {}
     for name, data in contents.weights.items():
         weights[name] = folder / name
@@ -273,6 +275,9 @@ def install_game_side(env: str, cfg: Mapping[str, Any] | None, root: Path,
     lines = _plugins_line(contents, cfg, resources_dir)
     lines += _reward_lines(contents, root, manifest)
     lines += _weights_lines(weights, states, cfg, root, manifest)
+    if contents.map is not None:
+        lines.append(f"  map           {resources_dir / Path(res.MAP_MEMBER).name}: copy it into Documents\\Trackmania"
+                     "\\Maps\\My Maps, then open it in the game (Create > Map editor > Edit a map)")
     manifest.save()
     print("\n".join(lines), file=out, flush=True)
     return True

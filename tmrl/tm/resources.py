@@ -9,6 +9,7 @@ The original tmrl publishes its game-side files as one archive, ``resources.zip`
     resources/SAC_4_LIDAR_pretrained.tmod   pretrained weights, TM20LIDAR
     resources/SAC_4_imgs_pretrained.tmod    pretrained weights, TM20FULL
     resources/config.json                   the original's configuration (kept for reference)
+    resources/tmrl-test.Map.Gbx             the map tmrl-test, when the archive has it (optional)
 
 :func:`fetch` downloads it (``http(s)://`` or ``file://``; ``$TMRL_RESOURCES_URL`` replaces the
 address) with a progress bar. :func:`check_archive` reads it from memory and refuses it whole,
@@ -87,6 +88,9 @@ MEMBERS = (
 )
 """The members the archive must hold (any others are checked and left unused)."""
 
+MAP_MEMBER = "resources/tmrl-test.Map.Gbx"
+"""The map tmrl-test: used when the archive holds it."""
+
 MAX_MEMBER_BYTES = 64 * 2**20
 """Largest member accepted (its size as declared and as read)."""
 
@@ -120,6 +124,7 @@ class ArchiveContents:
         reward_pickle: ``reward.pkl`` as it is in the archive.
         weights: weights file name -> bytes (:data:`PRETRAINED`), not yet read.
         config: ``config.json`` of the original, as bytes.
+        map: the map tmrl-test (``.Map.Gbx``) when the archive holds it, else None.
     """
 
     plugins: dict[str, bytes]
@@ -127,6 +132,7 @@ class ArchiveContents:
     reward_pickle: bytes
     weights: dict[str, bytes]
     config: bytes
+    map: bytes | None = None
 
 
 def resources_url() -> str:
@@ -284,6 +290,8 @@ def check_archive(data: bytes, source: str, sha256: str | None = None) -> Archiv
                 raise ArchiveRefused(source, name, "is missing: this is not the tmrl resources archive (expected "
                                                    "resources/Plugins/*.op, reward.pkl, two .tmod files, config.json)")
             blobs[name] = _read_member(archive, info, source)
+        map_info = seen.get(MAP_MEMBER)
+        map_blob = _read_member(archive, map_info, source) if map_info is not None and not map_info.is_dir() else None
     reward_pickle = blobs["resources/reward.pkl"]
     reward = _reward_of(reward_pickle, source)
     try:
@@ -298,6 +306,7 @@ def check_archive(data: bytes, source: str, sha256: str | None = None) -> Archiv
         reward_pickle=reward_pickle,
         weights={name: blobs[f"resources/{name}"] for name in PRETRAINED},
         config=blobs["resources/config.json"],
+        map=map_blob,
     )
 
 
