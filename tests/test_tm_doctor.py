@@ -357,7 +357,8 @@ def test_the_original_tmrl_in_the_same_environment_is_reported(tmp_path):
     assert res.status == "fail" and "0.7.1" in res.detail and "pip uninstall tmrl" in res.fix
     ours = tmp_path / "ours"
     (ours / "tmrl-0.1.0.dist-info").mkdir(parents=True)  # this project under its former name
-    (ours / "tmrl-0.1.0.dist-info" / "METADATA").write_text("Metadata-Version: 2.1\nName: tmrl\nVersion: 0.1.0\n")
+    (ours / "tmrl-0.1.0.dist-info" / "METADATA").write_text(  # its README names the original in the body
+        "Metadata-Version: 2.1\nName: tmrl\nVersion: 0.1.0\n\nThe original: github.com/trackmania-rl/tmrl\n")
     assert doctor.check_original_tmrl([str(ours)]).status == "pass"
 
 

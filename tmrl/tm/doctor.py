@@ -267,9 +267,12 @@ def original_tmrl_version(path: list[str] | None = None) -> str | None:
     for dist in metadata.distributions(**({"path": path} if path is not None else {})):
         if (dist.metadata.get("Name") or "").lower().replace("_", "-") != "tmrl":
             continue
-        text = ((dist.read_text("METADATA") or dist.read_text("PKG-INFO") or "")).lower()
+        # The header fields only: a long description (this project's README) may name the original.
+        meta = dist.metadata
+        header = " ".join(str(v) for key in ("Home-page", "Download-URL", "Author", "Author-email", "Project-URL")
+                          for v in (meta.get_all(key) or [])).lower()
         files = [str(f) for f in (dist.files or [])]
-        if "trackmania-rl/tmrl" in text or "bouteiller" in text or any("init_package" in f for f in files):
+        if "trackmania-rl" in header or "bouteiller" in header or any("init_package" in f for f in files):
             return dist.version
     return None
 
