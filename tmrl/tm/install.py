@@ -245,7 +245,9 @@ def install_game_side(env: str, cfg: Mapping[str, Any] | None, root: Path,
         env: one of :data:`GAME_ENVIRONMENTS`.
         cfg: the loaded configuration (its ``OPENPLANET_FOLDER``, environment and ``RUN_NAME``),
             None when it does not load.
-        out: where the summary goes (stdout); err: where the progress bar goes (stderr).
+        root: the data folder.
+        out: where the summary goes (default stdout).
+        err: where the download's progress bar goes (default stderr).
 
     Returns:
         True when everything is in place, False when the archive could not be fetched (the one

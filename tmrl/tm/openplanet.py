@@ -288,8 +288,16 @@ class OpenPlanetClient:
 
 def request_replay(host: str = DEFAULT_HOST, port: int = SAVEGHOST_PORT, timeout: float = 2.0) -> str | None:
     """Ask the TMRL_SaveGhost plugin to save the last race as a replay: connect, then close (the
-    plugin's whole protocol). Returns None when the plugin took the request, else why not (one
-    line with the fix)."""
+    plugin's whole protocol).
+
+    Args:
+        host: the plugin's address (the game's machine: 127.0.0.1).
+        port: the plugin's port (:data:`SAVEGHOST_PORT`).
+        timeout: seconds to wait for the connection.
+
+    Returns:
+        None when the plugin took the request, else why not (one line with the fix).
+    """
     try:
         with socket.create_connection((host, port), timeout=timeout):
             pass

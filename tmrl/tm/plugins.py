@@ -76,7 +76,13 @@ def candidate_folders(home: Path | None = None, environ: Mapping[str, str] | Non
                       system: str | None = None) -> list[Path]:
     """The places ``OpenplanetNext`` may be, in the order :func:`find_openplanet` tries them:
     the home folder (``%USERPROFILE%`` first on Windows), then on Linux the Proton prefixes of
-    Steam's games."""
+    Steam's games.
+
+    Args:
+        home: the home folder (default: this user's).
+        environ: the environment variables (default: this process's).
+        system: the OS as :func:`platform.system` names it (default: this one).
+    """
     environ = os.environ if environ is None else environ
     system = system or platform.system()
     home = Path.home() if home is None else Path(home)
@@ -102,7 +108,9 @@ def find_openplanet(setting: str = "", home: Path | None = None, environ: Mappin
 
     Args:
         setting: the config key ``OPENPLANET_FOLDER`` (empty: search).
-        home, environ, system: this machine's home folder, environment and OS (tests pass others).
+        home: the home folder (default: this user's).
+        environ: the environment variables (default: this process's).
+        system: the OS as :func:`platform.system` names it (default: this one).
     """
     if setting.strip():
         folder = Path(setting).expanduser()
@@ -117,7 +125,11 @@ _VERSION = re.compile(r'^\s*version\s*=\s*"([^"]*)"', re.MULTILINE)
 
 def plugin_version(data: bytes) -> str | None:
     """The version an ``.op`` plugin declares in its ``info.toml``, or None when it declares none
-    (or is not a zip archive)."""
+    (or is not a zip archive).
+
+    Args:
+        data: the plugin file's bytes.
+    """
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as z:
             info = next((i for i in z.infolist() if i.filename.lower().endswith("info.toml")), None)
@@ -136,8 +148,16 @@ def _named(name: str, data: bytes) -> str:
 
 
 def install_plugin(name: str, data: bytes, plugins: Path) -> str:
-    """Put the plugin ``name`` (its bytes ``data``) in the folder ``plugins``, replacing an
-    existing copy only when it differs. Returns what was done, in words (for the summary)."""
+    """Put a plugin in the plugin folder, replacing an existing copy only when it differs.
+
+    Args:
+        name: the plugin's file name (``TMRL_GrabData.op``).
+        data: its bytes.
+        plugins: the folder ``OpenplanetNext/Plugins`` (created when missing).
+
+    Returns:
+        What was done, in words (for the summary).
+    """
     from tmrl.util import atomic_write_bytes
 
     target = plugins / name
@@ -154,7 +174,14 @@ def install_plugin(name: str, data: bytes, plugins: Path) -> str:
 
 @dataclass(frozen=True)
 class PluginState:
-    """One plugin in the plugin folder: present or not, its version, whether it matches ``reference``."""
+    """One plugin in the plugin folder.
+
+    Attributes:
+        name: its file name.
+        present: whether the file is there.
+        version: the version its ``info.toml`` declares (None: none, or not there).
+        matches_reference: whether it is the copy ``--install`` fetched (None: not compared).
+    """
 
     name: str
     present: bool
@@ -163,8 +190,14 @@ class PluginState:
 
 
 def plugin_state(plugins: Path, name: str, reference: Path | None = None) -> PluginState:
-    """What ``plugins/name`` is; ``reference`` (the copy the archive brought) tells whether it is
-    that one (None when there is no reference)."""
+    """What is in the plugin folder under a plugin's name.
+
+    Args:
+        plugins: the folder ``OpenplanetNext/Plugins``.
+        name: the plugin's file name.
+        reference: the copy the archive brought (``resources/Plugins/<name>``), to tell whether the
+            installed one is that one; None: not compared.
+    """
     path = plugins / name
     if not path.is_file():
         return PluginState(name, False)

@@ -210,8 +210,12 @@ def load_reward(path: str | os.PathLike[str] | None = None) -> np.ndarray:
 
 
 def trajectory_problem(arr: np.ndarray) -> str | None:
-    """Why ``arr`` is not a reward trajectory (positions ``(N >= 2, 3)`` of finite numbers), as
-    words that follow a file name; None when it is one."""
+    """Why an array is not a reward trajectory (positions ``(N >= 2, 3)`` of finite numbers), as
+    words that follow a file name; None when it is one.
+
+    Args:
+        arr: the array read from a reward file.
+    """
     if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) < 2 or arr.dtype.kind not in "fiu":
         return f"holds an array of shape {arr.shape} and dtype {arr.dtype}, not positions (N, 3)"
     if not np.isfinite(arr).all():
@@ -303,6 +307,10 @@ def read_legacy_reward_pickle(path: str | os.PathLike[str], max_bytes: int = 512
 
 def read_legacy_reward_bytes(data: bytes, max_bytes: int = 512 * 2**20) -> np.ndarray:
     """:func:`read_legacy_reward_pickle` for a pickle already in memory (a member of an archive).
+
+    Args:
+        data: the pickle's bytes.
+        max_bytes: larger pickles are refused without being read.
 
     Raises:
         ValueError: as :func:`read_legacy_reward_pickle`.

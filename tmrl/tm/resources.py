@@ -101,7 +101,14 @@ MAX_MEMBER_COUNT = 1000
 
 
 class ArchiveRefused(UserError):
-    """The archive breaks a rule; nothing of it was used. The message names the member and the rule."""
+    """The archive breaks a rule; nothing of it was used. The message names the member and the rule.
+
+    Args:
+        source: where the archive came from (an address or a file).
+        member: the member's name, or ``(the archive)`` for the whole.
+        rule: the rule it breaks, in words.
+        fix: what to do, when the rule does not say it.
+    """
 
     def __init__(self, source: str, member: str, rule: str, fix: str = "") -> None:
         self.member = member
@@ -179,7 +186,14 @@ class _Progress:
 def fetch(url: str, out: TextIO | None = None, timeout: float = 30.0,
           max_bytes: int = MAX_ARCHIVE_BYTES,
           opener: Callable[..., object] = urllib.request.urlopen) -> bytes:
-    """The bytes at ``url`` (``http``, ``https`` or ``file``), with a progress bar on ``out``.
+    """The bytes at ``url``, with a progress bar.
+
+    Args:
+        url: an ``http``, ``https`` or ``file`` address.
+        out: where the progress bar goes (default stderr; a bar on a terminal, one line elsewhere).
+        timeout: seconds to wait for the server at each step.
+        max_bytes: largest download accepted.
+        opener: ``urllib.request.urlopen`` or a stand-in with its signature.
 
     Raises:
         FetchFailed: the address cannot be reached or fails (the message says why, in words).
@@ -241,7 +255,12 @@ def _is_link(info: zipfile.ZipInfo) -> bool:
 
 
 def check_archive(data: bytes, source: str, sha256: str | None = None) -> ArchiveContents:
-    """Check the archive ``data`` (from ``source``, named in messages) and return what it holds.
+    """Check an archive and return what it holds.
+
+    Args:
+        data: the archive's bytes.
+        source: where it came from (an address or a file), named in messages.
+        sha256: the SHA-256 it must have (hex), or None: not checked.
 
     The order of the checks: the SHA-256 (when given), the zip structure, then every member's
     path, type and declared size, the total size, the layout, each needed member's real size
