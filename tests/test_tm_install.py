@@ -53,14 +53,14 @@ def test_install_sets_up_the_game_side_and_keeps_config_edits(tmp_path, home, _i
     process of its own against the served archive."""
     data = _isolated_data_folder
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    subprocess.run([sys.executable, "-m", "tmrl", "--install"], env=env, check=True, capture_output=True)
+    subprocess.run([sys.executable, "-m", "tmrl", "--install"], env=env, check=True, capture_output=True, timeout=120)
     cfg_file = data / "config" / "config.json"
     cfg = json.loads(cfg_file.read_text())
     cfg["PASSWORD"], cfg["BATCH_SIZE"] = "our-own-secret", 128
     cfg_file.write_text(json.dumps(cfg))
     body = archive()
     with ArchiveServer(body) as server:
-        proc = subprocess.run([sys.executable, "-m", "tmrl", "--install", "--env", "tm20lidar"],
+        proc = subprocess.run([sys.executable, "-m", "tmrl", "--install", "--env", "tm20lidar"], check=False,
                               env=dict(env, **{URL_ENV: server.url}), capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stdout + proc.stderr
         assert server.requests == 1
@@ -241,10 +241,10 @@ def hostile(kind: str, tmp_path: Path) -> tuple[bytes, str]:
 def test_hostile_archives_are_refused_whole_in_one_line(monkeypatch, capsys, tmp_path, home, kind, rule,
                                                         _isolated_data_folder):
     body, member = hostile(kind, tmp_path)
-    outside = lambda: everything_under(tmp_path) - everything_under(_isolated_data_folder) - {_isolated_data_folder}  # noqa: E731
+    outside = lambda: everything_under(tmp_path) - everything_under(_isolated_data_folder) - {_isolated_data_folder}
     before = outside()
     with ArchiveServer(body) as server:
-        rc, out, err = install(monkeypatch, capsys, server.url)
+        rc, _, err = install(monkeypatch, capsys, server.url)
     assert rc == 2
     lines = err_lines(err)
     assert len(lines) == 1 and lines[0].startswith("tmrl: error: refused the resources archive"), err

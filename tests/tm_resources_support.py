@@ -34,14 +34,14 @@ def plugin_bytes(name: str, version: str) -> bytes:
     return buf.getvalue()
 
 
-def lidar_state(seed: int = 0, scale: float = 0.02) -> "OrderedDict[str, object]":
+def lidar_state(seed: int = 0, scale: float = 0.02) -> OrderedDict[str, object]:
     """tmrl 0.7's SquashedGaussianMLPActor for TM20LIDAR, in its own names and shapes: ``net`` is
     Linear, ReLU, Linear, ReLU (hidden 256, 256), then the ``mu_layer`` and ``log_std_layer`` heads."""
     import torch
 
     g = torch.Generator().manual_seed(seed)
 
-    def t(*shape: int) -> "torch.Tensor":
+    def t(*shape: int) -> torch.Tensor:
         return torch.randn(*shape, generator=g) * scale
 
     return OrderedDict([
@@ -124,7 +124,7 @@ class ArchiveServer:
         outer = self
 
         class Handler(http.server.BaseHTTPRequestHandler):
-            def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+            def do_GET(self) -> None:
                 outer.requests += 1
                 self.send_response(200)
                 self.send_header("Content-Length", str(len(outer.body)))

@@ -146,10 +146,10 @@ def _plugins_line(contents: res.ArchiveContents, cfg: Mapping[str, Any] | None, 
     found = find_openplanet(str((cfg or {}).get("OPENPLANET_FOLDER", "") or ""))
     if found.plugins is None:
         how = ("OPENPLANET_FOLDER in config.json names a folder that does not exist" if found.from_setting
-               else f"no {'OpenplanetNext'} folder in {found.where()}")
-        return [f"  plugins       not copied: {how}; install OpenPlanet (https://openplanet.dev), start the game "
-                f"once, then run this again, or copy {resources_dir / 'Plugins'}/*.op into OpenplanetNext/Plugins "
-                "yourself (OPENPLANET_FOLDER in config.json names that folder)"]
+               else f"no OpenplanetNext folder in {found.where()}")
+        return [(f"  plugins       not copied: {how}; install OpenPlanet (https://openplanet.dev), start the game "
+                 f"once, then run this again, or copy {resources_dir / 'Plugins'}/*.op into OpenplanetNext/Plugins "
+                 "yourself (OPENPLANET_FOLDER in config.json names that folder)")]
     done = [install_plugin(name, data, found.plugins) for name, data in contents.plugins.items()]
     return [f"  plugins       {found.plugins}: " + "; ".join(done)]
 
@@ -157,8 +157,8 @@ def _plugins_line(contents: res.ArchiveContents, cfg: Mapping[str, Any] | None, 
 def _reward_lines(contents: res.ArchiveContents, root: Path, manifest: _Manifest) -> list[str]:
     import numpy as np
 
-    from tmrl.tm.record import load_reward, save_reward
     from tmrl.errors import UserError
+    from tmrl.tm.record import load_reward, save_reward
 
     folder = root / "reward"
     named = folder / f"{REWARD_MAP}.npy"
@@ -181,24 +181,16 @@ def _reward_lines(contents: res.ArchiveContents, root: Path, manifest: _Manifest
         save_reward(contents.reward, in_use)
         manifest.record(in_use)
         return [f"  reward        {in_use}: the {REWARD_MAP} map's trajectory, updated"]
-    return [f"  reward        kept your {current} (another map's?); the {REWARD_MAP} map's trajectory is {named}: "
-            f"copy it to {in_use} to drive on {REWARD_MAP}"]
+    return [(f"  reward        kept your {current} (another map's?); the {REWARD_MAP} map's trajectory is {named}: "
+             f"copy it to {in_use} to drive on {REWARD_MAP}")]
 
 
 def _actor_for(cfg: Mapping[str, Any]) -> Any:
-    """A fresh actor of the configuration ``cfg`` (its environment is built to read the spaces;
-    no game is touched)."""
-    from tmrl.assembly import assemble
+    """A fresh actor of the configuration ``cfg`` (no game is touched)."""
+    from tmrl.assembly import actor_for, assemble
 
     parts = assemble(cfg)
-    env = parts.ENV_CLS()
-    try:
-        obs_space, act_space = env.observation_space, env.action_space
-    finally:
-        close = getattr(env, "close", None)
-        if callable(close):
-            close()
-    return parts.POLICY(observation_space=obs_space, action_space=act_space)
+    return actor_for(parts.ENV_CLS, parts.POLICY)
 
 
 def _weights_lines(weights: dict[str, Path], states: dict[str, Any], cfg: Mapping[str, Any] | None,
