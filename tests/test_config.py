@@ -647,7 +647,7 @@ def test_wheel_ships_the_default_config(tmp_path):
         capture_output=True, text=True, timeout=300, check=False,
     )
     assert out.returncode == 0, out.stderr
-    (wheel,) = (tmp_path / "whl").glob("tmrl-*.whl")
+    (wheel,) = (tmp_path / "whl").glob("tmrl_cleanroom-*.whl")  # the distribution's name (pyproject.toml)
     with zipfile.ZipFile(wheel) as z:
         names = set(z.namelist())
         assert "tmrl/config_files/config.json" in names

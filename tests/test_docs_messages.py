@@ -161,7 +161,11 @@ def test_wrong_password_lines_on_both_sides(relay, caplog):
     made.append(link)
     _wait_for(lambda: link.refused, "the refusal")
     assert link.refused == "wrong password"
-    _assert_quoted(_wait_for(lambda: _log_line(caplog, "refused this worker"), "the worker's line"))
+    from tmrl.distributed._common import PasswordRefused, check_refused
+
+    with pytest.raises(PasswordRefused) as err:  # what the worker stops with (the CLI prints it)
+        check_refused(link, "worker", f"127.0.0.1:{server.port}")
+    _assert_quoted(f"tmrl: error: {err.value}")
     _assert_quoted(_wait_for(lambda: _log_line(caplog, ": wrong password"), "the server's line"))
 
 

@@ -68,7 +68,7 @@ def test_missing_optional_backends_are_named(monkeypatch):
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_optional)
-    with pytest.raises(UserError, match=r'pip install "tmrl\[wandb\]"'):
+    with pytest.raises(UserError, match=r'pip install "\.\[wandb\]"'):
         MetricsLogger("x", wandb=True)
     with pytest.raises(UserError, match="pip install tensorboard"):
         MetricsLogger("x", folder="somewhere", tensorboard=True)

@@ -543,7 +543,7 @@ def test_run_with_wandb_without_wandb_names_the_extra(tmp_path, port_factory, mo
         checkpoint_path=None,
     )
     try:
-        with pytest.raises(UserError, match=r"tmrl\[wandb\]"):
+        with pytest.raises(UserError, match=r"pip install \"\.\[wandb\]\""):
             trainer.run_with_wandb(entity="e", project="p", run_id="r")
     finally:
         trainer.interface.close()

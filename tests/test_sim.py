@@ -461,6 +461,8 @@ def test_demo_runs_end_to_end_with_a_tiny_budget(tmp_path):
     trainer_log = (out / "logs" / "trainer.log").read_text()
     assert "training starts" in trainer_log and "INFO" in trainer_log
     assert "train episode 0:" in (out / "logs" / "worker.log").read_text()
+    # the demo keeps its files in its run folder: no TrackMania config.json in the data folder
+    assert not (tmp_path / "TmrlData" / "config" / "config.json").exists()
 
 
 def test_check_environment_writes_what_the_policy_sees(tmp_path):

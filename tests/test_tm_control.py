@@ -163,7 +163,7 @@ def test_missing_vigembus_is_one_line(monkeypatch):
 def test_missing_vgamepad_names_the_extra(monkeypatch):
     monkeypatch.setattr(control.platform, "system", lambda: "Windows")
     monkeypatch.setitem(sys.modules, "vgamepad", None)  # import raises ImportError
-    with pytest.raises(ControlUnavailable, match=r"tmrl\[trackmania\]"):
+    with pytest.raises(ControlUnavailable, match=r"pip install \"\.\[trackmania\]\""):
         control.make_vgamepad()
 
 

@@ -111,7 +111,7 @@ def test_missing_trackmania_extras_fail_the_packages_check(monkeypatch):
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "mss" else real(name, *a))
     assert doctor.check_packages("SIMLIDAR").status == "pass"
     res = doctor.check_packages("TM20LIDAR")
-    assert res.status == "fail" and "mss" in res.detail and 'tmrl[trackmania]' in res.fix
+    assert res.status == "fail" and "mss" in res.detail and 'pip install ".[trackmania]"' in res.fix
 
 
 def test_a_crashing_check_becomes_a_failure(monkeypatch):
@@ -265,3 +265,106 @@ def test_window_and_capture_checks_pass_on_xvfb(xvfb_window, plugin, port_factor
 def test_wrong_window_size_fails_with_the_fix(xvfb_window):
     res = doctor.check_window("Trackmania", 300, 200, resize=False)
     assert res.status == "fail" and "256x128, expected 300x200" in res.detail and "windowed" in res.fix
+
+
+# ------------------------------------------------------------------------ the game side
+def test_no_plugin_is_one_line_with_the_fix(tmp_path, monkeypatch):
+    from tm_resources_support import plugin_bytes
+
+    home = tmp_path / "home"
+    monkeypatch.setenv("HOME", str(home))
+    (res,) = run_checks(base_cfg(), only=("plugins",))
+    assert res.status == "fail" and "no OpenplanetNext folder" in res.detail and "\n" not in res.detail
+    assert "--install --env tm20lidar" in res.fix and "OPENPLANET_FOLDER" in res.fix
+    plugins = home / "OpenplanetNext" / "Plugins"
+    plugins.mkdir(parents=True)
+    (res,) = run_checks(base_cfg(), only=("plugins",))
+    assert res.status == "fail" and "TMRL_GrabData.op not in" in res.detail and "--install" in res.fix
+    (plugins / "TMRL_GrabData.op").write_bytes(plugin_bytes("TMRL Grab Data", "0.3"))
+    (res,) = run_checks(base_cfg(), only=("plugins",))
+    assert res.status == "pass" and "TMRL_GrabData.op v0.3" in res.detail
+    replays = base_cfg()
+    replays["ENV"]["RTGYM_CONFIG"]["interface_kwargs"] = {"save_replays": True}
+    (res,) = run_checks(replays, only=("plugins",))
+    assert res.status == "fail" and "TMRL_SaveGhost.op not in" in res.detail
+    (res,) = run_checks(base_cfg(OPENPLANET_FOLDER=str(tmp_path / "nowhere")), only=("plugins",))
+    assert res.status == "fail" and "OPENPLANET_FOLDER" in res.detail
+
+
+def test_doctor_command_without_plugin_says_so_and_never_blocks(tmp_path, port_factory):
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    env["TMRL_CONFIG_OVERRIDE"] = '{"PORT": %d}' % port_factory()
+    proc = subprocess.run([sys.executable, "-m", "tmrl", "--doctor"], capture_output=True, text=True, env=env,
+                          timeout=120)
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    (i,) = [n for n, line in enumerate(lines) if line.startswith("[FAIL] OpenPlanet plugins")]
+    assert "OpenplanetNext" in lines[i] and lines[i + 1].lstrip().startswith("fix: ")
+    assert "--install --env tm20lidar" in lines[i + 1]
+    assert "docs/" not in proc.stdout
+
+
+class _NoVgamepadImport:
+    """A meta-path finder that records any attempt to import vgamepad (and refuses it)."""
+
+    def __init__(self):
+        self.attempts = []
+
+    def find_spec(self, name, path=None, target=None):
+        if name == "vgamepad" or name.startswith("vgamepad."):
+            self.attempts.append(name)
+            raise AssertionError("vgamepad imported: its installer would start")
+        return None
+
+
+def test_windows_without_vigembus_never_imports_vgamepad(monkeypatch):
+    from tmrl.tm import control
+
+    finder = _NoVgamepadImport()
+    monkeypatch.setattr(sys, "meta_path", [finder, *sys.meta_path])
+    monkeypatch.delitem(sys.modules, "vgamepad", raising=False)
+    monkeypatch.setattr(control.platform, "system", lambda: "Windows")
+    monkeypatch.setattr(control, "vigembus_installed", lambda: False)
+    res = doctor.check_gamepad(True)
+    assert res.status == "fail" and "ViGEmBus" in res.detail and control.VIGEMBUS_URL in res.detail + res.fix
+    with pytest.raises(control.ControlUnavailable, match="ViGEmBus"):
+        control.make_vgamepad()
+    assert finder.attempts == []
+
+
+def test_windows_with_vigembus_imports_vgamepad_with_its_installer_off(monkeypatch):
+    from tmrl.tm import control
+
+    class Vgamepad:
+        class VX360Gamepad:
+            def __init__(self):
+                self.skip = os.environ.get("VGAMEPAD_SKIP_VIGEMBUS_INSTALL")
+
+    monkeypatch.setattr(control.platform, "system", lambda: "Windows")
+    monkeypatch.setattr(control, "vigembus_installed", lambda: True)
+    monkeypatch.setitem(sys.modules, "vgamepad", Vgamepad)
+    monkeypatch.delenv("VGAMEPAD_SKIP_VIGEMBUS_INSTALL", raising=False)
+    assert control.make_vgamepad().skip == "true"
+
+
+def test_the_original_tmrl_in_the_same_environment_is_reported(tmp_path):
+    site = tmp_path / "site"
+    original = site / "tmrl-0.7.1.dist-info"
+    original.mkdir(parents=True)
+    (original / "METADATA").write_text("Metadata-Version: 2.1\nName: tmrl\nVersion: 0.7.1\n"
+                                       "Home-page: https://github.com/trackmania-rl/tmrl\n")
+    res = doctor.check_original_tmrl([str(site)])
+    assert res.status == "fail" and "0.7.1" in res.detail and "pip uninstall tmrl" in res.fix
+    ours = tmp_path / "ours"
+    (ours / "tmrl-0.1.0.dist-info").mkdir(parents=True)  # this project under its former name
+    (ours / "tmrl-0.1.0.dist-info" / "METADATA").write_text(  # its README names the original in the body
+        "Metadata-Version: 2.1\nName: tmrl\nVersion: 0.1.0\n\nThe original: github.com/trackmania-rl/tmrl\n")
+    assert doctor.check_original_tmrl([str(ours)]).status == "pass"
+
+
+def test_reward_file_of_another_map_fails_when_the_car_is_far_from_it(tmp_path):
+    traj = np.c_[np.arange(100) * 0.1, np.zeros(100), np.zeros(100)]
+    save_reward(traj, tmp_path / "r.npy")
+    assert doctor.check_reward_file(tmp_path / "r.npy", position=(5.0, 1.0, 0.0)).status == "pass"
+    res = doctor.check_reward_file(tmp_path / "r.npy", position=(500.0, 10.0, 300.0))
+    assert res.status == "fail" and "another map" in res.detail and "--record-reward" in res.fix

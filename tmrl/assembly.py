@@ -41,7 +41,7 @@ from tmrl.config.schema import AGENT_CLASSES, ConfigError, arguments
 from tmrl.errors import UserError
 from tmrl.util import partial
 
-__all__ = ["Assembly", "DropActionBuffer", "assemble", "check_interface_kwargs"]
+__all__ = ["Assembly", "DropActionBuffer", "actor_for", "assemble", "check_interface_kwargs"]
 
 
 _SIM = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
@@ -123,6 +123,24 @@ def assemble(cfg: Mapping[str, Any]) -> Assembly:
         if built is None:
             built = _CACHE[key] = _build(copy.deepcopy(dict(cfg)))
         return built
+
+
+def actor_for(env_cls: Callable[[], Any], policy: Callable[..., Any]) -> Any:
+    """A fresh ``policy`` actor on the spaces of the environment ``env_cls`` builds (it is built
+    to read them, then closed; a TrackMania environment touches no game until its first reset).
+
+    Args:
+        env_cls: what builds the environment (an :class:`Assembly`'s ``ENV_CLS``).
+        policy: the actor class (an :class:`Assembly`'s ``POLICY``).
+    """
+    env = env_cls()
+    try:
+        obs_space, act_space = env.observation_space, env.action_space
+    finally:
+        close = getattr(env, "close", None)
+        if callable(close):
+            close()
+    return policy(observation_space=obs_space, action_space=act_space)
 
 
 # --- helpers -------------------------------------------------------------------------------------

@@ -23,7 +23,11 @@ flag                        calls
 ``--install``               :func:`tmrl.config.loader.install`, then
                             ``tmrl.transport.ensure_credentials(directory)`` when it exists
                             (and, with ``TRANSPORT`` "nats", the NATS users:
-                            ``tmrl.transport.nats_backend.write_credentials``)
+                            ``tmrl.transport.nats_backend.write_credentials``); with
+                            ``--env tm20lidar`` or ``tm20full`` also
+                            ``tmrl.tm.install.install_game_side`` (the original's resources)
+``--help TOPIC``            prints a guide: ``trackmania`` (:data:`tmrl.tm.guide.TEXT`) or
+                            ``config`` (every key of config.json, from the schema)
 ==========================  ===============================================================
 
 A hook may return an ``int`` exit code (``None`` means 0). The override given with ``-d`` is
@@ -52,7 +56,7 @@ from tmrl.config.loader import ENVIRONMENTS
 from tmrl.config.schema import PASSWORD_PLACEHOLDER
 from tmrl.errors import UserError
 
-__all__ = ["HOOKS", "SIM_HOOKS", "TM_HOOKS", "build_parser", "main"]
+__all__ = ["HELP_TOPICS", "HOOKS", "SIM_HOOKS", "TM_HOOKS", "build_parser", "help_topic", "main"]
 
 logger = logging.getLogger(__name__)
 
@@ -107,6 +111,7 @@ need the folder create it; --install creates it and says where everything is.
 _EPILOG = """\
 examples:
   python -m tmrl --install                 create the data folder and config.json (random PASSWORD)
+  python -m tmrl --install --env tm20lidar also set up TrackMania: OpenPlanet plugins, reward, pretrained weights
   python -m tmrl --demo                    train on the built-in simulator, all parts on this machine
   python -m tmrl --server                  then, in two other terminals: --trainer and --worker
   python -m tmrl --trainer -d '{"ALG": {"ALGORITHM": "REDQSAC"}}'
@@ -116,6 +121,9 @@ exit codes: 0 success, 1 a bug in tmrl (please report it), 2 a mistake in the co
 configuration (one line says what to change), 3 --doctor found a problem (its report says what to
 fix), 130 interrupted (Ctrl-C), 143 stopped by SIGTERM, 129 stopped by SIGHUP (the terminal was
 closed; Linux and macOS), 149 stopped by Ctrl-Break (Windows).
+
+guides: python -m tmrl --help trackmania (from a clean PC to a car on the track), python -m tmrl --help
+config (every key of config.json).
 
 threads: each role sizes its PyTorch threads to this machine's cores (a worker 1, a trainer all
 cores but one); --threads N or TMRL_THREADS=N sets them.
@@ -188,7 +196,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="show what the agent sees (images or lidar) and the rewards, to check the setup")
     add("--install", action="store_const", const="install", dest="command",
         help="create the data folder, config.json (random PASSWORD, never overwritten) and TLS "
-             "credentials, and print where they are")
+             "credentials, and print where they are; with --env tm20lidar or tm20full also fetch the original "
+             "tmrl's resources and install the OpenPlanet plugins, the tmrl-test reward and the pretrained weights")
     add("--doctor", action="store_const", const="doctor", dest="command",
         help="check this machine (packages, GPU, data folder, config, ports) and say what to fix")
     add("--import-weights", metavar="FILE", dest="import_weights",
@@ -209,7 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
                               "the file; may be repeated; child processes inherit it")
     options.add_argument("--wandb", action="store_true",
                          help="with --trainer: log metrics to Weights & Biases (WANDB_* keys of config.json; "
-                              "needs pip install \"tmrl[wandb]\")")
+                              "needs pip install \".[wandb]\" in this project's checkout)")
     options.add_argument("--env", metavar="NAME", type=str.lower, choices=tuple(ENVIRONMENTS),
                          help="with --install: the environment of config.json, one of " + ", ".join(ENVIRONMENTS)
                               + " (shipped configs); on an existing data folder it switches config.json to it, "
@@ -283,12 +292,16 @@ def _config_state(loader: Any, report: Any, env: str | None) -> str:
     return f"switched to {env}; kept your {kept}; the former file is {switch.previous.name}"
 
 
-def _next_steps(cfg: Mapping[str, Any] | None) -> list[str]:
+def _next_steps(cfg: Mapping[str, Any] | None, game_side: bool = False) -> list[str]:
     interface = str(cfg["ENV"]["RTGYM_INTERFACE"]) if cfg is not None else ""
+    if interface.startswith("TM20") and game_side:
+        return ["Next: start TrackMania 2020 on the map tmrl-test, check the setup with `python -m tmrl --doctor`, then",
+                "`python -m tmrl --worker --test` drives with the pretrained weights (`python -m tmrl --help trackmania`",
+                "walks through every step, training included)."]
     if interface.startswith("TM20"):
-        return ["Next: set up TrackMania 2020 (docs/trackmania.md), check it with `python -m tmrl --doctor`, then run",
-                "`python -m tmrl --server`, `--trainer` and `--worker` (three terminals, or three machines).",
-                "No game? `python -m tmrl --install --env simlidar` switches to the built-in simulator."]
+        return ["Next: `python -m tmrl --install --env tm20lidar` sets up the game side (OpenPlanet plugins, reward,",
+                "pretrained weights); `python -m tmrl --help trackmania` walks through it; `python -m tmrl --doctor`",
+                "checks it. No game? `python -m tmrl --install --env simlidar` switches to the built-in simulator."]
     return ["Next: run `python -m tmrl --server`, `python -m tmrl --trainer` and `python -m tmrl --worker` in three",
             "terminals (or on three machines with the same config.json)."]
 
@@ -326,15 +339,22 @@ def _install(env: str | None = None) -> int:
         f"  reward        {paths.reward}",
         f"  credentials   {paths.credentials}  (TLS: {credentials_note})",
         f"  logs          {paths.logs}",
-        "Edit config.json to configure runs (`python -m tmrl --print-config` shows the result; docs/config.md",
-        "of the tmrl repository lists every key). Use the same PASSWORD on every machine of a run.",
+        "Edit config.json to configure runs (`python -m tmrl --print-config` shows the result; `python -m tmrl",
+        "--help config` lists every key). Use the same PASSWORD on every machine of a run.",
         f"Switch environments with `python -m tmrl --install --env NAME` ({', '.join(loader.ENVIRONMENTS)}).",
         "Set TMRL_DATA to use another data folder.",
-        *_next_steps(cfg),
     ]
-    print("\n".join(lines))
+    print("\n".join(lines), flush=True)
     if error is not None:
         raise error
+    game_side = False
+    from tmrl.tm.install import GAME_ENVIRONMENTS
+
+    if env in GAME_ENVIRONMENTS:
+        from tmrl.tm.install import install_game_side
+
+        game_side = install_game_side(env, cfg, paths.root)
+    print("\n".join(_next_steps(cfg, game_side)))
     return 0
 
 
@@ -494,9 +514,36 @@ def _split_standalone_test(argv: list[str]) -> tuple[list[str], bool]:
     return argv, False
 
 
+HELP_TOPICS = ("trackmania", "config")
+"""The guides ``python -m tmrl --help TOPIC`` prints."""
+
+
+def help_topic(topic: str) -> str:
+    """The text of ``python -m tmrl --help TOPIC``.
+
+    Raises:
+        UsageError: an unknown topic.
+    """
+    if topic == "trackmania":
+        from tmrl.tm.guide import TEXT
+
+        return TEXT
+    if topic == "config":
+        from tmrl.config.schema import markdown_reference
+
+        return markdown_reference()
+    raise UsageError(f"--help {topic}: no such guide; the guides are {', '.join(HELP_TOPICS)}",
+                     "`python -m tmrl --help` lists the commands")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``python -m tmrl`` with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if len(argv) == 2 and argv[0] in ("-h", "--help"):
+        try:
+            return _print_quietly(help_topic(argv[1].lower()))
+        except UserError as e:
+            return _report_user_error(e)
     parser = build_parser()
     try:
         argv, extra = _split_demo_args(argv)

@@ -180,7 +180,7 @@ class MetricsLogger:
                 import wandb as wandb_module
             except ImportError:
                 raise UserError(
-                    'wandb logging was asked for but wandb is not installed: pip install "tmrl[wandb]"'
+                    'wandb logging was asked for but wandb is not installed: pip install ".[wandb]" in the checkout of this project'
                 ) from None
             self._wandb = wandb_module
 

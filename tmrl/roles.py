@@ -406,14 +406,9 @@ def run_benchmark(cfg: Mapping[str, Any] | None = None, nb_steps: int = 1000) ->
 def configured_actor() -> Any:
     """A fresh instance of the actor the configured workers run (the objects' ``POLICY`` on the
     environment's spaces), on the CPU."""
-    env = _env_cls()()
-    try:
-        obs_space, act_space = env.observation_space, env.action_space
-    finally:
-        close = getattr(env, "close", None)
-        if callable(close):
-            close()
-    return _objects().POLICY(observation_space=obs_space, action_space=act_space)
+    from tmrl.assembly import actor_for
+
+    return actor_for(_env_cls(), _objects().POLICY)
 
 
 def run_import_weights(cfg: Mapping[str, Any] | None, src: str, out: str | None = None) -> int:

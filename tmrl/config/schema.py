@@ -278,6 +278,9 @@ SCHEMA = Section(
         "CUDA_TRAINING": Bool(False, "train on the GPU when one is available"),
         "CUDA_INFERENCE": Bool(False, "run the workers' policy on the GPU when one is available"),
         "VIRTUAL_GAMEPAD": Bool(True, "drive TrackMania with a virtual gamepad (false: keyboard)"),
+        "OPENPLANET_FOLDER": Str("", "TrackMania: the OpenplanetNext folder that --install copies the plugins into "
+                                     "and --doctor checks (empty: OpenplanetNext in the home folder, then in Steam's "
+                                     "Proton prefixes on Linux)"),
         "LOCALHOST_WORKER": Bool(True, "the worker reaches the server on 127.0.0.1 (false: PUBLIC_IP_SERVER)"),
         "LOCALHOST_TRAINER": Bool(True, "the trainer reaches the server on 127.0.0.1 (false: PUBLIC_IP_SERVER)"),
         "PUBLIC_IP_SERVER": Str("0.0.0.0", "address of the server when it is on another machine", nonempty=True),
@@ -300,7 +303,8 @@ SCHEMA = Section(
         "SERVER_PARTIAL_TIMEOUT": Number(60.0, "seconds the server waits for the next part of a half-received "
                                                "message before it drops it and closes the connection", min=1),
         "TRANSPORT": Choice("tlspyo", 'how samples and weights cross the network: "tlspyo" (tmrl\'s relay) or '
-                                      '"nats" (NATS JetStream, pip install "tmrl[nats]"; see the Scale-out page)',
+                                      '"nats" (NATS JetStream, pip install ".[nats]" in this project\'s checkout; '
+                                      'see the Scale-out page)',
                             ("tlspyo", "nats")),
         "NATS": Section(
             {

@@ -531,7 +531,7 @@ class Section(Spec):
         if close:
             hint = f"did you mean {join_key(path, close[0])}?"
         else:
-            hint = "remove it (docs/config.md lists every key)"
+            hint = "remove it (`python -m tmrl --help config` lists every key)"
         return SchemaViolation(where, f"{where} is not a known key; {hint}")
 
     def arguments(self, cfg: Mapping[str, Any], cls: str) -> dict[str, Any]:

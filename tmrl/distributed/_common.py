@@ -7,6 +7,7 @@ import os
 from typing import Any
 
 from tmrl.config.settings import NetSettings
+from tmrl.errors import UserError
 
 LOGGER_NAME = "tmrl.networking"
 """The roles' log lines keep tmrl 0.7's logger name, wherever their code now lives: a user's
@@ -21,6 +22,34 @@ def _one_line(err: BaseException) -> str:
     """An exception as one short line (its message's first line, or its type)."""
     text = str(err).strip().splitlines()
     return (text[0] if text else type(err).__name__)[:300]
+
+
+class PasswordRefused(UserError):
+    """The server refused this role's password: retrying cannot help, the role stops."""
+
+
+def check_refused(link: Any, role: str, where: str) -> None:
+    """Raise :class:`PasswordRefused` once the server has refused ``link``'s password (tlspyo's
+    "wrong password", a NATS authorization violation); other refusals are the link's business.
+
+    Args:
+        link: a transport link (its ``refused`` attribute: the last refusal reason, or None).
+        role: ``"worker"`` or ``"trainer"``, for the message.
+        where: the server's address, for the message.
+    """
+    reason = getattr(link, "refused", None)
+    if not reason or not any(w in str(reason).lower() for w in ("wrong password", "authorization")):
+        return
+    raise PasswordRefused(
+        f"the server at {where} refused this {role}'s password ({reason}): set PASSWORD in config.json to the "
+        "server's (the same on every machine of a run), or pass it with -d '{\"PASSWORD\": \"...\"}'"
+    )
+
+
+def close_budget(link: Any, timeout: float) -> float:
+    """How long closing ``link`` may flush: ``timeout``, or at most :data:`STOP_TIMEOUT` once the
+    server refused it (nothing will be delivered: waiting would only delay the refusal's line)."""
+    return min(timeout, STOP_TIMEOUT) if getattr(link, "refused", None) else timeout
 
 
 class _FromConfig:

@@ -294,7 +294,7 @@ class Trainer:
         try:
             import wandb  # type: ignore[import-not-found]
         except ImportError as err:
-            raise UserError('wandb is not installed: pip install "tmrl[wandb]"') from err
+            raise UserError('wandb is not installed: pip install ".[wandb]" in the checkout of this project') from err
         from tmrl.util import partial_to_dict
 
         cfg = self.settings

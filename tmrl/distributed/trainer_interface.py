@@ -15,7 +15,7 @@ from typing import Any
 
 from tmrl import platform
 from tmrl.config.settings import NetSettings
-from tmrl.distributed._common import FROM_CONFIG, LOGGER_NAME, _given, _make_link, _settings
+from tmrl.distributed._common import FROM_CONFIG, LOGGER_NAME, _given, _make_link, _settings, check_refused, close_budget
 from tmrl.distributed.buffer import Buffer, unpack_buffer
 from tmrl.distributed.weights import _weights_problem, pack_weights, remove_stale_temporaries, replace_file
 from tmrl.spaces import SampleRejected, SampleSchema, describe_spaces
@@ -230,6 +230,7 @@ class TrainerInterface:
         self.model_path = Path(_given(model_path, cfg.model_path_trainer))
         remove_stale_temporaries(self.model_path)
         self.server_ip = _given(server_ip, cfg.server_ip_for_trainer)
+        self._where = f"{self.server_ip}:{_given(server_port, cfg.port)}"
         self.maxlen = cfg.buffers_maxlen
         self.schema = schema
         self.run_id = run_id
@@ -360,9 +361,13 @@ class TrainerInterface:
     def retrieve_buffer(self) -> Buffer:
         """Every sample received since the last call (possibly none), never blocking.
 
+        Raises:
+            tmrl.distributed._common.PasswordRefused: the server refused the password (one line).
+
         ``sources`` gives each sample's worker id; batches that are malformed, do not fit
         :attr:`schema` or were made for another run are dropped (see the class docstring).
         """
+        check_refused(self._link, "trainer", self._where)
         res = Buffer(maxlen=self.maxlen)
         res.sources = []
         for payload in self._link.receive_samples():
@@ -431,6 +436,7 @@ class TrainerInterface:
         """Send the latest weights given to :meth:`broadcast_model` (for at most half of
         ``timeout``), then disconnect (idempotent); the link's process is killed after
         ``timeout`` seconds."""
+        timeout = close_budget(self._link, timeout)
         self._publisher.close(timeout / 2)
         self._closed.set()
         self._link.close(timeout)

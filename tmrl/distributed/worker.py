@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from tmrl.config.settings import NetSettings
-from tmrl.distributed._common import FROM_CONFIG, LOGGER_NAME, _given, _make_link, _settings
+from tmrl.distributed._common import FROM_CONFIG, LOGGER_NAME, _given, _make_link, _settings, check_refused, close_budget
 from tmrl.distributed.buffer import Buffer, pack_buffer
 from tmrl.distributed.weights import WeightsInstaller
 from tmrl.errors import UserError
@@ -232,6 +232,7 @@ class RolloutWorker:
         self.debug_ts_cpt = 0
         self.debug_ts_res_cpt = 0
         self.server_ip = _given(server_ip, cfg.server_ip_for_worker)
+        self._server_port = _given(server_port, cfg.port)
         self._link: Any = None
         self._closed = False
         if not standalone:
@@ -288,7 +289,7 @@ class RolloutWorker:
         flushes for at most ``timeout - 1`` seconds and is killed after ``timeout``."""
         self._closed = True
         if self._link is not None:
-            self._link.close(timeout)
+            self._link.close(close_budget(self._link, timeout))
 
     def __enter__(self) -> RolloutWorker:
         return self
@@ -353,6 +354,7 @@ class RolloutWorker:
         Returns:
             ``(new_obs, rew, terminated, truncated, info)``.
         """
+        self._check_refused()
         act = self.act(obs, test=test)
         new_obs, rew, terminated, truncated, info = self.env.step(act)
         if self.obs_preprocessor is not None:
@@ -370,6 +372,11 @@ class RolloutWorker:
                 self._keep_pace(end_of_episode=terminated or truncated)
         return new_obs, rew, terminated, truncated, info
 
+    def _check_refused(self) -> None:
+        """Stop (:class:`~tmrl.distributed._common.PasswordRefused`) once the server refused the password."""
+        if self._link is not None:
+            check_refused(self._link, "worker", f"{self.server_ip}:{self._server_port}")
+
     def _wait_first_weights(self) -> None:
         """After its first episode, a training worker waits for the trainer's first weights: they
         say which run the samples are for and how fast the trainer wants them (its pace); a
@@ -381,6 +388,7 @@ class RolloutWorker:
         started = time.monotonic()
         next_note = started + WAITING_NOTE_INTERVAL
         while self.weights_version == 0 and not self._closed:
+            self._check_refused()
             t0 = time.monotonic()
             envelope = self._link.latest_weights(block=True, timeout=1.0)
             if envelope is not None:
@@ -705,6 +713,7 @@ class RolloutWorker:
         if self._link is None:
             return 0
         while True:
+            self._check_refused()
             t0 = time.monotonic()
             envelope = self._link.latest_weights(block=blocking, timeout=1.0 if blocking else None)
             if envelope is not None or not blocking or self._closed:

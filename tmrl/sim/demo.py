@@ -552,7 +552,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.interface == "SIMFULL" and (args.algorithm or DEMO_SETTINGS["algorithm"]) not in ("SAC", "REDQSAC"):
         raise UserError(f"--algorithm {args.algorithm} trains on lidar observations only: use SAC or REDQSAC with "
                         "SIMFULL images")
-    from tmrl.config.loader import ensure_data_folder, load_config
+    from tmrl.config.loader import load_config
     from tmrl.sim.lifeline import exit_code, ignore_stop_signals, signal_name, stop_on_signals
 
     from tmrl.util import resolve_device
@@ -560,8 +560,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     device = resolve_device(args.device, "--device")  # a device this machine lacks: one line, nothing started
     args.algorithm, args.start_training, gpu_setting = demo_setting(
         args.interface, args.realtime, device, args.algorithm, args.start_training)
-    load_config()  # a configuration mistake is reported before anything is created
-    ensure_data_folder()  # before the demo starts its processes, which read it
+    # A configuration mistake is reported before anything starts. The demo writes nothing into the
+    # data folder (its roles keep their files in the run folder): no config.json is created there.
+    load_config()
     out = Path(args.out).resolve()
     workdir = Path(tempfile.mkdtemp(prefix="tmrl-demo-"))
     port = _free_port()

@@ -14,7 +14,11 @@ Both controllers take an injectable backend, so tests record calls instead of dr
   python-xlib or xdotool on Linux).
 
 Driver problems (ViGEmBus missing on Windows, no access to ``/dev/uinput`` on Linux) raise
-:class:`ControlUnavailable`, a one-line :class:`~tmrl.errors.UserError` naming the fix.
+:class:`ControlUnavailable`, a one-line :class:`~tmrl.errors.UserError` naming the fix. The driver
+is looked for before vgamepad is imported: on Windows, vgamepad starts ViGEmBus's interactive
+installer when it is imported without the driver, which would block a worker or ``--doctor``
+behind a dialog. :func:`vigembus_installed` reads the Windows registry instead, and vgamepad is
+imported with ``VGAMEPAD_SKIP_VIGEMBUS_INSTALL`` set.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ __all__ = [
     "GamepadControl",
     "KeyboardControl",
     "check_gamepad_driver",
+    "vigembus_installed",
     "make_keyboard",
     "make_vgamepad",
 ]
@@ -58,6 +63,11 @@ BUTTON_B = 0x2000
 UINPUT_PATH = "/dev/uinput"
 UDEV_RULE = 'KERNEL=="uinput", MODE="0660", GROUP="input", OPTIONS+="static_node=uinput"'
 VIGEMBUS_URL = "https://github.com/nefarius/ViGEmBus/releases"
+# vgamepad's switch that stops it from running the ViGEmBus installer when it is imported.
+_SKIP_INSTALLER_ENV = "VGAMEPAD_SKIP_VIGEMBUS_INSTALL"
+_VIGEMBUS_SERVICE = r"SYSTEM\CurrentControlSet\Services\ViGEmBus"
+_UNINSTALL_KEYS = (r"SOFTWARE\Microsoft\Windows\CurrentVersion\Uninstall",
+                   r"SOFTWARE\WOW6432Node\Microsoft\Windows\CurrentVersion\Uninstall")
 
 
 class ControlUnavailable(UserError):
@@ -97,6 +107,41 @@ def _uinput_fix(path: str = UINPUT_PATH) -> str | None:
     return None
 
 
+def vigembus_installed() -> bool | None:
+    """Whether the ViGEmBus driver is installed, from the Windows registry (its service key, or
+    its entry among the installed programs); None where there is no registry to read."""
+    try:
+        import winreg  # type: ignore[import-not-found]
+    except ImportError:
+        return None
+    hklm = winreg.HKEY_LOCAL_MACHINE  # type: ignore[attr-defined]
+    try:
+        winreg.CloseKey(winreg.OpenKey(hklm, _VIGEMBUS_SERVICE))  # type: ignore[attr-defined]
+        return True
+    except OSError:
+        pass
+    for path in _UNINSTALL_KEYS:
+        try:
+            root = winreg.OpenKey(hklm, path)  # type: ignore[attr-defined]
+        except OSError:
+            continue
+        with root:
+            for i in range(winreg.QueryInfoKey(root)[0]):  # type: ignore[attr-defined]
+                try:
+                    with winreg.OpenKey(root, winreg.EnumKey(root, i)) as sub:  # type: ignore[attr-defined]
+                        name = str(winreg.QueryValueEx(sub, "DisplayName")[0])  # type: ignore[attr-defined]
+                except OSError:
+                    continue
+                if "virtual gamepad emulation bus" in name.lower() or "vigembus" in name.lower():
+                    return True
+    return False
+
+
+def _no_vigembus_fix() -> str:
+    return (f"the ViGEmBus driver is not installed: install it ({VIGEMBUS_URL}) and restart, or drive with "
+            "the keyboard (VIRTUAL_GAMEPAD false in config.json)")
+
+
 def check_gamepad_driver(system: str | None = None, uinput_path: str = UINPUT_PATH) -> tuple[bool, str]:
     """Whether a virtual gamepad can be created here, without creating one on Linux.
 
@@ -120,6 +165,8 @@ def check_gamepad_driver(system: str | None = None, uinput_path: str = UINPUT_PA
             return False, f"vgamepad cannot load libevdev ({err}): install it (sudo apt install libevdev2)"
         return True, f"{uinput_path} is writable and vgamepad imports"
     if system == "Windows":
+        if vigembus_installed() is False:  # never import vgamepad then: it would start the installer
+            return False, _no_vigembus_fix()
         try:
             pad = make_vgamepad()
         except ControlUnavailable as err:
@@ -148,6 +195,10 @@ def make_vgamepad() -> Any:
         fix = _uinput_fix()
         if fix is not None:
             raise ControlUnavailable(fix)
+    if system == "Windows":
+        if vigembus_installed() is False:
+            raise ControlUnavailable(_no_vigembus_fix())
+        os.environ.setdefault(_SKIP_INSTALLER_ENV, "true")  # the driver is there: no installer wanted
     try:
         import vgamepad
     except ImportError as err:

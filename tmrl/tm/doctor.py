@@ -6,10 +6,13 @@ found, and for a failure the one-line fix). :func:`run_checks` runs them in orde
 check failed; 1 stays reserved for bugs in tmrl). No check raises: an unexpected error becomes a
 failed check whose fix asks to report it. Nothing is created.
 
-The checks, in order: the packages, the data folder, config sanity; for TrackMania interfaces
-only, the OpenPlanet connection and frame rate, the game window and its size, the gamepad driver,
-screen-capture time per frame and the reward file (other interfaces skip them); then the GPU,
-server reachability and TLS credentials.
+The checks, in order: the packages, whether the original tmrl (PyPI's ``tmrl``) shares this
+Python environment, the data folder, config sanity; for TrackMania interfaces only, the OpenPlanet
+plugins in ``OpenplanetNext/Plugins`` (and their versions), the OpenPlanet connection and frame
+rate, the game window and its size, the gamepad driver (ViGEmBus is looked for in the registry
+before vgamepad is imported, which would otherwise start its installer), screen-capture time per
+frame and the reward file of the map in use (with telemetry, the car must be near the trajectory);
+other interfaces skip them; then the GPU, server reachability and TLS credentials.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import logging
 import socket
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, TextIO
 
@@ -34,6 +37,8 @@ __all__ = [
     "check_gamepad",
     "check_gpu",
     "check_openplanet",
+    "check_original_tmrl",
+    "check_plugins",
     "check_reward_file",
     "check_server",
     "check_tls",
@@ -66,6 +71,8 @@ class CheckResult:
     status: str
     detail: str
     fix: str = ""
+    data: Any = field(default=None, compare=False, repr=False)
+    """What a later check may use (the OpenPlanet check's first telemetry frame)."""
 
     @property
     def ok(self) -> bool:
@@ -94,7 +101,7 @@ def _split(message: str) -> tuple[str, str]:
             depth = max(depth - 1, 0)
         elif depth == 0 and message.startswith(": ", i):
             return message[:i], message[i + 2 :]
-    return message, "see docs/trackmania.md"
+    return message, "`python -m tmrl --help trackmania` walks through the setup"
 
 
 # ---------------------------------------------------------------------------------------- checks
@@ -120,10 +127,11 @@ def check_openplanet(
             f"only {rate:.1f} frames/s from {host}:{port} (need {min_rate:g})",
             "raise the game's frame rate (windowed, lower graphics settings, no frame limiter below 30 fps)",
         )
-    return _pass(
-        name,
+    return CheckResult(
+        name, "pass",
         f"{host}:{port}, {rate:.0f} frames/s, speed {first.speed:.1f}, "
         f"position ({first.x:.1f}, {first.y:.1f}, {first.z:.1f})",
+        data=first,
     )
 
 
@@ -192,16 +200,97 @@ def check_gamepad(use_gamepad: bool = True) -> CheckResult:
     return _pass(name, msg) if ok else _fail(name, *_split(msg))
 
 
-def check_reward_file(path: str | Path | None = None) -> CheckResult:
-    """Load the reward trajectory and report its length."""
+def check_reward_file(path: str | Path | None = None, position: Any = None, max_stray: float = 100.0) -> CheckResult:
+    """Load the reward trajectory and report its length; with the car's ``position`` (x, y, z from
+    the telemetry), fail when the car is more than ``max_stray`` metres from the trajectory: the
+    file is then another map's."""
+    import numpy as np
+
     from tmrl.tm.record import load_reward
 
     name = "reward file"
     try:
         traj = load_reward(path)
     except UserError as err:
-        return _fail(name, *_split(str(err)))
-    return _pass(name, f"{len(traj)} points ({(len(traj) - 1) * 0.1:.0f} m of track)")
+        cause, fix = _split(str(err))
+        return _fail(name, cause, f"{fix}; for the map tmrl-test, `python -m tmrl --install --env tm20lidar` "
+                                  "writes it")
+    detail = f"{len(traj)} points ({(len(traj) - 1) * 0.1:.0f} m of track)"
+    if position is not None:
+        gap = float(np.min(np.linalg.norm(traj - np.asarray(position, dtype=np.float64)[:3], axis=1)))
+        if gap > max_stray:
+            return _fail(name, f"the car is {gap:.0f} m from the reward trajectory: the reward file is another "
+                               "map's",
+                         "load the map it was recorded on (tmrl-test for the one --install writes), or record "
+                         "this map's with `python -m tmrl --record-reward`")
+        detail += f"; the car is {gap:.0f} m from it"
+    return _pass(name, detail)
+
+
+def check_plugins(setting: str = "", resources: Path | None = None, save_replays: bool = False,
+                  home: Path | None = None) -> CheckResult:
+    """The TMRL plugins in ``OpenplanetNext/Plugins``: TMRL_GrabData always, TMRL_SaveGhost with
+    ``save_replays``; their versions, and whether they are the copies ``--install`` brought
+    (``resources``: ``resources/Plugins`` of the data folder)."""
+    from tmrl.tm.plugins import GRABDATA, SAVEGHOST, find_openplanet, plugin_state
+
+    name = "OpenPlanet plugins"
+    install = "run `python -m tmrl --install --env tm20lidar` (it copies the signed plugins)"
+    found = find_openplanet(setting, home=home)
+    if found.plugins is None:
+        if found.from_setting:
+            return _fail(name, f"OPENPLANET_FOLDER is {setting!r}, which is not a folder",
+                         "set OPENPLANET_FOLDER in config.json to the OpenplanetNext folder, or empty it")
+        return _fail(name, f"no OpenplanetNext folder in {found.where()}",
+                     "install OpenPlanet (https://openplanet.dev) and start the game once, then " + install
+                     + "; or set OPENPLANET_FOLDER in config.json")
+    states = [plugin_state(found.plugins, p, resources / p if resources is not None else None)
+              for p in (GRABDATA, SAVEGHOST)]
+    needed = [st for st in states if st.name == GRABDATA or save_replays]
+    missing = [st.name for st in needed if not st.present]
+    if missing:
+        return _fail(name, f"{' and '.join(missing)} not in {found.plugins}", install)
+    stale = [st.name for st in needed if st.matches_reference is False]
+    if stale:
+        return _fail(name, f"{' and '.join(stale)} in {found.plugins} differs from the copy --install fetched",
+                     install + " again: it replaces a copy that differs")
+    shown = "; ".join(f"{st.name} v{st.version or '?'}" for st in states if st.present)
+    return _pass(name, f"{shown} in {found.plugins}")
+
+
+def original_tmrl_version(path: list[str] | None = None) -> str | None:
+    """The version of the original tmrl (PyPI's ``tmrl``, by trackmania-rl) when pip's metadata
+    says it is installed in this Python environment (``path``: where to look, default
+    ``sys.path``), else None. This project's own distribution is never taken for it."""
+    from importlib import metadata
+
+    for dist in metadata.distributions(**({"path": path} if path is not None else {})):
+        if (dist.metadata.get("Name") or "").lower().replace("_", "-") != "tmrl":
+            continue
+        # The header fields only: a long description (this project's README) may name the original.
+        meta = dist.metadata
+        header = " ".join(str(v) for key in ("Home-page", "Download-URL", "Author", "Author-email", "Project-URL")
+                          for v in (meta.get_all(key) or [])).lower()
+        files = [str(f) for f in (dist.files or [])]
+        if "trackmania-rl" in header or "bouteiller" in header or any("init_package" in f for f in files):
+            return dist.version
+    return None
+
+
+def check_original_tmrl(path: list[str] | None = None) -> CheckResult:
+    """Fail when the original tmrl is installed beside this project: both put their files in
+    the package folder ``tmrl``, so whichever was installed last wins file by file."""
+    name = "original tmrl"
+    version = original_tmrl_version(path)
+    if version is None:
+        return _pass(name, "not installed here (PyPI's tmrl, another project)")
+    return _fail(
+        name,
+        f"the original tmrl {version} (PyPI's tmrl) is installed in this Python environment; its files and this "
+        "project's share the package folder tmrl",
+        "pip uninstall tmrl, then reinstall this project from its checkout: pip install --force-reinstall --no-deps "
+        "., or use a separate virtual environment for each",
+    )
 
 
 def check_gpu(cuda_training: bool = False, cuda_inference: bool = False) -> CheckResult:
@@ -342,11 +431,14 @@ def check_packages(interface: str = "") -> CheckResult:
     extras = ["mss", "cv2"] + (["vgamepad"] if platform.system() == "Windows" else [])
     missing = [m for m in need if importlib.util.find_spec(m) is None]
     if missing:
-        return _fail(name, f"missing {', '.join(missing)}", "reinstall tmrl: pip install torch==2.13.0 && pip install tmrl")
+        return _fail(name, f"missing {', '.join(missing)}",
+                     "reinstall this project from its checkout: pip install torch==2.13.0 && pip install .")
     if interface.upper() in TM_INTERFACES:
         gone = [m for m in extras if importlib.util.find_spec(m) is None]
         if gone:
-            return _fail(name, f"TrackMania needs {', '.join(gone)}", 'pip install "tmrl[trackmania]"')
+            from tmrl.tm import TRACKMANIA_EXTRA_HINT
+
+            return _fail(name, f"TrackMania needs {', '.join(gone)}", TRACKMANIA_EXTRA_HINT)
     import torch
 
     return _pass(name, f"Python {platform.python_version()}, torch {torch.__version__}")
@@ -394,8 +486,8 @@ def run_checks(
     server_timeout: float = 2.0,
     only: tuple[str, ...] | None = None,
 ) -> list[CheckResult]:
-    """Run every check in order (or those named in ``only``: ``packages``, ``data``, ``config``, ``openplanet``,
-    ``window``, ``gamepad``, ``capture``, ``reward``, ``gpu``, ``server``, ``tls``).
+    """Run every check in order (or those named in ``only``: ``packages``, ``original``, ``data``, ``config``,
+    ``plugins``, ``openplanet``, ``window``, ``gamepad``, ``capture``, ``reward``, ``gpu``, ``server``, ``tls``).
 
     Args:
         cfg: a validated config (``tmrl.config.loader.load_config()``); loaded when None.
@@ -413,13 +505,13 @@ def run_checks(
     server_host = (
         "127.0.0.1" if cfg.get("LOCALHOST_WORKER", True) else str(cfg.get("PUBLIC_IP_SERVER", "127.0.0.1"))
     )
-    if reward_path is None:
-        try:
-            from tmrl.config.loader import data_paths
+    from tmrl.config.loader import data_paths
 
-            reward_path = data_paths(cfg).reward_file
-        except ImportError:  # pragma: no cover
-            reward_path = None
+    paths = data_paths(cfg)
+    if reward_path is None:
+        reward_path = paths.reward_file
+    save_replays = bool(((env.get("RTGYM_CONFIG") or {}).get("interface_kwargs") or {}).get("save_replays", False))
+    max_stray = float((env.get("REWARD_CONFIG") or {}).get("MAX_STRAY", 100.0))
     state: dict[str, CheckResult] = {}
 
     def capture() -> CheckResult:
@@ -443,8 +535,11 @@ def run_checks(
 
     checks: list[tuple[str, str, Callable[[], CheckResult]]] = [
         ("packages", "packages", lambda: check_packages(interface)),
+        ("original", "original tmrl", check_original_tmrl),
         ("data", "data folder", lambda: check_data_folder(cfg)),
         ("config", "config", lambda: check_config(cfg)),
+        ("plugins", "OpenPlanet plugins", tm_only("OpenPlanet plugins", lambda: check_plugins(
+            str(cfg.get("OPENPLANET_FOLDER", "") or ""), paths.root / "resources" / "Plugins", save_replays))),
         (
             "openplanet",
             "OpenPlanet telemetry",
@@ -456,7 +551,8 @@ def run_checks(
         ("gamepad", "gamepad driver",
          tm_only("gamepad driver", lambda: check_gamepad(bool(cfg.get("VIRTUAL_GAMEPAD", True))))),
         ("capture", "capture time", tm_only("capture time", capture)),
-        ("reward", "reward file", tm_only("reward file", lambda: check_reward_file(reward_path))),
+        ("reward", "reward file", tm_only("reward file", lambda: check_reward_file(
+            reward_path, getattr(state.get("openplanet"), "data", None) and state["openplanet"].data[2:5], max_stray))),
         ("gpu", "GPU", lambda: check_gpu(bool(cfg.get("CUDA_TRAINING")), bool(cfg.get("CUDA_INFERENCE")))),
         (
             "server",

@@ -14,8 +14,9 @@ Actions are ``[gas, brake, steer]`` in ``[-1, 1]``. The reward is the shared tra
 when the plugin reports the finish and ``CONSTANT_PENALTY`` at every step.
 
 ``reset`` applies the default action, respawns, waits ``SLEEP_TIME_AT_RESET`` for the countdown and
-captures; ``wait`` applies the default action, optionally saves the replay, respawns and closes the
-finish pop-up. The game is first touched at the first ``reset``: building the environment (to read
+captures; ``wait`` applies the default action, asks the TMRL_SaveGhost plugin for a replay when
+``save_replays`` is on and the race was finished (:func:`tmrl.tm.openplanet.request_replay`, as the
+original does), respawns and closes the finish pop-up. The game is first touched at the first ``reset``: building the environment (to read
 its spaces) needs no game.
 
 Every game-facing part can be injected (``client``, ``capture``, ``control``, ``trajectory``),
@@ -61,7 +62,8 @@ class TM20FullInterface(RealTimeGymInterface):
     Args:
         img_hist_len: number of images in each observation (``ENV.IMG_HIST_LEN``).
         gamepad: drive with the virtual gamepad (analog) instead of the keyboard (``VIRTUAL_GAMEPAD``).
-        save_replays: save the replay after each finished episode (gamepad only).
+        save_replays: after each episode that crossed the finish line, ask the TMRL_SaveGhost
+            plugin to save its replay (keyboard or gamepad).
         grayscale: grayscale images instead of RGB (``ENV.IMG_GRAYSCALE``).
         resize_to: ``(width, height)`` of the images (``ENV.IMG_WIDTH``, ``ENV.IMG_HEIGHT``).
         window_size: ``(width, height)`` the game window is resized to; None: ``ENV.WINDOW_WIDTH``
@@ -78,10 +80,11 @@ class TM20FullInterface(RealTimeGymInterface):
             connected at the first reset.
         capture: screen source with ``screenshot() -> BGRA`` (a :class:`~tmrl.tm.capture.WindowCapture`);
             default: the game window, moved and resized at the first reset.
-        control: controller with ``send(action)``, ``respawn()``, ``close_finish_pop_up()``,
-            ``save_replay()`` (:mod:`tmrl.tm.control`); default from ``gamepad``.
+        control: controller with ``send(action)``, ``respawn()`` and ``close_finish_pop_up()``
+            (:mod:`tmrl.tm.control`); default from ``gamepad``.
         trajectory: ``(N, 3)`` reward trajectory; default: read from ``reward_path``.
         sleep: the wait function (tests pass a no-op).
+        saveghost_port: port of the TMRL_SaveGhost plugin (10000).
 
     Raises (at the first reset):
         tmrl.tm.record.RewardFileError: no reward file (the message says how to record one).
@@ -109,6 +112,7 @@ class TM20FullInterface(RealTimeGymInterface):
         control: Any = None,
         trajectory: np.ndarray | None = None,
         sleep: Callable[[float], None] = time.sleep,
+        saveghost_port: int | None = None,
     ) -> None:
         self.img_hist_len = int(img_hist_len)
         self.gamepad = bool(gamepad)
@@ -138,6 +142,9 @@ class TM20FullInterface(RealTimeGymInterface):
         self.control = control
         self.trajectory = trajectory
         self._sleep = sleep
+        self.saveghost_port = saveghost_port
+        self.finished = False  # the plugin reported the finish line in this episode
+        self._replay_warned = False
         self.reward_function: Any = None
         self.hist: deque[np.ndarray] = deque(maxlen=self.img_hist_len)
         self.img: np.ndarray | None = None
@@ -217,13 +224,23 @@ class TM20FullInterface(RealTimeGymInterface):
         for _ in range(self.img_hist_len):
             self.hist.append(item)
         self.reward_function.reset()
+        self.finished = False
         return self._observation(item, data), {}
+
+    def _save_replay(self) -> None:
+        from tmrl.tm.openplanet import SAVEGHOST_PORT, request_replay
+
+        host = self.openplanet_host or "127.0.0.1"
+        problem = request_replay(host, self.saveghost_port or SAVEGHOST_PORT)
+        if problem is not None and not self._replay_warned:
+            self._replay_warned = True  # once per run: the episodes go on without replays
+            logger.warning("%s", problem)
+        self._sleep(1.0)  # the plugin saves while the car still stands at the finish
 
     def wait(self) -> None:
         self.send_control(self.get_default_action())
-        if self.save_replays:
-            self.control.save_replay()
-            self._sleep(1.0)
+        if self.save_replays and self.finished:
+            self._save_replay()
         self._reset_race()
         self._sleep(0.5)
         self.control.close_finish_pop_up()
@@ -237,6 +254,7 @@ class TM20FullInterface(RealTimeGymInterface):
         obs = self._observation(item, data)
         if bool(data[8]):  # the plugin's "race finished" flag
             terminated = True
+            self.finished = True
             rew += self.reward_function.end_of_track
         rew += self.reward_function.constant_penalty
         return obs, float(np.float32(rew)), bool(terminated), {}  # float32 precision, as the original

@@ -1,4 +1,4 @@
-"""TCP client of the TMRL_GrabData OpenPlanet plugin.
+"""TCP clients of the TMRL OpenPlanet plugins: TMRL_GrabData (telemetry) and TMRL_SaveGhost (replays).
 
 The plugin runs inside TrackMania 2020, listens on ``127.0.0.1:9000`` by default and, once a
 client is connected, writes one frame per game frame: 11 little-endian float32 values (44 bytes)
@@ -10,6 +10,10 @@ the socket and keeps only the newest complete frame (a partial frame waits for i
 bytes), and reconnects by itself when the plugin or the game restarts. :meth:`retrieve_data`
 returns a frame newer than the last one it returned, or raises :class:`TelemetryTimeout` whose
 message says what to check.
+
+The TMRL_SaveGhost plugin listens on ``127.0.0.1:10000``. Its protocol is a bare connection: each
+connection it accepts asks it to save the ghost of the race just driven as a replay; nothing is
+sent either way. :func:`request_replay` is that request.
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ __all__ = [
     "Telemetry",
     "TelemetryTimeout",
     "pack_frame",
+    "request_replay",
+    "SAVEGHOST_PORT",
 ]
 
 logger = logging.getLogger(__name__)
@@ -42,6 +48,8 @@ DEFAULT_PORT = 9000
 FRAME_FLOATS = 11
 FRAME_FORMAT = "<" + "f" * FRAME_FLOATS
 FRAME_BYTES = struct.calcsize(FRAME_FORMAT)  # 44
+SAVEGHOST_PORT = 10000
+"""Port of the TMRL_SaveGhost plugin."""
 
 
 class Telemetry(NamedTuple):
@@ -276,3 +284,27 @@ class OpenPlanetClient:
         t0 = time.perf_counter()
         self._stop.wait(duration)
         return (self._seq - start_seq) / max(time.perf_counter() - t0, 1e-9)
+
+
+def request_replay(host: str = DEFAULT_HOST, port: int = SAVEGHOST_PORT, timeout: float = 2.0) -> str | None:
+    """Ask the TMRL_SaveGhost plugin to save the last race as a replay: connect, then close (the
+    plugin's whole protocol).
+
+    Args:
+        host: the plugin's address (the game's machine: 127.0.0.1).
+        port: the plugin's port (:data:`SAVEGHOST_PORT`).
+        timeout: seconds to wait for the connection.
+
+    Returns:
+        None when the plugin took the request, else why not (one line with the fix).
+    """
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            pass
+    except OSError as err:
+        return (
+            f"no replay saved: the TMRL_SaveGhost plugin does not answer at {host}:{port} "
+            f"({err.strerror or err}); `python -m tmrl --install --env tm20lidar` installs it, then reload "
+            "the plugins in the game (F3 > Developer > Reload plugin)"
+        )
+    return None

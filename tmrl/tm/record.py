@@ -34,10 +34,12 @@ __all__ = [
     "RESAMPLE_STEP",
     "default_reward_path",
     "load_reward",
+    "read_legacy_reward_bytes",
     "read_legacy_reward_pickle",
     "record_reward",
     "resample_path",
     "save_reward",
+    "trajectory_problem",
     "trim_stationary_start",
     "validate_recording",
 ]
@@ -201,12 +203,24 @@ def load_reward(path: str | os.PathLike[str] | None = None) -> np.ndarray:
     except (ValueError, OSError, EOFError) as err:
         raise RewardFileError(f"{path} is not a reward trajectory ({err}): {RECORD_HINT}") from None
     arr = np.asarray(arr)
-    if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) < 2 or arr.dtype.kind not in "fiu":
-        raise RewardFileError(
-            f"{path} holds an array of shape {arr.shape} and dtype {arr.dtype}, "
-            f"not positions (N, 3): {RECORD_HINT}"
-        )
+    problem = trajectory_problem(arr)
+    if problem is not None:
+        raise RewardFileError(f"{path} {problem}: {RECORD_HINT}")
     return arr.astype(np.float64, copy=False)
+
+
+def trajectory_problem(arr: np.ndarray) -> str | None:
+    """Why an array is not a reward trajectory (positions ``(N >= 2, 3)`` of finite numbers), as
+    words that follow a file name; None when it is one.
+
+    Args:
+        arr: the array read from a reward file.
+    """
+    if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) < 2 or arr.dtype.kind not in "fiu":
+        return f"holds an array of shape {arr.shape} and dtype {arr.dtype}, not positions (N, 3)"
+    if not np.isfinite(arr).all():
+        return "holds positions that are not finite numbers"
+    return None
 
 
 # ---------------------------------------------------------------------------------------- legacy pickle
@@ -285,11 +299,26 @@ def read_legacy_reward_pickle(path: str | os.PathLike[str], max_bytes: int = 512
     Raises:
         ValueError: the file holds anything other than one numeric NumPy array (message says so).
     """
-    data = Path(path).read_bytes()
-    if len(data) > max_bytes:
+    path = Path(path)
+    if path.stat().st_size > max_bytes:
         raise ValueError(f"file is larger than {max_bytes} bytes")
+    return read_legacy_reward_bytes(path.read_bytes(), max_bytes)
+
+
+def read_legacy_reward_bytes(data: bytes, max_bytes: int = 512 * 2**20) -> np.ndarray:
+    """:func:`read_legacy_reward_pickle` for a pickle already in memory (a member of an archive).
+
+    Args:
+        data: the pickle's bytes.
+        max_bytes: larger pickles are refused without being read.
+
+    Raises:
+        ValueError: as :func:`read_legacy_reward_pickle`.
+    """
+    if len(data) > max_bytes:
+        raise ValueError(f"pickle is larger than {max_bytes} bytes")
     try:
-        return _interpret(data)
+        return _interpret(bytes(data))
     except (IndexError, struct.error, UnicodeDecodeError, TypeError, KeyError) as err:
         raise ValueError(f"not a pickled NumPy array ({type(err).__name__})") from None
 

@@ -7,7 +7,7 @@
 - :mod:`tmrl.transport.base`: the contract the roles use (:class:`WorkerTransport`,
   :class:`TrainerTransport`, :class:`RelayTransport`) and :data:`BACKENDS`, the transports that
   implement it: ``"tlspyo"`` (the default) and ``"nats"`` (NATS JetStream,
-  :mod:`tmrl.transport.jetstream`; needs ``pip install "tmrl[nats]"``).
+  :mod:`tmrl.transport.jetstream`; needs ``pip install ".[nats]" in the checkout of this project``).
 
 Everything on the wire is :mod:`tmrl.wire` data; see docs/transport.md. Importing this package
 imports neither Twisted nor tlspyo (they run in the network processes only) nor ``nats``

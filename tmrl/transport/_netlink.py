@@ -96,6 +96,7 @@ class LinkState:
         self.closing = False
         self.last_failure: str | None = None
         self.last_refusal: str | None = None
+        self.refused_now = False
         self.lost_reason: str | None = None
         self.factory: LinkFactory | None = None
         self.close_budget: float = cfg["close_timeout"]
@@ -361,15 +362,17 @@ class LinkProtocol(TlspyoClientProtocol):
             self._client.connected(self)
         elif cmd == "REFUSED":
             reason = (obj if type(obj) is str else "no reason given")[:300]
+            # The connection closes next: that is the refusal, not a network failure to report.
+            self._client.refused_now = True
             if reason != self._client.last_refusal:
                 self._client.last_refusal = reason
-                hint = " (check the password on both machines)" if reason == "wrong password" else ""
-                log_link.error(
-                    "the server at %s refused this %s: %s%s",
+                # A wrong password stops the role, which says so in one line: no second line here.
+                log_link.log(
+                    logging.DEBUG if reason == "wrong password" else logging.ERROR,
+                    "the server at %s refused this %s: %s",
                     self._client.where,
                     _role_of(self._client.groups),
                     reason,
-                    hint,
                 )
             self._client.status(connected=False, refused=reason)
         elif cmd == "OBJ":
@@ -436,7 +439,8 @@ class LinkFactory(TlspyoClientFactory):
             return
         msg = self._state.lost_reason or reason.getErrorMessage()
         self._state.lost_reason = None
-        if msg != self._state.last_failure:
+        refused, self._state.refused_now = self._state.refused_now, False
+        if not refused and msg != self._state.last_failure:
             self._state.last_failure = msg
             # A certificate problem will not go away by retrying: say it louder.
             tls = any(w in msg.lower() for w in ("ssl", "certificate", "tls", "handshake"))

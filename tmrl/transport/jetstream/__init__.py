@@ -12,7 +12,7 @@
 They implement the contract of :mod:`tmrl.transport.base`. The client library (``nats-py``) is
 asyncio: each link runs its event loop in a background thread behind the synchronous contract.
 Payloads are :mod:`tmrl.wire` bytes, as with tlspyo; nothing is ever unpickled. Importing this
-package imports neither ``nats`` nor starts anything: ``pip install "tmrl[nats]"`` brings both the
+package imports neither ``nats`` nor starts anything: ``pip install ".[nats]" in the checkout of this project`` brings both the
 client and the ``nats-server`` program. See docs/scale-out.md.
 
 **Bounds.** The samples stream keeps at most ``max_msgs`` batches and ``max_bytes`` bytes and

@@ -53,7 +53,7 @@ def _require_client() -> None:
     import importlib.util
 
     if importlib.util.find_spec("nats") is None:
-        raise UserError('TRANSPORT "nats" needs the NATS client: pip install "tmrl[nats]"')
+        raise UserError('TRANSPORT "nats" needs the NATS client: pip install ".[nats]" in the checkout of this project')
 
 
 def _check_tls_mode(tls: str) -> str:

@@ -1,6 +1,6 @@
 """Compatibility names of the original ``tmrl.custom.tm.utils.control_gamepad``.
 
-Each function drives a ``vgamepad.VX360Gamepad`` (``pip install "tmrl[trackmania]"``) through
+Each function drives a ``vgamepad.VX360Gamepad`` (``pip install ".[trackmania]" in the checkout of this project``) through
 :class:`tmrl.tm.control.GamepadControl`.
 """
 

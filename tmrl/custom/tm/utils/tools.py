@@ -2,7 +2,8 @@
 
 - ``TM2020OpenPlanetClient``: :class:`tmrl.tm.openplanet.OpenPlanetClient`, whose
   ``retrieve_data`` returns the frame as a NumPy array as the original's did;
-- ``Lidar``: :class:`tmrl.driving.lidar.Lidar` built from an image, as the original's.
+- ``Lidar``: :class:`tmrl.driving.lidar.Lidar` built from an image, as the original's;
+- ``save_ghost``: the request to the TMRL_SaveGhost plugin (:func:`tmrl.tm.openplanet.request_replay`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import numpy as np
 
 from tmrl.driving.lidar import Lidar as _Lidar
 from tmrl.errors import UserError
-from tmrl.tm.openplanet import OpenPlanetClient
+from tmrl.tm.openplanet import OpenPlanetClient, request_replay
 
 __all__ = ["Lidar", "TM2020OpenPlanetClient", "save_ghost"]
 
@@ -42,6 +43,12 @@ class Lidar(_Lidar):
 
 
 def save_ghost(host: str = "127.0.0.1", port: int = 10000) -> None:
-    """Not available: the TMRL_GrabData plugin this tmrl talks to sends telemetry only."""
-    raise UserError("save_ghost is not part of this tmrl: save replays with ENV.RTGYM_CONFIG.interface_kwargs "
-                    "save_replays (gamepad)")
+    """Ask the TMRL_SaveGhost plugin to save the last race as a replay (a bare connection, as the
+    original's).
+
+    Raises:
+        UserError: the plugin does not answer (the message says how to install it).
+    """
+    problem = request_replay(host, port)
+    if problem is not None:
+        raise UserError(problem)
