@@ -403,10 +403,24 @@ def stop_guarded(proc: subprocess.Popen, timeout: float) -> int:
     try:
         return proc.wait(timeout)
     except subprocess.TimeoutExpired:
-        logger.warning("%s did not stop within %.0f s; ending it", proc.args[0] if proc.args else "a child", timeout)
-        with contextlib.suppress(OSError):
-            proc.kill()
-        return proc.wait()
+        if timeout > 0:
+            logger.warning("%s did not stop within %.0f s; ending it", proc.args[0] if proc.args else "a child", timeout)
+    if POSIX:  # its group: the program and, where there is one, its guard
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    with contextlib.suppress(OSError):
+        proc.kill()
+    return _reap(proc)
+
+
+def _reap(proc: subprocess.Popen) -> int:
+    """The exit code of a process just killed (waited for in slices: Ctrl-C still reaches the
+    waiting thread on Windows)."""
+    while True:
+        try:
+            return proc.wait(1.0)
+        except subprocess.TimeoutExpired:
+            continue
 
 
 def _guard_main(cmd: list[str]) -> int:
@@ -437,7 +451,7 @@ def _guard_main(cmd: list[str]) -> int:
             proc.wait(10.0)
         except subprocess.TimeoutExpired:
             proc.kill()
-    return proc.wait()
+    return _reap(proc)
 
 
 # ================================================================================================
