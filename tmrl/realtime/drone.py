@@ -123,8 +123,8 @@ class DummyRCDrone:
         with self._cond:
             self._stopped = True
             self._cond.notify()
-        if self._thread is not threading.current_thread():
-            self._thread.join()
+        while self._thread is not threading.current_thread() and self._thread.is_alive():
+            self._thread.join(0.2)  # in slices: Ctrl-C reaches a timed join on Windows
 
     def __enter__(self) -> DummyRCDrone:  # noqa: PYI034
         return self
