@@ -252,11 +252,12 @@ def install() -> dict[str, Any]:
         except metadata.PackageNotFoundError:
             packages[name] = None
     cpu = None
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), None)
-    except OSError:
-        pass
+    if sys.platform.startswith("linux"):  # the model name; elsewhere platform.processor() below says it
+        try:
+            with open("/proc/cpuinfo", encoding="utf-8") as f:
+                cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), None)
+        except OSError:
+            pass
     cfg = Path(sys.prefix) / "pyvenv.cfg"
     made = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(cfg.stat().st_mtime)) if cfg.exists() else None
     return {"python": platform.python_version(), "packages": packages, "cpu": cpu or platform.processor() or None,
@@ -498,30 +499,42 @@ def wait_listening(port: int, timeout: float, what: str = "the server") -> None:
 def start_group(cmd: list[str], side: Side, log: Path, stdout: int | None = None,
                 env: dict[str, str] | None = None, cwd: str | None = None) -> subprocess.Popen:
     """Start ``cmd`` in a process group of its own (so that :func:`stop_groups` also ends the
-    processes it starts), stderr (and stdout unless piped) to ``log``."""
+    processes it starts; on Windows, a console process group that Ctrl-Break reaches), stderr (and
+    stdout unless piped) to ``log``."""
+    if os.name == "posix":
+        group: dict[str, Any] = {"start_new_session": True}
+    else:
+        group = {"creationflags": subprocess.CREATE_NEW_PROCESS_GROUP}
     handle = open(log, "ab")  # noqa: SIM115 (the child holds it; closed by the OS at its exit)
     try:
         return subprocess.Popen(cmd, stdout=stdout if stdout is not None else handle, stderr=handle,
-                                env=env or side.env, cwd=cwd or side.cwd, start_new_session=True)
+                                env=env or side.env, cwd=cwd or side.cwd, **group)
     finally:
         handle.close()
 
 
 def stop_groups(procs: Sequence[subprocess.Popen], grace: float = 10.0) -> None:
-    """SIGINT each process, wait up to ``grace`` seconds, then SIGKILL its whole group."""
+    """SIGINT each process (Ctrl-Break on Windows), wait up to ``grace`` seconds, then SIGKILL its
+    whole group (on Windows, end the process: its network processes follow their parent)."""
     for p in procs:
         if p.poll() is None:
-            p.send_signal(signal.SIGINT)
+            if os.name == "posix":
+                p.send_signal(signal.SIGINT)
+            else:
+                p.send_signal(signal.CTRL_BREAK_EVENT)
     deadline = time.monotonic() + grace
     for p in procs:
         try:
             p.wait(max(0.1, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             pass
-        try:  # the relay and link processes a role started are in its group
-            os.killpg(p.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
+        if os.name == "posix":
+            try:  # the relay and link processes a role started are in its group
+                os.killpg(p.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+        else:
+            p.kill()
         p.wait()
 
 

@@ -231,9 +231,10 @@ class _PosixVisitor(ast.NodeVisitor):
                 self.report(node, f"import {top} (no such module on Windows)", caught_by="ImportError")
 
     def visit_Call(self, node: ast.Call) -> None:
-        if isinstance(node.func, ast.Attribute) and node.func.attr == "send_signal" and node.args:
-            if _dotted(node.args[0]).rsplit(".", 1)[-1] == "SIGINT":
-                self.report(node, "send_signal(SIGINT) (Popen refuses it on Windows)")
+        func = node.func
+        if (isinstance(func, ast.Attribute) and func.attr == "send_signal" and node.args
+                and _dotted(node.args[0]).rsplit(".", 1)[-1] == "SIGINT"):
+            self.report(node, "send_signal(SIGINT) (Popen refuses it on Windows)")
         for kw in node.keywords:
             if kw.arg in POSIX_KEYWORDS and not (isinstance(kw.value, ast.Constant) and not kw.value.value):
                 self.report(node, f"{kw.arg}= (POSIX only)")
