@@ -15,9 +15,11 @@ Such a use is allowed only in ``tmrl/platform.py`` or inside an explicit platfor
 - the right of an ``and``/``or`` whose left reads the platform as above;
 - the body of a ``try`` that catches ``ImportError``/``ModuleNotFoundError`` (for an import) or
   ``AttributeError`` (for a name of ``os``/``signal``);
-- in tests/ only: a test function or class decorated ``@pytest.mark.linux`` or
-  ``@pytest.mark.posix``, or a module whose ``pytestmark`` names one of them (tests/conftest.py
-  skips those off Linux or POSIX).
+- in tests/ only: the body of a function in a test function, class or module marked ``linux`` or
+  ``posix`` (``@pytest.mark.linux``, or ``pytestmark``): tests/conftest.py skips those off Linux
+  or POSIX, so their bodies never run there. What runs when pytest collects the module on every
+  OS stays under the rule: module-level statements, class bodies, decorators (a
+  ``parametrize`` list) and default arguments.
 
 **Untimed waits** (:func:`untimed_waits`). On Windows, Ctrl-C does not interrupt a thread blocked
 in ``lock.acquire()``, ``queue.get()``, ``thread.join()``, ``event.wait()``, ``popen.wait()`` or
@@ -134,6 +136,7 @@ class _PosixVisitor(ast.NodeVisitor):
     def __init__(self, path: str, source: str, tests: bool, docstrings: set[int]) -> None:
         self.path, self.lines, self.tests, self.docstrings = path, source.splitlines(), tests, docstrings
         self.branch = 0  # > 0 inside a platform branch
+        self.marked_scopes = 0  # > 0 inside a class (or module) marked linux or posix
         self.catching: list[set[str]] = []  # exceptions caught around the current node
         self.findings: list[Finding] = []
 
@@ -199,13 +202,24 @@ class _PosixVisitor(ast.NodeVisitor):
         self._block(node.orelse)
         self._block(node.finalbody)
 
-    def _marked_scope(self, node: ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef) -> None:
-        if self.tests and _marked(node.decorator_list):
-            self._in_branch([node])  # (decorators included: a parametrize may name SIGKILL)
-            return
+    def visit_ClassDef(self, node: ast.ClassDef) -> None:
+        marked = self.tests and _marked(node.decorator_list)
+        self.marked_scopes += marked  # its methods run only where the marker lets them
         self.generic_visit(node)
+        self.marked_scopes -= marked
 
-    visit_FunctionDef = visit_AsyncFunctionDef = visit_ClassDef = _marked_scope
+    def visit_FunctionDef(self, node: ast.FunctionDef | ast.AsyncFunctionDef) -> None:
+        # Decorators, defaults and annotations run at import, when pytest collects the module on
+        # every OS: only the body is behind the marker.
+        for part in (*node.decorator_list, node.args, node.returns):
+            if part is not None:
+                self.visit(part)
+        marked = bool(self.marked_scopes) or (self.tests and _marked(node.decorator_list))
+        self.branch += marked
+        self._block(node.body)
+        self.branch -= marked
+
+    visit_AsyncFunctionDef = visit_FunctionDef
 
     def visit_Attribute(self, node: ast.Attribute) -> None:
         owner = _dotted(node.value)
@@ -260,8 +274,7 @@ def posix_only_uses(path: Path, *, tests: bool = False, root: Path = REPO) -> li
     source = path.read_text(encoding="utf-8")
     tree = ast.parse(source, filename=str(path))
     visitor = _PosixVisitor(path.relative_to(root).as_posix(), source, tests, _docstrings(tree))
-    if tests and _module_marked(tree):
-        return []
+    visitor.marked_scopes = int(tests and _module_marked(tree))
     visitor.visit(tree)
     return visitor.findings
 

@@ -472,9 +472,21 @@ def _pid_gone(pid: int) -> bool:
     return not process_support.alive(pid)
 
 
-@pytest.mark.parametrize("stop", [pytest.param("SIGINT", marks=pytest.mark.posix), "kill"])
-def test_network_processes_end_with_their_owner_and_free_the_port(tmp_path, port_factory, stop):
+@pytest.mark.posix
+def test_network_processes_end_with_their_owner_on_ctrl_c_and_free_the_port(tmp_path, port_factory):
     import signal
+
+    # Ctrl-C reaches the whole process group in a terminal; here it is sent to the owner only,
+    # and the network processes ignore SIGINT anyway: they end because their owner does.
+    _network_processes_end_with_their_owner(tmp_path, port_factory, lambda owner: owner.send_signal(signal.SIGINT))
+
+
+def test_network_processes_end_with_their_killed_owner_and_free_the_port(tmp_path, port_factory):
+    # SIGKILL, or TerminateProcess on Windows: no clean-up in the owner
+    _network_processes_end_with_their_owner(tmp_path, port_factory, lambda owner: owner.kill())
+
+
+def _network_processes_end_with_their_owner(tmp_path, port_factory, stop: Callable[[Any], None]) -> None:
     import subprocess
     import sys
 
@@ -485,12 +497,7 @@ def test_network_processes_end_with_their_owner_and_free_the_port(tmp_path, port
     try:
         pids = [int(p) for p in owner.stdout.readline().split()]
         assert len(pids) == 2 and not any(_pid_gone(p) for p in pids)
-        # Ctrl-C reaches the whole process group in a terminal; here it is sent to the owner only,
-        # and the network processes ignore SIGINT anyway: they end because their owner does.
-        if stop == "kill":
-            owner.kill()  # SIGKILL, or TerminateProcess on Windows: no clean-up in the owner
-        else:
-            owner.send_signal(signal.SIGINT)
+        stop(owner)
         owner.wait(30)
     finally:
         if owner.poll() is None:
