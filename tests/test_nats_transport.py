@@ -40,6 +40,9 @@ pytestmark = [
 
 PW = "nats test password"
 HERE = Path(__file__).resolve().parent
+EMULATE = [pytest.param("", id="native"),
+           pytest.param("windows", id="emulated-windows", marks=pytest.mark.linux)]
+"""Run natively, and with Windows emulated (tests/emulation: a Linux tool)."""
 
 
 @pytest.fixture
@@ -513,14 +516,14 @@ def test_tls_with_tmrls_certificate_and_plain_tcp_refused_beyond_this_machine(tm
 
 
 @pytest.mark.posix
-@pytest.mark.parametrize("emulate", ["", "windows"], ids=["native", "emulated-windows"])
+@pytest.mark.parametrize("emulate", EMULATE)
 def test_cli_server_supervises_a_local_nats_server_and_leaves_none_behind_on_ctrl_c(tmp_path, port_factory, made,
                                                                                      emulate):
     _cli_server_leaves_no_nats_server_behind(tmp_path, port_factory, made, emulate,
                                              lambda p: p.send_signal(signal.SIGINT), 130)
 
 
-@pytest.mark.parametrize("emulate", ["", "windows"], ids=["native", "emulated-windows"])
+@pytest.mark.parametrize("emulate", EMULATE)
 def test_cli_server_supervises_a_local_nats_server_and_leaves_none_behind_when_killed(tmp_path, port_factory, made,
                                                                                       emulate):
     # SIGKILL, or TerminateProcess on Windows: tmrl cannot clean up, its nats-server must go anyway

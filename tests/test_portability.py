@@ -31,26 +31,16 @@ PLATFORM_MODULE = "tmrl/platform.py"
 LEAD_FILES = ("tmrl/sim/", "tmrl/roles.py", "tmrl/cli.py", "tmrl/transport/", PLATFORM_MODULE)
 """Files whose platform work is under way elsewhere (issue 48's stop path, parent watch, NATS)."""
 
-_LEAD_FIXES_PENDING: set[tuple[str, str]] = {
-    # (file, rule) the POSIX-only rule finds in LEAD_FILES today; each entry is removed with its fix
-    ("tmrl/sim/demo.py", "start_new_session= (POSIX only)"),
-    ("tmrl/sim/demo.py", "send_signal(SIGINT) (Popen refuses it on Windows)"),
-    ("tmrl/sim/demo.py", "os.killpg (POSIX only)"),
-    ("tmrl/sim/demo.py", "signal.SIGKILL (POSIX only)"),
-    ("tmrl/sim/lifeline.py", "os.getppid (POSIX only)"),
-    ("tmrl/transport/_nats_server.py", "start_new_session= (POSIX only)"),
-    ("tmrl/transport/_nats_server.py", "preexec_fn= (POSIX only)"),
-    ("tmrl/transport/_netcommon.py", "os.getppid (POSIX only)"),
-}
+_LEAD_FIXES_PENDING: set[tuple[str, str]] = set()
+# (file, rule) pairs the POSIX-only rule finds in LEAD_FILES, each removed with its fix. Empty since
+# tmrl.platform landed: the eight it found before (demo.py's start_new_session, send_signal(SIGINT),
+# os.killpg and SIGKILL; os.getppid in sim/lifeline.py and transport/_netcommon.py; start_new_session
+# and preexec_fn in transport/_nats_server.py) all moved into tmrl/platform.py.
 """POSIX-only uses waiting for their fix in the lead's files: to be emptied, never grown."""
 
 _LEAD_FIXES_PENDING_WAITS: set[tuple[str, str]] = {
     # (file, the call's line as written) the untimed-wait rule finds in LEAD_FILES today
-    ("tmrl/sim/demo.py", "p.wait()"),
-    ("tmrl/transport/_nats_server.py", "self._started.wait()"),
-    ("tmrl/transport/_nats_server.py", "proc.wait()"),
-    ("tmrl/transport/_nats_server.py", "code = proc.wait()"),
-    ("tmrl/transport/_process.py", "self.proc.wait()"),
+    ("tmrl/platform.py", "return proc.wait()"),  # stop_child and _guard_main, after kill()
 }
 """Untimed waits waiting for their fix in the lead's files: to be emptied, never grown."""
 
