@@ -28,7 +28,7 @@ ALLOWED_SKIPS_IN_CI: dict[str, str] = {
 GPU_SKIP_REASON = "needs a CUDA GPU"
 """Why a test marked ``gpu`` skips where PyTorch sees no CUDA GPU (tests/conftest.py skips it)."""
 
-POSIX_SKIP_REASON = "needs POSIX signals and process groups (not on Windows)"
+POSIX_SKIP_REASON = "needs POSIX (signals, process groups, file modes or paths): not on Windows"
 """Why a test marked ``posix`` skips where :func:`posix_here` is false (tests/conftest.py)."""
 
 LINUX_SKIP_REASON = "needs Linux (/proc, prctl, inotify, Xvfb or uinput)"
@@ -36,8 +36,9 @@ LINUX_SKIP_REASON = "needs Linux (/proc, prctl, inotify, Xvfb or uinput)"
 
 
 def posix_here() -> bool:
-    """Whether this process has POSIX signals and process groups: Linux and macOS; not Windows,
-    nor a Linux process that emulates it (tests/emulation, ``TMRL_EMULATE=windows``)."""
+    """Whether this process has POSIX signals, process groups, file modes and paths: Linux and
+    macOS; not Windows, nor a Linux process that emulates it (tests/emulation,
+    ``TMRL_EMULATE=windows``)."""
     return os.name == "posix" and hasattr(os, "killpg")
 
 

@@ -24,8 +24,9 @@ Such a use is allowed only in ``tmrl/platform.py`` or inside an explicit platfor
 **Untimed waits** (:func:`untimed_waits`). On Windows, Ctrl-C does not interrupt a thread blocked
 in ``lock.acquire()``, ``queue.get()``, ``thread.join()``, ``event.wait()``, ``popen.wait()`` or
 ``popen.communicate()`` with no timeout (CPython 3.10 to 3.12): the program ignores Ctrl-C until
-the wait ends, maybe never. The rule flags a call of one of those methods with no positional
-argument and no ``timeout=`` (``get(block=False)``/``acquire(blocking=False)`` do not block;
+the wait ends, maybe never. The rule flags a call of one of those methods with no argument, or
+only ``True`` or ``None`` (``get(True)``, ``join(None)``), and no ``timeout=`` other than ``None``
+(``get(block=False)``/``acquire(blocking=False)`` do not block;
 ``dict.get`` and ``str.join`` always have an argument; a call in an ``async def`` runs on an event
 loop, not on a blocked thread). It cannot tell a main thread from a background one: a deliberate wait on a
 daemon thread is listed with its reason where the rule is run.
@@ -283,12 +284,21 @@ def posix_only_uses(path: Path, *, tests: bool = False, root: Path = REPO) -> li
 # the untimed-wait rule
 
 
+def _untimed_args(args: list[ast.expr]) -> bool:
+    """No argument, or only ``True`` (block) or ``None`` (no timeout): ``get(True)``, ``join(None)``."""
+    return len(args) <= 1 and all(isinstance(a, ast.Constant) and (a.value is True or a.value is None)
+                                  for a in args)
+
+
 def _blocking_wait(node: ast.Call) -> str | None:
-    if not isinstance(node.func, ast.Attribute) or node.func.attr not in WAIT_METHODS or node.args:
+    if not isinstance(node.func, ast.Attribute) or node.func.attr not in WAIT_METHODS:
+        return None
+    if not _untimed_args(node.args):
         return None
     kwargs = {kw.arg: kw.value for kw in node.keywords}
-    if "timeout" in kwargs or None in kwargs:  # timed, or **kwargs we cannot read
-        return None
+    timeout = kwargs.get("timeout")
+    if (timeout is not None and not (isinstance(timeout, ast.Constant) and timeout.value is None)) or None in kwargs:
+        return None  # timed, or **kwargs we cannot read
     for flag in ("block", "blocking"):
         value = kwargs.get(flag)
         if isinstance(value, ast.Constant) and value.value is False:

@@ -85,6 +85,7 @@ def test_list_shows_every_benchmark_and_unknown_names_are_refused():
     assert bad.returncode != 0 and "unknown benchmark 'nope'" in bad.stderr
 
 
+@pytest.mark.posix  # a POSIX side: /usr/bin/python3 and PATH=/usr/bin:/bin
 def test_children_load_bench_without_putting_the_checkout_on_the_path(tmp_path):
     # What lets the original's interpreter import its installed tmrl: a child of another side
     # loads `bench` from this checkout but does not see this checkout's `tmrl`. The system

@@ -238,7 +238,11 @@ def test_in_tests_the_markers_are_platform_branches_for_bodies_only(tmp_path):
     ("lock.acquire()", True),
     ("out, err = proc.communicate()", True),
     ("item = jobs.get(block=True)", True),
+    ("item = jobs.get(True)", True),
+    ("thread.join(None)", True),
+    ("event.wait(timeout=None)", True),
     ("event.wait(0.5)", False),
+    ("event.wait(1)", False),
     ("thread.join(timeout=1)", False),
     ("item = jobs.get(timeout=0.2)", False),
     ("item = jobs.get(block=False)", False),
@@ -323,5 +327,5 @@ def test_marked_tests_skip_off_their_platform_with_the_allowed_reason_even_in_ci
                          env=env, cwd=REPO, capture_output=True, text=True, timeout=300, check=False)
     assert out.returncode == 0, out.stdout[-3000:]
     assert "failed" not in out.stdout and " passed" not in out.stdout, out.stdout[-3000:]
-    assert "needs POSIX signals and process groups (not on Windows) (allowed in CI" in out.stdout
+    assert "needs POSIX (signals, process groups, file modes or paths): not on Windows (allowed in CI" in out.stdout
     assert "needs Linux (/proc, prctl, inotify, Xvfb or uinput) (allowed in CI" in out.stdout

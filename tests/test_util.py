@@ -229,6 +229,7 @@ def test_partial_to_dict_names_builtin_defaults_it_cannot_inspect():
     assert d["container"] == "builtins:dict" and d["n"] == 2
 
 
+@pytest.mark.posix  # file modes
 def test_atomic_write_uses_ordinary_permissions_unless_asked(tmp_path):
     import os
     import stat
