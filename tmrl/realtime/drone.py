@@ -124,7 +124,7 @@ class DummyRCDrone:
             self._stopped = True
             self._cond.notify()
         while self._thread is not threading.current_thread() and self._thread.is_alive():
-            self._thread.join(0.2)  # in slices: Ctrl-C reaches a timed join on Windows
+            self._thread.join(0.2)  # in slices: on Windows, Ctrl-C comes in between two
 
     def __enter__(self) -> DummyRCDrone:  # noqa: PYI034
         return self
