@@ -14,7 +14,7 @@ Such a use is allowed only in ``tmrl/platform.py`` or inside an explicit platfor
   body always leaves (``return``/``raise``/``continue``/``break``);
 - the right of an ``and``/``or`` whose left reads the platform as above;
 - the body of a ``try`` that catches ``ImportError``/``ModuleNotFoundError`` (for an import) or
-  ``AttributeError`` (for a name of ``os``/``signal``);
+  ``AttributeError`` (for a name of ``os``/``signal``), or any ``Exception``;
 - in tests/ only: the body of a function in a test function, class or module marked ``linux`` or
   ``posix`` (``@pytest.mark.linux``, or ``pytestmark``): tests/conftest.py skips those off Linux
   or POSIX, so their bodies never run there. What runs when pytest collects the module on every
@@ -192,9 +192,12 @@ class _PosixVisitor(ast.NodeVisitor):
     def visit_Try(self, node: ast.Try) -> None:
         caught = set()
         for handler in node.handlers:
-            for name in ("ImportError", "ModuleNotFoundError", "AttributeError"):
-                if _catches(handler, {name}):
-                    caught.add(name)
+            if handler.type is None or _catches(handler, {"Exception", "BaseException"}):
+                caught |= {"ImportError", "AttributeError"}
+            if _catches(handler, {"ImportError", "ModuleNotFoundError"}):
+                caught.add("ImportError")
+            if _catches(handler, {"AttributeError"}):
+                caught.add("AttributeError")
         self.catching.append(caught)
         self._block(node.body)
         self.catching.pop()

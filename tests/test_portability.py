@@ -178,6 +178,18 @@ def test_the_posix_only_rule_on_one_line(tmp_path, source, rules):
         fcntl = None
     """,
     """\
+    try:
+        import termios
+    except ModuleNotFoundError:
+        termios = None
+    """,
+    """\
+    try:
+        stop = os.killpg
+    except AttributeError:
+        stop = None
+    """,
+    """\
     dead = LINUX and os.getppid() == 1
     """,
     """\
