@@ -26,13 +26,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
+import queue
 import signal
 import socket
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -230,9 +233,16 @@ def alternate(items: Sequence[T], rounds: int) -> Iterator[tuple[int, T]]:
             yield rnd, item
 
 
+def load_averages() -> tuple[float, float, float]:
+    """The 1-, 5- and 15-minute load averages (NaN on Windows, which keeps none)."""
+    if hasattr(os, "getloadavg"):
+        return os.getloadavg()
+    return (math.nan, math.nan, math.nan)
+
+
 def load_average() -> float:
-    """The 1-minute load average."""
-    return os.getloadavg()[0]
+    """The 1-minute load average (NaN on Windows)."""
+    return load_averages()[0]
 
 
 #: The packages whose versions a record's header names (the numbers of a learning run depend on them).
@@ -303,7 +313,7 @@ class Recorder:
         self._write({
             "kind": "run", "bench": self.bench, "settings": self.settings, "argv": sys.argv[1:],
             "started": time.strftime("%Y-%m-%d %H:%M:%S"), "cpus": os.cpu_count(),
-            "machine": platform.processor() or platform.machine(), "load_average": os.getloadavg(),
+            "machine": platform.processor() or platform.machine(), "load_average": load_averages(),
             "install": install(),
         })
         where = ""
@@ -407,7 +417,7 @@ def fmt(value: float | None) -> str:
 
 
 def _loads() -> str:
-    one, five, fifteen = os.getloadavg()
+    one, five, fifteen = load_averages()
     return f"{one:.2f}/{five:.2f}/{fifteen:.2f} ({os.cpu_count()} CPUs)"
 
 
@@ -545,13 +555,27 @@ class JsonLines:
     def __init__(self, proc: subprocess.Popen) -> None:
         assert proc.stdout is not None
         self.proc = proc
-        os.set_blocking(proc.stdout.fileno(), False)
         self._pending = b""
+        self._chunks: queue.SimpleQueue[bytes] | None = None
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(proc.stdout.fileno(), False)
+        else:  # Windows has no non-blocking pipes: a thread reads this one
+            self._chunks = queue.SimpleQueue()
+            threading.Thread(target=self._pump, args=(proc.stdout, self._chunks), daemon=True).start()
+
+    @staticmethod
+    def _pump(stdout: IO[bytes], chunks: queue.SimpleQueue[bytes]) -> None:
+        for chunk in iter(lambda: stdout.read1(65536), b""):  # type: ignore[attr-defined]
+            chunks.put(chunk)
 
     def poll(self) -> list[dict[str, Any]]:
         """The objects printed since the last call."""
         assert self.proc.stdout is not None
-        self._pending += self.proc.stdout.read() or b""
+        if self._chunks is None:
+            self._pending += self.proc.stdout.read() or b""
+        else:
+            while not self._chunks.empty():
+                self._pending += self._chunks.get_nowait()
         *lines, self._pending = self._pending.split(b"\n")
         return [json.loads(line) for line in lines if line.startswith(b"{")]
 

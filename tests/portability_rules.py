@@ -5,6 +5,9 @@ module; tests/test_portability.py runs them on the repository and on planted exa
 that changes when the parent dies, no ``signal.SIGKILL``/``SIGHUP``/``SIGSTOP``/``SIGUSR1``/
 ``SIGUSR2``, no ``start_new_session`` or ``preexec_fn``, no ``/proc`` and no ``fcntl`` (nor
 ``termios``, ``resource``, ``pwd``, ``grp``, ``pty``); ``Popen.send_signal(SIGINT)`` raises there.
+The names of ``os``, ``signal`` and ``select`` are those the Windows emulation removes
+(tests/emulation/sitecustomize.py: ``os.getloadavg``, ``os.set_blocking``, ``select.poll``, ...),
+with ``os.getppid`` and ``os.fork``.
 Such a use is allowed only in ``tmrl/platform.py`` or inside an explicit platform branch:
 
 - an ``if`` (or ``... if ... else ...``) whose test reads ``sys.platform``, ``os.name``,
@@ -35,14 +38,27 @@ daemon thread is listed with its reason where the rule is run.
 from __future__ import annotations
 
 import ast
+import importlib.util
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 
-POSIX_OS = frozenset({"killpg", "getppid"})
-POSIX_SIGNALS = frozenset({"SIGKILL", "SIGHUP", "SIGSTOP", "SIGUSR1", "SIGUSR2"})
+
+def _emulation() -> object:
+    # the Windows emulation's lists of what Windows lacks (it does nothing when imported this way)
+    spec = importlib.util.spec_from_file_location("_windows_emulation", Path(__file__).parent / "emulation" /
+                                                  "sitecustomize.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+_WINDOWS = _emulation()
+POSIX_OS = frozenset({"getppid", "fork", *_WINDOWS.OS_NAMES})
+POSIX_SIGNALS = frozenset(_WINDOWS.SIGNAL_NAMES)
+POSIX_SELECT = frozenset(_WINDOWS.SELECT_NAMES)
 POSIX_MODULES = frozenset({"fcntl", "termios", "resource", "pwd", "grp", "pty"})
 POSIX_KEYWORDS = frozenset({"start_new_session", "preexec_fn"})
 PLATFORM_FLAGS = frozenset({"POSIX", "WINDOWS", "LINUX", "MACOS"})
@@ -231,6 +247,8 @@ class _PosixVisitor(ast.NodeVisitor):
             self.report(node, f"os.{node.attr} (POSIX only)", caught_by="AttributeError")
         elif owner == "signal" and node.attr in POSIX_SIGNALS:
             self.report(node, f"signal.{node.attr} (POSIX only)", caught_by="AttributeError")
+        elif owner == "select" and node.attr in POSIX_SELECT:
+            self.report(node, f"select.{node.attr} (POSIX only)", caught_by="AttributeError")
         self.generic_visit(node)
 
     def visit_ImportFrom(self, node: ast.ImportFrom) -> None:
@@ -239,7 +257,8 @@ class _PosixVisitor(ast.NodeVisitor):
             self.report(node, f"import {top} (no such module on Windows)", caught_by="ImportError")
         for alias in node.names:
             if (node.module == "os" and alias.name in POSIX_OS) or (
-                    node.module == "signal" and alias.name in POSIX_SIGNALS):
+                    node.module == "signal" and alias.name in POSIX_SIGNALS) or (
+                    node.module == "select" and alias.name in POSIX_SELECT):
                 self.report(node, f"{node.module}.{alias.name} (POSIX only)", caught_by="ImportError")
 
     def visit_Import(self, node: ast.Import) -> None:

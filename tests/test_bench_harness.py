@@ -4,6 +4,7 @@ the floor's products, and the command line. No benchmark is run here."""
 from __future__ import annotations
 
 import json
+import math
 import platform
 import subprocess
 import sys
@@ -100,3 +101,23 @@ def test_children_load_bench_without_putting_the_checkout_on_the_path(tmp_path):
     where = json.loads(out.stdout)
     assert where["bench"] == str(REPO / "bench")
     assert where["tmrl"] is None or not where["tmrl"].startswith(str(REPO / "tmrl"))
+
+
+@pytest.mark.parametrize("windows", [False, True], ids=["posix", "windows"])
+def test_json_lines_and_load_averages_without_the_names_windows_lacks(windows, monkeypatch):
+    # Windows has neither non-blocking pipes nor load averages: JsonLines reads through a thread,
+    # the load is NaN, and the records and summaries still come.
+    if windows:
+        monkeypatch.delattr(harness.os, "set_blocking", raising=False)
+        monkeypatch.delattr(harness.os, "getloadavg", raising=False)
+    code = "import json, time\nfor i in range(3):\n    print(json.dumps({'i': i}), flush=True)\n    time.sleep(0.05)\n"
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE)
+    try:
+        got = [rec["i"] for rec in harness.JsonLines(proc).wait(30)]
+    finally:
+        proc.wait(30)
+        proc.stdout.close()
+    assert got == [0, 1, 2]
+    load = harness.load_average()
+    assert math.isnan(load) if windows else load >= 0  # NaN where the system keeps none
+    assert "CPUs" in harness._loads()
