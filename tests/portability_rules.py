@@ -38,7 +38,6 @@ daemon thread is listed with its reason where the rule is run.
 from __future__ import annotations
 
 import ast
-import importlib.util
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,19 +45,19 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _emulation() -> object:
-    # the Windows emulation's lists of what Windows lacks (it does nothing when imported this way)
-    spec = importlib.util.spec_from_file_location("_windows_emulation", Path(__file__).parent / "emulation" /
-                                                  "sitecustomize.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def _removed_by_the_emulation() -> dict[str, tuple[str, ...]]:
+    """The emulation's lists of what Windows lacks (``OS_NAMES``, ``SIGNAL_NAMES``, ...), read from
+    its source: running it would emulate Windows in this process when ``TMRL_EMULATE`` is set."""
+    tree = ast.parse((Path(__file__).parent / "emulation" / "sitecustomize.py").read_text(encoding="utf-8"))
+    return {stmt.targets[0].id: ast.literal_eval(stmt.value) for stmt in tree.body
+            if isinstance(stmt, ast.Assign) and isinstance(stmt.targets[0], ast.Name)
+            and stmt.targets[0].id.endswith("_NAMES")}
 
 
-_WINDOWS = _emulation()
-POSIX_OS = frozenset({"getppid", "fork", *_WINDOWS.OS_NAMES})
-POSIX_SIGNALS = frozenset(_WINDOWS.SIGNAL_NAMES)
-POSIX_SELECT = frozenset(_WINDOWS.SELECT_NAMES)
+_WINDOWS = _removed_by_the_emulation()
+POSIX_OS = frozenset({"getppid", "fork", *_WINDOWS["OS_NAMES"]})
+POSIX_SIGNALS = frozenset(_WINDOWS["SIGNAL_NAMES"])
+POSIX_SELECT = frozenset(_WINDOWS["SELECT_NAMES"])
 POSIX_MODULES = frozenset({"fcntl", "termios", "resource", "pwd", "grp", "pty"})
 POSIX_KEYWORDS = frozenset({"start_new_session", "preexec_fn"})
 PLATFORM_FLAGS = frozenset({"POSIX", "WINDOWS", "LINUX", "MACOS"})

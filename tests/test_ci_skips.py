@@ -150,6 +150,7 @@ def test_off_their_platform_marked_tests_may_skip_in_ci_for_their_reason_only(tm
     assert f"test_unmarked_with_the_posix_reason - skipped in CI ({POSIX_SKIP_REASON})" in out.stdout
 
 
+@pytest.mark.linux
 def test_on_linux_a_marked_test_may_not_skip_in_ci(tmp_path):
     assert linux_here() and posix_here()  # where this suite's CI runs
     out = run_platform_suite(tmp_path, windows=False)

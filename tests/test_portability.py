@@ -140,6 +140,7 @@ def test_a_planted_killpg_is_found_with_its_file_line_and_rule(tmp_path):
     ("open(f'/proc/{pid}/stat')", ["/proc path (Linux only)"]),
     ("os.listdir('/proc')", ["/proc path (Linux only)"]),
     ("import fcntl", ["import fcntl (no such module on Windows)"]),
+    ("os.getloadavg(); select.poll()", ["os.getloadavg (POSIX only)", "select.poll (POSIX only)"]),
     # portable: what Windows has, a constant that says no, a name read with a default
     ("p.send_signal(signal.SIGTERM); os.kill(pid, signal.SIGTERM)", []),
     ("subprocess.Popen(cmd, start_new_session=False)", []),
@@ -147,7 +148,7 @@ def test_a_planted_killpg_is_found_with_its_file_line_and_rule(tmp_path):
     ("def parent_died():\n    '''/proc/self/status tells (a docstring may name it).'''", []),
 ])
 def test_the_posix_only_rule_on_one_line(tmp_path, source, rules):
-    assert [f.rule for f in _scan(tmp_path, "import os, signal, subprocess\n" + source + "\n")] == rules
+    assert [f.rule for f in _scan(tmp_path, "import os, select, signal, subprocess\n" + source + "\n")] == rules
 
 
 @pytest.mark.parametrize("source", [
@@ -309,8 +310,9 @@ def _import_all(env: dict[str, str]) -> dict:
 
 
 def test_every_module_imports_under_the_windows_emulation():
-    plain = _import_all(dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO),
-                                                                                  os.environ.get("PYTHONPATH")]))))
+    plain_env = {k: v for k, v in os.environ.items() if k != "TMRL_EMULATE"}  # (even when run emulated)
+    plain = _import_all(dict(plain_env, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO),
+                                                                                 os.environ.get("PYTHONPATH")]))))
     windows = _import_all(emulated())
     assert plain["killpg"] and not windows["killpg"]  # the emulation did take effect
     assert windows["modules"] == plain["modules"] > 100
