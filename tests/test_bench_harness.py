@@ -103,7 +103,8 @@ def test_children_load_bench_without_putting_the_checkout_on_the_path(tmp_path):
     assert where["tmrl"] is None or not where["tmrl"].startswith(str(REPO / "tmrl"))
 
 
-@pytest.mark.parametrize("windows", [False, True], ids=["posix", "windows"])
+@pytest.mark.parametrize("windows", [pytest.param(False, id="posix", marks=pytest.mark.posix),
+                                     pytest.param(True, id="windows")])
 def test_json_lines_and_load_averages_without_the_names_windows_lacks(windows, monkeypatch):
     # Windows has neither non-blocking pipes nor load averages: JsonLines reads through a thread,
     # the load is NaN, and the records and summaries still come.
