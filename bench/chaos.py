@@ -74,6 +74,10 @@ from typing import Any
 from bench import chaos_env, harness
 from bench.faultproxy import FaultProxy
 
+LINUX = sys.platform.startswith("linux")
+NEEDS_LINUX = ("the chaos bench needs Linux: it freezes and kills process groups (SIGSTOP, SIGKILL), "
+               "reads /proc and watches files with inotify")
+
 PW = "chaos-password"
 THRESHOLD = chaos_env.THRESHOLDS["pendulum"]
 """Pendulum's test return the learning figure compares with (the simulator has none: its figure is
@@ -129,6 +133,8 @@ def _emit(ev: str, **fields: Any) -> None:
 
 def _stop_on_sigterm() -> None:
     """SIGTERM and SIGHUP stop the role as Ctrl-C does (its ``finally`` blocks run)."""
+    if not LINUX:
+        raise RuntimeError(NEEDS_LINUX)
 
     def handler(signum: int, frame: Any) -> None:
         raise KeyboardInterrupt
@@ -438,6 +444,8 @@ class Role:
         self._thread.start()
 
     def _spawn(self) -> None:
+        if not LINUX:
+            raise RuntimeError(NEEDS_LINUX)
         with self._lock:
             self.incarnation += 1
             log = open(self.chaos.logdir / f"{self.name}-{self.incarnation}.log", "wb")  # noqa: SIM115
@@ -486,6 +494,8 @@ class Role:
         return self.proc.pid if self.proc is not None and self.proc.poll() is None else None
 
     def signal_group(self, sig: int) -> bool:
+        if not LINUX:
+            raise RuntimeError(NEEDS_LINUX)
         proc = self.proc
         if proc is None or proc.poll() is not None:
             return False
@@ -497,6 +507,8 @@ class Role:
 
     def stop(self, grace: float) -> bool:
         """SIGTERM, then SIGKILL after ``grace`` seconds; True when it ended by itself."""
+        if not LINUX:
+            raise RuntimeError(NEEDS_LINUX)
         self.stopping = True
         proc = self.proc
         if proc is None or proc.poll() is not None:
@@ -534,6 +546,8 @@ class Fault:
 
 def _stat(pid: int | str) -> list[str] | None:
     """The fields of ``/proc/<pid>/stat`` after the command name (state, ppid, pgrp, ...)."""
+    if not LINUX:
+        raise RuntimeError(NEEDS_LINUX)
     try:
         with open(f"/proc/{pid}/stat") as f:
             return f.read().rsplit(")", 1)[1].split()
@@ -543,6 +557,8 @@ def _stat(pid: int | str) -> list[str] | None:
 
 def group_members(pgid: int) -> list[int]:
     """Live (not zombie) processes of process group ``pgid``."""
+    if not LINUX:
+        raise RuntimeError(NEEDS_LINUX)
     out = []
     for entry in os.listdir("/proc"):
         if entry.isdigit():
@@ -553,6 +569,8 @@ def group_members(pgid: int) -> list[int]:
 
 
 def _rss_kib(pid: int) -> int:
+    if not LINUX:
+        raise RuntimeError(NEEDS_LINUX)
     try:
         with open(f"/proc/{pid}/status") as f:
             return next((int(line.split()[1]) for line in f if line.startswith("VmRSS:")), 0)
@@ -561,6 +579,8 @@ def _rss_kib(pid: int) -> int:
 
 
 def _children(pid: int) -> list[int]:
+    if not LINUX:
+        raise RuntimeError(NEEDS_LINUX)
     out = []
     for entry in os.listdir("/proc"):
         if entry.isdigit():
@@ -597,6 +617,8 @@ def _go_heap_mib(prof_port: int) -> dict[str, float] | None:
 
 def marked_processes(marker: str) -> list[int]:
     """Processes whose command line or environment holds ``marker`` (this one excluded)."""
+    if not LINUX:
+        raise RuntimeError(NEEDS_LINUX)
     found = []
     needle = marker.encode()
     for entry in os.listdir("/proc"):
@@ -900,6 +922,8 @@ class Chaos:
         return True
 
     def inject(self, kind: str) -> Fault:
+        if not LINUX:
+            raise RuntimeError(NEEDS_LINUX)
         workers = self.worker_names()
         target = self.rng.choice(workers) if kind not in GLOBAL_FAULTS else "all"
         fault = Fault(kind, target, time.time())
@@ -959,6 +983,8 @@ class Chaos:
         return fault
 
     def _kill_server(self, kind: str, fault: Fault) -> None:
+        if not LINUX:
+            raise RuntimeError(NEEDS_LINUX)
         if self.cfg.backend == "nats" and self.cfg.nats_nodes == 3:
             name = self.rng.choice(["node0", "node1", "node2"])
             fault.detail["node"] = name
@@ -998,6 +1024,8 @@ class Chaos:
     def _kill_mid_checkpoint(self, fault: Fault) -> None:
         """SIGKILL the trainer while it writes its checkpoint's header (``checkpoint.json``, the
         commit point: written in place, a kill there would leave a checkpoint no trainer resumes)."""
+        if not LINUX:
+            raise RuntimeError(NEEDS_LINUX)
         folder = self.checkpoint
         role = self.roles["trainer"]
         landed = False
@@ -1233,6 +1261,8 @@ class Chaos:
     def drain_and_stop(self) -> dict[str, Any]:
         """Stop the workers (their links flush), wait until the trainer has what it must get,
         stop the trainer and the server; count what is left."""
+        if not LINUX:
+            raise RuntimeError(NEEDS_LINUX)
         out: dict[str, Any] = {"stopped_cleanly": {}}
         for proxies in self.proxies.values():
             for p in proxies:
@@ -1472,6 +1502,8 @@ def _median(values: list[float]) -> float | None:
 
 
 def _cmdline(pid: int) -> str:
+    if not LINUX:
+        raise RuntimeError(NEEDS_LINUX)
     try:
         with open(f"/proc/{pid}/cmdline", "rb") as f:
             return f.read().replace(b"\0", b" ").decode(errors="replace")[:200]
@@ -1658,6 +1690,8 @@ def main(argv: list[str] | None = None) -> None:
                          f"first passes {THRESHOLD:g}; sim: until the faults end); 0: evaluate only at the end")
     ap.add_argument("--keep", action="store_true", help="keep the work folders (logs, events.jsonl)")
     args = ap.parse_args(argv)
+    if not LINUX:
+        ap.error(NEEDS_LINUX)
     signal.signal(signal.SIGTERM, _interrupt)  # `kill` ends the run as Ctrl-C does: its roles are stopped
     minutes = 2.0 if args.quick else args.minutes
     backends = [b for b in args.backends.split(",") if b]

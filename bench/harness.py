@@ -26,13 +26,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
+import queue
 import signal
 import socket
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -230,9 +233,16 @@ def alternate(items: Sequence[T], rounds: int) -> Iterator[tuple[int, T]]:
             yield rnd, item
 
 
+def load_averages() -> tuple[float, float, float]:
+    """The 1-, 5- and 15-minute load averages (NaN on Windows, which keeps none)."""
+    if hasattr(os, "getloadavg"):
+        return os.getloadavg()
+    return (math.nan, math.nan, math.nan)
+
+
 def load_average() -> float:
-    """The 1-minute load average."""
-    return os.getloadavg()[0]
+    """The 1-minute load average (NaN on Windows)."""
+    return load_averages()[0]
 
 
 #: The packages whose versions a record's header names (the numbers of a learning run depend on them).
@@ -252,11 +262,12 @@ def install() -> dict[str, Any]:
         except metadata.PackageNotFoundError:
             packages[name] = None
     cpu = None
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), None)
-    except OSError:
-        pass
+    if sys.platform.startswith("linux"):  # the model name; elsewhere platform.processor() below says it
+        try:
+            with open("/proc/cpuinfo", encoding="utf-8") as f:
+                cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), None)
+        except OSError:
+            pass
     cfg = Path(sys.prefix) / "pyvenv.cfg"
     made = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(cfg.stat().st_mtime)) if cfg.exists() else None
     return {"python": platform.python_version(), "packages": packages, "cpu": cpu or platform.processor() or None,
@@ -302,7 +313,7 @@ class Recorder:
         self._write({
             "kind": "run", "bench": self.bench, "settings": self.settings, "argv": sys.argv[1:],
             "started": time.strftime("%Y-%m-%d %H:%M:%S"), "cpus": os.cpu_count(),
-            "machine": platform.processor() or platform.machine(), "load_average": os.getloadavg(),
+            "machine": platform.processor() or platform.machine(), "load_average": load_averages(),
             "install": install(),
         })
         where = ""
@@ -406,7 +417,7 @@ def fmt(value: float | None) -> str:
 
 
 def _loads() -> str:
-    one, five, fifteen = os.getloadavg()
+    one, five, fifteen = load_averages()
     return f"{one:.2f}/{five:.2f}/{fifteen:.2f} ({os.cpu_count()} CPUs)"
 
 
@@ -498,30 +509,42 @@ def wait_listening(port: int, timeout: float, what: str = "the server") -> None:
 def start_group(cmd: list[str], side: Side, log: Path, stdout: int | None = None,
                 env: dict[str, str] | None = None, cwd: str | None = None) -> subprocess.Popen:
     """Start ``cmd`` in a process group of its own (so that :func:`stop_groups` also ends the
-    processes it starts), stderr (and stdout unless piped) to ``log``."""
+    processes it starts; on Windows, a console process group that Ctrl-Break reaches), stderr (and
+    stdout unless piped) to ``log``."""
+    if os.name == "posix":
+        group: dict[str, Any] = {"start_new_session": True}
+    else:
+        group = {"creationflags": subprocess.CREATE_NEW_PROCESS_GROUP}
     handle = open(log, "ab")  # noqa: SIM115 (the child holds it; closed by the OS at its exit)
     try:
         return subprocess.Popen(cmd, stdout=stdout if stdout is not None else handle, stderr=handle,
-                                env=env or side.env, cwd=cwd or side.cwd, start_new_session=True)
+                                env=env or side.env, cwd=cwd or side.cwd, **group)
     finally:
         handle.close()
 
 
 def stop_groups(procs: Sequence[subprocess.Popen], grace: float = 10.0) -> None:
-    """SIGINT each process, wait up to ``grace`` seconds, then SIGKILL its whole group."""
+    """SIGINT each process (Ctrl-Break on Windows), wait up to ``grace`` seconds, then SIGKILL its
+    whole group (on Windows, end the process: its network processes follow their parent)."""
     for p in procs:
         if p.poll() is None:
-            p.send_signal(signal.SIGINT)
+            if os.name == "posix":
+                p.send_signal(signal.SIGINT)
+            else:
+                p.send_signal(signal.CTRL_BREAK_EVENT)
     deadline = time.monotonic() + grace
     for p in procs:
         try:
             p.wait(max(0.1, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             pass
-        try:  # the relay and link processes a role started are in its group
-            os.killpg(p.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
+        if os.name == "posix":
+            try:  # the relay and link processes a role started are in its group
+                os.killpg(p.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+        else:
+            p.kill()
         p.wait()
 
 
@@ -532,13 +555,27 @@ class JsonLines:
     def __init__(self, proc: subprocess.Popen) -> None:
         assert proc.stdout is not None
         self.proc = proc
-        os.set_blocking(proc.stdout.fileno(), False)
         self._pending = b""
+        self._chunks: queue.SimpleQueue[bytes] | None = None
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(proc.stdout.fileno(), False)
+        else:  # Windows has no non-blocking pipes: a thread reads this one
+            self._chunks = queue.SimpleQueue()
+            threading.Thread(target=self._pump, args=(proc.stdout, self._chunks), daemon=True).start()
+
+    @staticmethod
+    def _pump(stdout: IO[bytes], chunks: queue.SimpleQueue[bytes]) -> None:
+        for chunk in iter(lambda: stdout.read1(65536), b""):  # type: ignore[attr-defined]
+            chunks.put(chunk)
 
     def poll(self) -> list[dict[str, Any]]:
         """The objects printed since the last call."""
         assert self.proc.stdout is not None
-        self._pending += self.proc.stdout.read() or b""
+        if self._chunks is None:
+            self._pending += self.proc.stdout.read() or b""
+        else:
+            while not self._chunks.empty():
+                self._pending += self._chunks.get_nowait()
         *lines, self._pending = self._pending.split(b"\n")
         return [json.loads(line) for line in lines if line.startswith(b"{")]
 

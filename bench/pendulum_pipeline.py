@@ -52,6 +52,7 @@ import argparse
 import json
 import os
 import shutil
+import sys
 import tempfile
 import threading
 import time
@@ -392,7 +393,9 @@ def child_main(argv: list[str]) -> None:
 
 
 def _cpu_seconds(pid: int) -> float:
-    """CPU time (user + system) of process ``pid`` so far, 0 when it is gone."""
+    """CPU time (user + system) of process ``pid`` so far, 0 when it is gone (Linux only)."""
+    if not sys.platform.startswith("linux"):
+        raise RuntimeError("--spy needs Linux: it reads the processes' CPU time in /proc")
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     except OSError:
@@ -405,8 +408,11 @@ def _spy(roles: dict[str, Any], out: Path, label: str, duration: float, rate: in
     original's tlspyo processes) with ``py-spy record`` for ``duration`` seconds, idle stacks and
     threads included (py-spy pauses a process for each sample: keep ``rate`` low): raw stacks go
     to ``out/<label>-<role>.txt``; the CPU seconds each process used per second of that window to
-    ``out/<label>-cpu.json``."""
+    ``out/<label>-cpu.json``. Linux only (it finds the children in /proc)."""
     import subprocess
+
+    if not sys.platform.startswith("linux"):
+        raise RuntimeError("--spy needs Linux: it finds each role's children in /proc")
 
     out.mkdir(parents=True, exist_ok=True)
     targets = {}

@@ -22,6 +22,7 @@ import argparse
 import os
 import shutil
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -80,7 +81,9 @@ def _actor_cls(impl: str, n_params: int):
 
 def _rss_tree(pid: int) -> int:
     """Memory in bytes of ``pid`` and all its descendants: the sum of their PSS (proportional set
-    size: pages shared between a process and its forked children are counted once)."""
+    size: pages shared between a process and its forked children are counted once). Linux only."""
+    if not sys.platform.startswith("linux"):
+        raise RuntimeError("bench pipeline_throughput measures memory from /proc: it needs Linux")
     total = 0
     todo = [pid]
     while todo:

@@ -243,7 +243,7 @@ def run_child(
     )
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=side.env,
                             cwd=side.cwd)
-    if cpus:
+    if cpus and hasattr(os, "sched_setaffinity"):  # (cpus is empty where it is missing)
         os.sched_setaffinity(proc.pid, cpus)
     out, err = proc.communicate()
     if proc.returncode != 0:
@@ -261,7 +261,7 @@ def measure(args: argparse.Namespace, busy: bool, rec: harness.Recorder) -> None
             os.sched_setaffinity(hog.pid, {ncpu - 1})
             cpus = set(range(ncpu - 1))
     try:
-        load_before = os.getloadavg()
+        load_before = harness.load_averages()
         pooled: dict[str, dict[str, list[float]]] = {
             impl: {"returns": [], "controls": []} for impl in ("tmrl", "rtgym")
         }
@@ -274,7 +274,7 @@ def measure(args: argparse.Namespace, busy: bool, rec: harness.Recorder) -> None
                 for name, value in zip(("mean", "std", "p99"), stats(intervals(res[key]))):
                     rec.add(f"{label}, {title}", f"{name}_ms", "ours" if impl == "tmrl" else impl, value,
                             round=r, higher_is_better=False, unit="ms", echo=False)
-        load_after = os.getloadavg()
+        load_after = harness.load_averages()
     finally:
         if hog is not None:
             hog.kill()

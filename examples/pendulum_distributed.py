@@ -24,6 +24,7 @@ import argparse
 import logging
 import os
 import threading
+import time
 from pathlib import Path
 
 import gymnasium
@@ -156,8 +157,11 @@ def main() -> None:
     try:
         if args.role == "server":
             server = make_server()
-            threading.Event().wait()  # until Ctrl-C
-            server.stop()
+            try:
+                while True:  # until Ctrl-C (a sleep lets it in on Windows; an untimed wait does not)
+                    time.sleep(1.0)
+            finally:
+                server.stop()
         elif args.role == "trainer":
             make_trainer().run()
         elif args.role == "worker":

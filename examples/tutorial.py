@@ -432,7 +432,8 @@ def main() -> int:
                 return 0 if check_interface(args.time_step) else 1
             if args.role == "server":
                 with make_server(net):
-                    threading.Event().wait()  # relay until Ctrl-C
+                    while True:  # relay until Ctrl-C (a sleep lets it in on Windows; an untimed wait does not)
+                        time.sleep(1.0)
             elif args.role == "trainer":
                 make_trainer(net, args.minutes).run()
                 print(f"trainer done: weights in {TRAINER_WEIGHTS}, checkpoint in {CHECKPOINT}")

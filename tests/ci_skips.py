@@ -2,14 +2,17 @@
 
 A display test that skips because Xvfb is missing, or a TrackMania test that skips because an
 optional package did not install, would otherwise let CI pass on a suite that quietly shrank.
-Tests that carry a marker of :data:`ALLOWED_SKIP_MARKERS` (``gpu``) may skip for that marker's
-reason only; the report says so.
+Tests that carry a marker of :data:`ALLOWED_SKIP_MARKERS` (``gpu``, ``posix``, ``linux``) may skip
+for that marker's reason only; the report says so. A ``posix`` or ``linux`` test may skip only off
+its platform (:data:`PLATFORM_MARKERS`): on Linux, where CI runs them all, its skip still fails.
 Loaded by tests/conftest.py as a pytest plugin (not a test module).
 """
 
 from __future__ import annotations
 
 import os
+import sys
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -25,11 +28,35 @@ ALLOWED_SKIPS_IN_CI: dict[str, str] = {
 GPU_SKIP_REASON = "needs a CUDA GPU"
 """Why a test marked ``gpu`` skips where PyTorch sees no CUDA GPU (tests/conftest.py skips it)."""
 
+POSIX_SKIP_REASON = "needs POSIX (signals, process groups, file modes or paths): not on Windows"
+"""Why a test marked ``posix`` skips where :func:`posix_here` is false (tests/conftest.py)."""
+
+LINUX_SKIP_REASON = "needs Linux (/proc, prctl, inotify, Xvfb or uinput)"
+"""Why a test marked ``linux`` skips where :func:`linux_here` is false (tests/conftest.py)."""
+
+
+def posix_here() -> bool:
+    """Whether this process has POSIX signals, process groups, file modes and paths: Linux and
+    macOS; not Windows, nor a Linux process that emulates it (tests/emulation,
+    ``TMRL_EMULATE=windows``)."""
+    return os.name == "posix" and hasattr(os, "killpg")
+
+
+def linux_here() -> bool:
+    """Whether this is Linux (and not a Linux process that emulates Windows)."""
+    return sys.platform.startswith("linux") and posix_here()
+
+
 ALLOWED_SKIP_MARKERS: dict[str, tuple[str, str]] = {
     # marker -> (the one skip reason it allows, why a test carrying it may skip in CI)
     "gpu": (GPU_SKIP_REASON, "CI machines have no GPU; run these on one with `pytest -m gpu`"),
+    "posix": (POSIX_SKIP_REASON, "Windows has neither; the Linux and macOS jobs run these"),
+    "linux": (LINUX_SKIP_REASON, "only Linux has them; the Linux job runs these"),
 }
 """Markers whose tests may skip in CI, for the given reason only (any other skip still fails)."""
+
+PLATFORM_MARKERS: dict[str, Callable[[], bool]] = {"posix": posix_here, "linux": linux_here}
+"""Markers that may skip only off their platform: marker -> whether this is that platform."""
 
 
 def in_ci() -> bool:
@@ -60,7 +87,8 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
         return
     reason = _skip_reason(report)
     for marker, (allowed, why) in ALLOWED_SKIP_MARKERS.items():
-        if item.get_closest_marker(marker) is not None and reason == allowed:
+        on_its_platform = marker in PLATFORM_MARKERS and PLATFORM_MARKERS[marker]()
+        if item.get_closest_marker(marker) is not None and reason == allowed and not on_its_platform:
             _set_skip_reason(report, f"{reason} (allowed in CI: {why})")
             return
     report.outcome = "failed"

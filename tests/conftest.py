@@ -21,6 +21,16 @@ pytest_plugins = ["ci_skips"]
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    # Tests marked posix or linux skip off their platform with the marker's one reason, the one CI
+    # allows there (and only there: tests/ci_skips.py).
+    from ci_skips import ALLOWED_SKIP_MARKERS, PLATFORM_MARKERS  # loaded above as a plugin
+
+    for marker, here in PLATFORM_MARKERS.items():
+        if not here():
+            skip = pytest.mark.skip(reason=ALLOWED_SKIP_MARKERS[marker][0])
+            for item in items:
+                if item.get_closest_marker(marker) is not None:
+                    item.add_marker(skip)
     # Tests marked gpu (tests/test_gpu.py) run where PyTorch sees a CUDA GPU and skip elsewhere
     # with GPU_SKIP_REASON, the reason CI allows (tests/ci_skips.py); torch is imported only when
     # such a test was collected.

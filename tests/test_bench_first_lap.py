@@ -12,12 +12,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import process_support
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.first_lap import demo_lapped, worker_lapped  # noqa: E402
+from bench.first_lap import demo_lapped, worker_lapped
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -42,20 +43,7 @@ def test_the_demo_lapped_once_its_status_file_says_so(tmp_path):
     assert demo_lapped(tmp_path) == 1234
 
 
-def _processes_with(marker: str) -> list[int]:
-    found = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit() and int(entry) != os.getpid():
-            try:
-                with open(f"/proc/{entry}/environ", "rb") as f:
-                    if marker.encode() in f.read():
-                        found.append(int(entry))
-            except OSError:
-                pass
-    return found
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.posix  # the bench stops its runs with SIGINT to their process groups (bench/harness.py)
 def test_a_short_run_of_both_records_them_and_leaves_nothing_behind(tmp_path):
     tmp = tmp_path / "tmp"
     tmp.mkdir()
@@ -74,6 +62,6 @@ def test_a_short_run_of_both_records_them_and_leaves_nothing_behind(tmp_path):
         results.unlink()
     assert {r["side"] for r in records if r.get("metric") == "first_lap_s" and r["kind"] == "measure"} == \
         {"demo", "quickstart"}
-    assert _processes_with(str(tmp)) == []  # every process of both runs is gone
+    assert process_support.marked(str(tmp)) == []  # every process of both runs is gone
     assert list(tmp.iterdir()) == [] or all(p.name.startswith("torchinductor") for p in tmp.iterdir()), \
         list(tmp.iterdir())

@@ -4,6 +4,7 @@ the floor's products, and the command line. No benchmark is run here."""
 from __future__ import annotations
 
 import json
+import math
 import platform
 import subprocess
 import sys
@@ -85,6 +86,7 @@ def test_list_shows_every_benchmark_and_unknown_names_are_refused():
     assert bad.returncode != 0 and "unknown benchmark 'nope'" in bad.stderr
 
 
+@pytest.mark.posix  # a POSIX side: /usr/bin/python3 and PATH=/usr/bin:/bin
 def test_children_load_bench_without_putting_the_checkout_on_the_path(tmp_path):
     # What lets the original's interpreter import its installed tmrl: a child of another side
     # loads `bench` from this checkout but does not see this checkout's `tmrl`. The system
@@ -99,3 +101,24 @@ def test_children_load_bench_without_putting_the_checkout_on_the_path(tmp_path):
     where = json.loads(out.stdout)
     assert where["bench"] == str(REPO / "bench")
     assert where["tmrl"] is None or not where["tmrl"].startswith(str(REPO / "tmrl"))
+
+
+@pytest.mark.parametrize("windows", [pytest.param(False, id="posix", marks=pytest.mark.posix),
+                                     pytest.param(True, id="windows")])
+def test_json_lines_and_load_averages_without_the_names_windows_lacks(windows, monkeypatch):
+    # Windows has neither non-blocking pipes nor load averages: JsonLines reads through a thread,
+    # the load is NaN, and the records and summaries still come.
+    if windows:
+        monkeypatch.delattr(harness.os, "set_blocking", raising=False)
+        monkeypatch.delattr(harness.os, "getloadavg", raising=False)
+    code = "import json, time\nfor i in range(3):\n    print(json.dumps({'i': i}), flush=True)\n    time.sleep(0.05)\n"
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE)
+    try:
+        got = [rec["i"] for rec in harness.JsonLines(proc).wait(30)]
+    finally:
+        proc.wait(30)
+        proc.stdout.close()
+    assert got == [0, 1, 2]
+    load = harness.load_average()
+    assert math.isnan(load) if windows else load >= 0  # NaN where the system keeps none
+    assert "CPUs" in harness._loads()

@@ -35,6 +35,8 @@ sys.path.insert(0, str(REPO))
 
 from bench.chaos import ChaosConfig, marked_processes, run_chaos
 
+pytestmark = pytest.mark.linux  # the chaos bench itself needs Linux (bench/chaos.py: NEEDS_LINUX)
+
 HERE = Path(__file__).resolve().parent
 
 FAULTS = ("kill_trainer", "kill_server", "kill_worker", "stop_worker", "partition", "latency", "kill_mid_checkpoint")

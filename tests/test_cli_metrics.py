@@ -13,9 +13,12 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 PW = "metrics test password"
 
 
+@pytest.mark.posix
 def test_cli_trainer_writes_metrics_csv_under_the_data_folder(tmp_path, port_factory):
     data = tmp_path / "data"
     override = {

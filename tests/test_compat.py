@@ -242,6 +242,7 @@ def test_an_unchanged_tutorial_script_prints_its_training_progress(_isolated_dat
     assert "loss_critic" in rounds[0] and "upd/s" in rounds[0]
 
 
+@pytest.mark.posix
 def test_a_competition_style_script_runs_as_server_trainer_and_worker(_isolated_data_folder, port_factory):
     _write_config(_isolated_data_folder, {
         "PASSWORD": "competition-style-password", "PORT": port_factory(), "MEMORY_SIZE": 5000, "BATCH_SIZE": 32,
@@ -482,6 +483,7 @@ def test_rtgym_keys_given_to_d_reach_the_environment_configuration(lidar_run):
     assert "unknown_key" in _one_error_line(_cli(lidar_run, "--print-config", "-d", '{"unknown_key": 1}'))
 
 
+@pytest.mark.posix
 def test_worker_test_runs_a_standalone_exploring_worker(lidar_run):
     _write_config(lidar_run["data"], {"RUN_NAME": "imported", "RW_MAX_SAMPLES_PER_EPISODE": 20,
                                       "ENV": {"RTGYM_INTERFACE": "SIMLIDAR"}})

@@ -228,6 +228,7 @@ def test_competition_sim_in_one_process_trains_and_counts_laps(tmp_path, entry, 
         check_entry_weights(entry, data / "weights" / name)
 
 
+@pytest.mark.posix
 def test_competition_sim_as_three_roles(tmp_path, entry, port_factory):
     port = str(port_factory())
     env = example_env(tmp_path, SMALL_SIM_RUN)

@@ -25,6 +25,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import process_support
 import pytest
 from test_transport import _wait_for
 
@@ -39,6 +40,9 @@ pytestmark = [
 
 PW = "nats test password"
 HERE = Path(__file__).resolve().parent
+EMULATE = [pytest.param("", id="native"),
+           pytest.param("windows", id="emulated-windows", marks=pytest.mark.linux)]
+"""Run natively, and with Windows emulated (tests/emulation: a Linux tool)."""
 
 
 @pytest.fixture
@@ -242,6 +246,7 @@ CHILD_TRAINER = textwrap.dedent(
 )
 
 
+@pytest.mark.posix  # select() on a pipe, and a process group killed at once
 def test_a_trainer_killed_and_restarted_gets_every_batch_it_had_not_acknowledged(tmp_path, made):
     relay = _relay(made)
     worker = _worker(made, relay.port)
@@ -284,7 +289,7 @@ def test_a_killed_nats_server_is_restarted_and_the_links_reconnect(tmp_path, mad
             got += _receive(trainer, 1)
 
     # the relay's supervisor restarts a killed server (same port, same store)
-    os.kill(relay.pid, signal.SIGKILL)
+    process_support.kill(relay.pid)
     _wait_for(lambda: relay.restarts == 1, 30.0, what="the relay to restart nats-server")
     for i in range(5):
         worker.send_samples(("after", i))  # kept while disconnected, sent after the reconnection
@@ -367,11 +372,9 @@ def test_a_batch_lost_in_flight_comes_again_and_is_not_counted_as_discarded(made
 
 
 def _rss_bytes() -> int:
-    with open("/proc/self/status") as f:
-        return next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmRSS:"))
+    return process_support.rss_bytes(os.getpid())
 
 
-@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the process's memory from /proc")
 def test_eight_fast_workers_against_an_absent_trainer_stay_within_the_configured_bounds(tmp_path, made):
     # 8 workers send 64x the stream's byte bound while the trainer reads nothing: the stream stays
     # within its bound (oldest discarded, counted), no worker blocks or drops, and this process
@@ -471,7 +474,8 @@ def test_install_credentials_per_role_are_used_and_derived_ones_refused(tmp_path
     keys = tmp_path / "credentials"
     written = write_credentials(keys)
     assert {p.name for p in written} == {"worker.json", "trainer.json", "users.conf"}
-    assert all(oct(p.stat().st_mode & 0o777) == "0o600" for p in written)
+    if os.name == "posix":  # (Windows has no such file modes)
+        assert all(oct(p.stat().st_mode & 0o777) == "0o600" for p in written)
     assert write_credentials(keys) == [keys / "nats" / "users.conf"]  # existing credentials kept
     conf = keys / "nats" / "cluster-node.conf"  # an include is relative to the including file
     conf.write_text(f"port: -1\njetstream {{ store_dir: '{tmp_path / 'js'}' }}\ninclude users.conf\n")
@@ -512,9 +516,23 @@ def test_tls_with_tmrls_certificate_and_plain_tcp_refused_beyond_this_machine(tm
 # python -m tmrl --server
 
 
-@pytest.mark.parametrize("emulate", ["", "windows"], ids=["native", "emulated-windows"])
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
-def test_cli_server_supervises_a_local_nats_server_and_leaves_none_behind(tmp_path, port_factory, made, sig, emulate):
+@pytest.mark.posix
+@pytest.mark.parametrize("emulate", EMULATE)
+def test_cli_server_supervises_a_local_nats_server_and_leaves_none_behind_on_ctrl_c(tmp_path, port_factory, made,
+                                                                                     emulate):
+    _cli_server_leaves_no_nats_server_behind(tmp_path, port_factory, made, emulate,
+                                             lambda p: p.send_signal(signal.SIGINT), 130)
+
+
+@pytest.mark.parametrize("emulate", EMULATE)
+def test_cli_server_supervises_a_local_nats_server_and_leaves_none_behind_when_killed(tmp_path, port_factory, made,
+                                                                                      emulate):
+    # SIGKILL, or TerminateProcess on Windows: tmrl cannot clean up, its nats-server must go anyway
+    _cli_server_leaves_no_nats_server_behind(tmp_path, port_factory, made, emulate, lambda p: p.kill(), None)
+
+
+def _cli_server_leaves_no_nats_server_behind(tmp_path: Path, port_factory: Any, made: Any, emulate: str,
+                                             stop: Any, code: int | None) -> None:
     """Also with the server's process emulating Windows (no parent-death signal, no process
     groups; tests/emulation): the nats-server then runs under tmrl.platform's guard process, and
     still ends with tmrl, within 10 s, however tmrl ended."""
@@ -545,15 +563,15 @@ def test_cli_server_supervises_a_local_nats_server_and_leaves_none_behind(tmp_pa
         worker, trainer = _worker(made, port), _trainer(made, port)
         worker.send_samples("through the CLI's server")
         assert _receive(trainer, 1) == ["through the CLI's server"]
-        proc.send_signal(sig)
+        stop(proc)
         proc.wait(30)
         reader.join(10)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    if sig == signal.SIGINT:
-        assert proc.returncode == 130
+    if code is not None:
+        assert proc.returncode == code
         assert not any("Traceback" in ln or "exited unexpectedly" in ln for ln in lines), lines
 
     def port_free() -> bool:  # no nats-server kept the port, even after a SIGKILL of tmrl
@@ -591,7 +609,7 @@ def test_the_worker_pipelines_its_batches_and_resends_its_window_in_order_withou
     _wait_for(lambda: worker.published == n, 30.0, what="the first batches stored")
 
     def frozen_window(first: int) -> None:
-        os.kill(relay.pid, signal.SIGSTOP)  # the server reads nothing: no acknowledgement can come
+        process_support.freeze(relay.pid)  # the server reads nothing: no acknowledgement can come
         sent = worker.transmissions
         for i in range(first, first + n):
             worker.send_samples(i)  # returns at once: the window has room
@@ -603,11 +621,11 @@ def test_the_worker_pipelines_its_batches_and_resends_its_window_in_order_withou
     sent = worker.transmissions
     worker._loop.call(worker._resend_from_first)
     _wait_for(lambda: worker.transmissions == sent + n, 30.0, what="the window published again")
-    os.kill(relay.pid, signal.SIGCONT)
+    process_support.thaw(relay.pid)
     _wait_for(lambda: worker.published == 2 * n, 30.0, what="the window acknowledged")
     # 2. the window lost with the connection: the server killed while frozen, restarted by the relay
     frozen_window(2 * n)
-    os.kill(relay.pid, signal.SIGKILL)
+    process_support.kill(relay.pid)
     _wait_for(lambda: relay.restarts == 1, 30.0, what="the relay to restart nats-server")
     _wait_for(lambda: worker.published == 3 * n, 60.0, what="the lost window sent again and acknowledged")
     assert worker.transmissions >= 5 * n and worker.dropped == 0
@@ -634,7 +652,7 @@ def test_a_window_the_server_has_and_no_stream_answers_is_sent_again_without_wai
     conf = tmp_path / "spy.conf"
     conf.write_text(json.dumps({"host": "127.0.0.1", "port": port, "authorization": {"users": users}}))
     proc = subprocess.Popen([find_server_binary(), "-c", str(conf)], stdin=subprocess.DEVNULL,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         seen: dict[str, list[Any]] = {}
         answering = threading.Event()
@@ -741,7 +759,7 @@ def test_a_three_node_cluster_keeps_samples_and_weights_flowing_when_a_node_is_k
         path.write_text(json.dumps(conf))
         with open(tmp_path / f"n{i}.log", "wb") as log:
             procs[i] = subprocess.Popen([find_server_binary(), "-c", str(path)], stdin=subprocess.DEVNULL,
-                                        stdout=log, stderr=log, start_new_session=True)
+                                        stdout=log, stderr=log)
     stop = threading.Event()
     try:
         def listening(port: int) -> bool:
@@ -782,7 +800,7 @@ def test_a_three_node_cluster_keeps_samples_and_weights_flowing_when_a_node_is_k
 
         name = trainer._loop.submit(leader()).result(10)
         victim = int(name[1:])
-        os.kill(procs[victim].pid, signal.SIGKILL)  # the stream's leader
+        process_support.kill(procs[victim].pid)  # the stream's leader
         procs[victim].wait()
         t_kill = time.monotonic()
         mark = len(sent)
@@ -973,12 +991,12 @@ def test_a_weights_upload_the_store_does_not_answer_is_given_up_and_tried_again(
     assert trainer.wait_connected(30) and worker.wait_connected(30)
     trainer.broadcast_weights(b"first")
     assert worker.latest_weights(block=True, timeout=30) == b"first"
-    os.kill(relay.pid, signal.SIGSTOP)
+    process_support.freeze(relay.pid)
     try:
         trainer.broadcast_weights(b"second")
         _wait_for(lambda: trainer.failed_uploads >= 1, 10.0, what="the unanswered upload given up")
     finally:
-        os.kill(relay.pid, signal.SIGCONT)
+        process_support.thaw(relay.pid)
     assert worker.latest_weights(block=True, timeout=30) == b"second"
 
 

@@ -23,6 +23,7 @@ from typing import Any
 
 import gymnasium
 import numpy as np
+import process_support
 import pytest
 
 from tmrl.networking import RolloutWorker, Server, Trainer, TrainerInterface
@@ -61,22 +62,10 @@ def wait_for(cond: Callable[[], Any], timeout: float = 15.0, what: str = "condit
 
 
 def relay_connections(port: int) -> list[str]:
-    """States of the TCP sockets whose local port is ``port`` (the relay's side), excluding the
-    listening socket: lets a test wait until the relay has closed a killed peer's connection."""
-    states = {"01": "ESTABLISHED", "08": "CLOSE_WAIT", "06": "TIME_WAIT", "0A": "LISTEN"}
-    out = []
-    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
-        try:
-            lines = Path(table).read_text().splitlines()[1:]
-        except OSError:
-            continue
-        for line in lines:
-            fields = line.split()
-            local_port = int(fields[1].rsplit(":", 1)[1], 16)
-            state = states.get(fields[3], fields[3])
-            if local_port == port and state not in ("LISTEN", "TIME_WAIT"):
-                out.append(state)
-    return out
+    """States of the TCP sockets whose local port is ``port`` (the relay's side, in this process
+    or its network process), excluding the listening socket: lets a test wait until the relay has
+    closed a killed peer's connection."""
+    return process_support.tcp_states(port)
 
 
 def worker(tmp_path: Path, port: int, name: str, obs_dim: int = 3, **kwargs: Any) -> RolloutWorker:
@@ -138,7 +127,7 @@ def drain(
 
 
 class Child:
-    """A role in its own process group, killed with SIGKILL (with its network processes)."""
+    """A role in a process of its own, killed at once (with its network processes)."""
 
     def __init__(self, tmp_path: Path, role: str, **args: Any):
         self.log = open(tmp_path / f"{role}-{time.monotonic_ns()}.log", "wb")
@@ -146,7 +135,6 @@ class Child:
             [sys.executable, str(HERE), role, json.dumps(args)],
             stdout=subprocess.PIPE,
             stderr=self.log,
-            start_new_session=True,
             cwd=str(tmp_path),
         )
 
@@ -161,10 +149,7 @@ class Child:
         return json.loads(result[0])
 
     def kill(self) -> None:
-        try:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
+        process_support.kill_tree(self.proc.pid)
         self.proc.wait()
         self.log.close()
 
@@ -549,6 +534,7 @@ def test_run_with_wandb_without_wandb_names_the_extra(tmp_path, port_factory, mo
         trainer.interface.close()
 
 
+@pytest.mark.posix  # Ctrl-C as SIGINT, and SIGTERM as a clean stop (Windows ends the process at once)
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_cli_server_exits_cleanly_on_ctrl_c_and_frees_port(
     tmp_path, port_factory, _isolated_data_folder, sig

@@ -17,12 +17,18 @@ import time
 from pathlib import Path
 from typing import Any
 
+import process_support
 import pytest
 
 from tmrl import platform
 
 HERE = Path(__file__).resolve().parent
 EMULATION = HERE / "emulation"
+
+
+EMULATE = [pytest.param("", id="native"),
+           pytest.param("windows", id="emulated-windows", marks=pytest.mark.linux)]
+"""Run natively, and with Windows emulated (tests/emulation: a Linux tool)."""
 
 
 def _env(emulate: str = "") -> dict[str, str]:
@@ -217,6 +223,7 @@ class _Sock:
         self.ioctls.append((code, value))
 
 
+@pytest.mark.linux  # (macOS has no TCP_KEEPIDLE: the next test)
 def test_keepalive_notices_a_vanished_peer_within_a_minute_on_linux():
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         assert platform.keep_alive(s)
@@ -299,21 +306,13 @@ def _wait_file(path: Path, timeout: float) -> str:
 def _gone(pid: int, timeout: float) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return True
-        try:  # a zombie (its parent gone and not yet reaped by init) counts as gone
-            with open(f"/proc/{pid}/stat") as f:
-                if f.read().rsplit(")", 1)[1].split()[0] == "Z":
-                    return True
-        except OSError:
+        if not process_support.alive(pid):  # a zombie (its parent gone, not yet reaped) counts as gone
             return True
         time.sleep(0.05)
     return False
 
 
-@pytest.mark.parametrize("emulate", ["", "windows"], ids=["native", "emulated-windows"])
+@pytest.mark.parametrize("emulate", EMULATE)
 def test_a_child_asked_to_stop_stops_like_ctrl_c(tmp_path, monkeypatch, emulate):
     for key, value in _env(emulate).items():
         monkeypatch.setenv(key, value)
@@ -341,7 +340,7 @@ def test_stop_children_ends_a_child_that_ignores_the_request(tmp_path, monkeypat
 
 
 @pytest.mark.parametrize("stubborn", [False, True], ids=["stops", "stubborn"])
-@pytest.mark.parametrize("emulate", ["", "windows"], ids=["native", "emulated-windows"])
+@pytest.mark.parametrize("emulate", EMULATE)
 def test_a_child_whose_parent_is_killed_stops_and_cleans_up(tmp_path, emulate, stubborn):
     """The parent killed outright (SIGKILL here, TerminateProcess on Windows): the lifeline closes,
     the child stops as on Ctrl-C; one that does not stop is ended after the grace, its clean-up

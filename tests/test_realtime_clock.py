@@ -49,3 +49,27 @@ def test_perf_counter_clock_sleeps_until_deadline():
     assert ch.get(timeout=1) == "x"
     with pytest.raises(queue.Empty):
         ch.get(timeout=0.001)
+
+
+def test_receive_waits_in_short_slices_until_an_item_comes():
+    # On Windows, Ctrl-C reaches a thread blocked on a lock only when its wait ends: receive()
+    # never waits longer than WAKE_EVERY at a time, and goes on until the item comes.
+    from tmrl.realtime.clock import WAKE_EVERY, receive
+
+    class Slow:
+        def __init__(self) -> None:
+            self.timeouts: list[float | None] = []
+
+        def get(self, timeout: float | None = None) -> str:
+            self.timeouts.append(timeout)
+            if len(self.timeouts) < 3:
+                raise queue.Empty
+            return "late"
+
+    channel = Slow()
+    assert receive(channel) == "late"
+    assert channel.timeouts == [WAKE_EVERY] * 3 and 0 < WAKE_EVERY <= 0.5
+    clock = FakeClock(start=1.0)
+    real = clock.channel()
+    real.put("now")
+    assert receive(real) == "now"

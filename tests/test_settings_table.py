@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import inspect
 import json
+import os
 import subprocess
 import sys
 
@@ -117,7 +118,9 @@ def test_config_constants_and_a_role_built_without_arguments_read_the_same_setti
         "      c.CHECKPOINT_PATH == s.checkpoint_path, c.SERVER_IP_FOR_WORKER == s.server_ip_for_worker)\n"
     )
     env = {"TMRL_DATA": str(tmp_path), "TMRL_CONFIG_OVERRIDE": json.dumps({"PORT": 4343, "NB_WORKERS": -1}),
-           "PATH": "/usr/bin:/bin"}
+           "PATH": os.environ.get("PATH", "")}
+    if "SYSTEMROOT" in os.environ:  # Windows: Python cannot start without it
+        env["SYSTEMROOT"] = os.environ["SYSTEMROOT"]
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120,
                          check=False)
     assert out.stdout.split() == ["True"] * 5, out.stderr

@@ -578,6 +578,7 @@ def test_demo_refuses_an_agent_without_an_image_model(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.posix
 def test_demo_roles_stop_on_sigint_even_when_started_with_sigint_ignored(tmp_path):
     # `nohup python -m tmrl --demo &` starts the demo with SIGINT ignored, which its roles inherit;
     # the parent stops them with SIGINT, so they must listen to it anyway.

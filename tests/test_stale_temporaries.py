@@ -15,7 +15,7 @@ import pytest
 from tmrl.distributed.weights import WeightsInstaller, remove_stale_temporaries
 from tmrl.spaces import describe_spaces
 
-pytestmark = pytest.mark.skipif(os.name != "posix", reason="pids are probed with os.kill(pid, 0) on POSIX only")
+pytestmark = pytest.mark.posix  # pids are probed with os.kill(pid, 0), a POSIX idiom
 
 
 def _dead_pid() -> int:

@@ -22,10 +22,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = [
-    pytest.mark.timeout(240),
-    pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc"),
-]
+pytestmark = [pytest.mark.timeout(240), pytest.mark.linux]  # POSIX signals, and /proc
 
 GONE_WITHIN = 10.0
 START_TIMEOUT = 150.0  # a loaded 2-core CI machine imports torch three times at once
@@ -151,16 +148,16 @@ def run(tmp_path):
     r.kill_everything()
 
 
-NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP"}
+NAMES = {"SIGINT": "Ctrl-C", "SIGTERM": "SIGTERM", "SIGHUP": "SIGHUP"}  # (names: collected on Windows too)
 
 
 # ------------------------------------------------------------------------------------------------
 # the demo
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGKILL],
-                         ids=lambda s: signal.Signals(s).name)
-def test_the_demo_and_all_its_processes_stop_and_leave_no_run_folder(sig, run, tmp_path):
+@pytest.mark.parametrize("name", ["SIGINT", "SIGTERM", "SIGHUP", "SIGKILL"])
+def test_the_demo_and_all_its_processes_stop_and_leave_no_run_folder(name, run, tmp_path):
+    sig = getattr(signal, name)
     threads = ["--threads", "2"] if sig == signal.SIGINT else []  # the demo's --threads reaches its roles
     demo = run.start("--demo", "--minutes", "30", "--out", str(tmp_path / "out"), *threads)
     # up: the run folder exists and each of the three roles has started its network process
@@ -172,7 +169,7 @@ def test_the_demo_and_all_its_processes_stop_and_leave_no_run_folder(sig, run, t
     if sig != signal.SIGKILL:
         assert demo.wait() == 128 + sig
         out = run.text(demo)
-        assert f"tmrl demo stopped ({NAMES[sig]})" in out, out[-3000:]
+        assert f"tmrl demo stopped ({NAMES[name]})" in out, out[-3000:]
         assert "Traceback" not in out, out[-3000:]
         logs = tmp_path / "out" / "logs"  # the logs are kept with the outputs
         assert (logs / "worker.log").exists()
@@ -199,8 +196,9 @@ UP = {"server": "server running on port", "trainer": "waiting for samples",
       "worker": "waiting for the trainer's first weights"}
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=lambda s: signal.Signals(s).name)
-def test_the_three_command_line_roles_stop_on_every_signal(sig, run, port_factory):
+@pytest.mark.parametrize("name", ["SIGINT", "SIGTERM", "SIGHUP"])
+def test_the_three_command_line_roles_stop_on_every_signal(name, run, port_factory):
+    sig = getattr(signal, name)
     env = {"TMRL_CONFIG_OVERRIDE": _quick_start_override(port_factory())}
     run.env.pop("OMP_NUM_THREADS", None)  # the roles size their threads themselves (issue 40)
     run.env.pop("TMRL_THREADS", None)
@@ -214,7 +212,7 @@ def test_the_three_command_line_roles_stop_on_every_signal(sig, run, port_factor
     for role, proc in roles.items():
         out = run.text(proc)
         assert proc.wait() == 128 + sig, f"--{role}: exit {proc.returncode}\n{out[-3000:]}"
-        assert f"tmrl: {role} stopped ({NAMES[sig]})" in out, out[-3000:]
+        assert f"tmrl: {role} stopped ({NAMES[name]})" in out, out[-3000:]
         assert "Traceback" not in out, out[-3000:]
     # threads per role: --threads for the trainer, the worker's share of the cores by default
     assert "trainer: 2 PyTorch threads (TMRL_THREADS" in run.text(roles["trainer"])

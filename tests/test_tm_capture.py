@@ -105,6 +105,7 @@ def window(xvfb, monkeypatch):
     win.close()
 
 
+@pytest.mark.linux  # a display on Xvfb
 def test_capture_moves_resizes_and_grabs_the_client_area(window):
     with WindowCapture("Trackmania", W, H) as cap:
         geo = cap.move_and_resize(10, 20)
@@ -115,6 +116,7 @@ def test_capture_moves_resizes_and_grabs_the_client_area(window):
     np.testing.assert_array_equal(rgb, known_image())
 
 
+@pytest.mark.linux  # a display on Xvfb
 def test_capture_follows_a_window_inside_a_frame(xvfb, monkeypatch):
     monkeypatch.setenv("DISPLAY", xvfb)
     win = PaintedWindow(xvfb, known_image(), x=7, y=19, frame_at=(50, 40))
@@ -127,18 +129,21 @@ def test_capture_follows_a_window_inside_a_frame(xvfb, monkeypatch):
         win.close()
 
 
+@pytest.mark.linux  # a display on Xvfb
 def test_wrong_size_is_one_clear_error(window):
     with WindowCapture("Trackmania", W, H) as cap:
         with pytest.raises(WindowSizeError, match=r"200x90, expected 256x128.*WINDOW_WIDTH"):
             cap.screenshot()
 
 
+@pytest.mark.linux  # a display on Xvfb
 def test_missing_window_is_one_clear_error(xvfb, monkeypatch):
     monkeypatch.setenv("DISPLAY", xvfb)
     with pytest.raises(WindowNotFound, match="no visible window titled 'Trackmania'"):
         WindowCapture("Trackmania", W, H)
 
 
+@pytest.mark.linux  # a display on Xvfb
 def test_capture_and_preprocess_speed(window):
     """Prints ms per frame for capture + grayscale 64x64 (no assertion on time)."""
     with WindowCapture("Trackmania", W, H) as cap:
@@ -226,6 +231,7 @@ def test_generic_pipeline_does_not_import_tmrl_tm():
     assert res.stdout.strip() == "False"
 
 
+@pytest.mark.linux  # a display on Xvfb
 def test_xdotool_fallback_reads_the_same_geometry(xvfb, monkeypatch):
     from tmrl.tm.capture import _XdotoolBackend
 

@@ -246,6 +246,7 @@ def xvfb_window(monkeypatch):
         d.close()
 
 
+@pytest.mark.linux  # a display on Xvfb
 def test_window_and_capture_checks_pass_on_xvfb(xvfb_window, plugin, port_factory):
     results = run_checks(
         base_cfg(PORT=port_factory()),
@@ -262,6 +263,7 @@ def test_window_and_capture_checks_pass_on_xvfb(xvfb_window, plugin, port_factor
     assert "ms per frame" in by_name["capture time"].detail
 
 
+@pytest.mark.linux  # a display on Xvfb
 def test_wrong_window_size_fails_with_the_fix(xvfb_window):
     res = doctor.check_window("Trackmania", 300, 200, resize=False)
     assert res.status == "fail" and "256x128, expected 300x200" in res.detail and "windowed" in res.fix

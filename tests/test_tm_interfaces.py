@@ -179,6 +179,7 @@ def drive(env, plugin, xs, action):
 
 
 # ------------------------------------------------------------------------ tests
+@pytest.mark.linux  # a display on Xvfb
 def test_tm20full_end_to_end(xvfb, monkeypatch, plugin, client):
     env, pad, (d, win) = make_env(xvfb, monkeypatch, client, "TM20FULL", full_image())
     try:
@@ -221,6 +222,7 @@ def test_tm20full_end_to_end(xvfb, monkeypatch, plugin, client):
         d.close()
 
 
+@pytest.mark.linux  # a display on Xvfb
 @pytest.mark.parametrize("name", ["TM20LIDAR", "TM20LIDARPROGRESS"])
 def test_tm20lidar_end_to_end(xvfb, monkeypatch, plugin, client, name):
     from tmrl.driving.lidar import Lidar
@@ -368,6 +370,7 @@ def test_write_png_round_trip(tmp_path):
     np.testing.assert_array_equal(read_png(write_png(tmp_path / "b.png", gray)), gray)
 
 
+@pytest.mark.linux  # a display on Xvfb
 def test_check_environment_saves_what_the_policy_sees(xvfb, monkeypatch, tmp_path):
     import io
 
@@ -406,6 +409,7 @@ def test_check_environment_saves_what_the_policy_sees(xvfb, monkeypatch, tmp_pat
     assert "reward" in out.getvalue()
 
 
+@pytest.mark.linux  # a display on Xvfb
 def test_benchmark_prints_the_real_time_report(xvfb, monkeypatch):
     import io
 

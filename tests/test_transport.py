@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import process_support
 import pytest
 
 from tmrl import wire
@@ -28,21 +29,7 @@ HEADER = 10
 
 def _children() -> list[int]:
     """Pids of this process's live network processes."""
-    me = str(os.getpid())
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-            with open(f"/proc/{entry}/cmdline", "rb") as f:
-                cmd = f.read()
-        except OSError:
-            continue
-        if fields[1] == me and fields[0] != "Z" and b"tmrl.transport._netproc" in cmd:
-            found.append(int(entry))
-    return found
+    return process_support.children(command_holds="tmrl.transport._netproc")
 
 
 def _wait_for(cond: Callable[[], Any], timeout: float = 20.0, what: str = "condition") -> Any:
@@ -349,7 +336,8 @@ def test_tls_with_fresh_credentials(net, tmp_path):
     folder = tmp_path / "creds"
     key, cert = ensure_credentials(folder)
     assert key.name == "key.pem" and cert.name == "certificate.pem"
-    assert stat.S_IMODE(key.stat().st_mode) == 0o600
+    if os.name == "posix":  # (Windows has no such file modes)
+        assert stat.S_IMODE(key.stat().st_mode) == 0o600
     before = (key.read_bytes(), cert.read_bytes())
     assert ensure_credentials(folder) == (key, cert) and (key.read_bytes(), cert.read_bytes()) == before
     worker_folder = tmp_path / "worker_creds"  # a worker machine holds the certificate only
@@ -482,16 +470,24 @@ while True:
 
 
 def _pid_gone(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
-    except FileNotFoundError:
-        return True
+    return not process_support.alive(pid)
 
 
-@pytest.mark.parametrize("sig", ["SIGINT", "SIGKILL"])
-def test_network_processes_end_with_their_owner_and_free_the_port(tmp_path, port_factory, sig):
+@pytest.mark.posix
+def test_network_processes_end_with_their_owner_on_ctrl_c_and_free_the_port(tmp_path, port_factory):
     import signal
+
+    # Ctrl-C reaches the whole process group in a terminal; here it is sent to the owner only,
+    # and the network processes ignore SIGINT anyway: they end because their owner does.
+    _network_processes_end_with_their_owner(tmp_path, port_factory, lambda owner: owner.send_signal(signal.SIGINT))
+
+
+def test_network_processes_end_with_their_killed_owner_and_free_the_port(tmp_path, port_factory):
+    # SIGKILL, or TerminateProcess on Windows: no clean-up in the owner
+    _network_processes_end_with_their_owner(tmp_path, port_factory, lambda owner: owner.kill())
+
+
+def _network_processes_end_with_their_owner(tmp_path, port_factory, stop: Callable[[Any], None]) -> None:
     import subprocess
     import sys
 
@@ -502,9 +498,7 @@ def test_network_processes_end_with_their_owner_and_free_the_port(tmp_path, port
     try:
         pids = [int(p) for p in owner.stdout.readline().split()]
         assert len(pids) == 2 and not any(_pid_gone(p) for p in pids)
-        # Ctrl-C reaches the whole process group in a terminal; here it is sent to the owner only,
-        # and the network processes ignore SIGINT anyway: they end because their owner does.
-        owner.send_signal(getattr(signal, sig))
+        stop(owner)
         owner.wait(30)
     finally:
         if owner.poll() is None:
@@ -516,17 +510,10 @@ def test_network_processes_end_with_their_owner_and_free_the_port(tmp_path, port
         s.bind(("127.0.0.1", port))
 
 
-def _rss_bytes(pid: int) -> int:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    raise AssertionError("no VmRSS")
+_rss_bytes = process_support.rss_bytes
 
 
 def test_a_stalled_worker_does_not_make_the_relay_buffer_every_broadcast(net, caplog):
-    import signal
-
     relay = net.relay()
     trainer, stalled, fresh = net.trainer(), net.worker(), net.worker()
     assert trainer.wait_connected(30) and stalled.wait_connected(30) and fresh.wait_connected(30)
@@ -534,14 +521,14 @@ def test_a_stalled_worker_does_not_make_the_relay_buffer_every_broadcast(net, ca
     trainer.broadcast_weights(b"\x00" * size)
     _wait_for(lambda: fresh._weights is not None, what="the first broadcast")
     base = _rss_bytes(relay.pid)
-    os.kill(stalled.pid, signal.SIGSTOP)  # its network process stops reading its socket
+    process_support.freeze(stalled.pid)  # its network process stops reading its socket
     try:
         for i in range(1, 13):  # 48 MiB in total
             trainer.broadcast_weights(bytes([i]) * size)
             _wait_for(lambda i=i: (fresh._weights or b"\x00")[:1] == bytes([i]), what=f"broadcast {i}")
         grown = _rss_bytes(relay.pid) - base
     finally:
-        os.kill(stalled.pid, signal.SIGCONT)
+        process_support.thaw(stalled.pid)
     assert grown < 6 * size, f"the relay grew by {grown / 2**20:.0f} MiB for a stalled worker"
     _wait_for(
         lambda: (stalled._weights or b"\x00")[:1] == bytes([12]),
@@ -565,13 +552,11 @@ def test_a_worker_cannot_broadcast_fake_weights(net, caplog):
 
 
 def test_a_killed_trainer_is_replaced_and_gets_the_backlog(net):
-    import signal
-
     net.relay()
     first = net.trainer()
     worker = net.worker()
     assert first.wait_connected(30) and worker.wait_connected(30)
-    os.kill(first.pid, signal.SIGKILL)  # the trainer's machine process dies without goodbye
+    process_support.kill(first.pid)  # the trainer's machine process dies without goodbye
     _wait_for(lambda: not first.connected, what="the dead trainer")
     worker.send_samples("kept at the relay")
     second = net.trainer()
@@ -580,21 +565,19 @@ def test_a_killed_trainer_is_replaced_and_gets_the_backlog(net):
 
 
 def test_samples_in_flight_to_a_dying_trainer_go_to_the_next_one(net, caplog):
-    import signal
-
     net.relay()
     worker = net.worker()
     first = net.trainer()
     assert first.wait_connected(30) and worker.wait_connected(30)
     _wait_for(lambda: "asks for 64 more sample batches" in _log_text(caplog), what="the trainer's credit")
-    os.kill(first.pid, signal.SIGSTOP)  # it stops reading: what the relay sends it stays unacknowledged
+    process_support.freeze(first.pid)  # it stops reading: what the relay sends it stays unacknowledged
     for i in range(5):
         worker.send_samples(i)
     _wait_for(
         lambda: _log_text(caplog).count("sent a sample batch") >= 5,
         what="the batches sent to the first trainer",
     )
-    os.kill(first.pid, signal.SIGKILL)
+    process_support.kill(first.pid)
     second = net.trainer()
     got = _receive(second, 5)
     assert sorted(set(got)) == [0, 1, 2, 3, 4]  # nothing lost (duplicates would be allowed)
@@ -602,15 +585,13 @@ def test_samples_in_flight_to_a_dying_trainer_go_to_the_next_one(net, caplog):
 
 
 def test_samples_unacknowledged_by_a_dying_relay_are_sent_again(net):
-    import signal
-
     old_relay = net.relay()
     worker = net.worker()
     assert worker.wait_connected(30)
-    os.kill(old_relay.pid, signal.SIGSTOP)  # receives nothing more, acknowledges nothing
+    process_support.freeze(old_relay.pid)  # receives nothing more, acknowledges nothing
     for i in range(3):
         worker.send_samples(("held by the worker", i))
-    os.kill(old_relay.pid, signal.SIGKILL)
+    process_support.kill(old_relay.pid)
     _wait_for(lambda: not worker.connected, what="the worker to notice")
     net.relay()
     trainer = net.trainer()

@@ -10,11 +10,10 @@ started) is the backend's ``_Harness``: adding a backend means adding its entry 
 from __future__ import annotations
 
 import logging
-import os
-import signal
 import time
 from typing import Any
 
+import process_support
 import pytest
 from test_transport import _wait_for  # polls a condition another process makes true
 
@@ -27,19 +26,7 @@ PASSWORD = "contract password"
 
 def _child_processes() -> set[int]:
     """Live (non-zombie) child processes of this test process."""
-    me = str(os.getpid())
-    found = set()
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if fields[1] == me and fields[0] != "Z":
-            found.add(int(entry))
-    return found
+    return set(process_support.children())
 
 
 class _Harness:
@@ -95,10 +82,10 @@ class _TlspyoHarness(_Harness):
         return kw
 
     def stall(self, link: Any) -> None:
-        os.kill(link.pid, signal.SIGSTOP)
+        process_support.freeze(link.pid)
 
     def crash(self, link: Any) -> None:
-        os.kill(link.pid, signal.SIGKILL)
+        process_support.kill(link.pid)
 
     def wait_in_flight(self, n: int) -> None:
         _wait_for(

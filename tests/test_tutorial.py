@@ -118,11 +118,7 @@ def test_memory_never_joins_two_episodes_and_forgets_the_oldest():
     assert batch.obs[0].shape == (2, 2) and batch.act.shape == (2, 2)
 
 
-def stop(proc: subprocess.Popen, timeout: float = 30) -> tuple[str, str]:
-    proc.send_signal(signal.SIGINT)
-    return proc.communicate(timeout=timeout)
-
-
+@pytest.mark.posix
 def test_three_parts_as_three_processes(tmp_path):
     data = tmp_path / "data"
     port = str(free_port())
@@ -136,12 +132,14 @@ def test_three_parts_as_three_processes(tmp_path):
                                  check=False)
         assert "trainer done" in ok(trainer)
         assert (data / "weights" / "tutorial_drone_trainer.json").is_file()
-        w_out, w_err = stop(worker)
+        worker.send_signal(signal.SIGINT)  # Ctrl-C
+        w_out, w_err = worker.communicate(timeout=30)
         assert worker.returncode == 130 and "stopped (Ctrl-C)" in w_out, w_err[-3000:]
         episodes = EPISODE.findall(w_out)
         assert episodes and max(int(v) for *_, v in episodes) >= 1, w_out[-2000:]
         assert (data / "weights" / "tutorial_drone_worker.json").is_file()  # the weights it received
-        s_out, s_err = stop(server)
+        server.send_signal(signal.SIGINT)
+        s_out, s_err = server.communicate(timeout=30)
         assert server.returncode == 130 and "stopped (Ctrl-C)" in s_out, s_err[-3000:]
     finally:
         for proc in (server, worker):

@@ -36,6 +36,7 @@ def env_for(data: Path, **extra: str) -> dict:
     return env
 
 
+@pytest.mark.posix
 def test_under_load_one_line_per_10_s_then_ctrl_c_writes_the_summary_and_the_plot(tmp_path):
     png = tmp_path / "returns.png"
     proc = subprocess.Popen([sys.executable, str(SCRIPT), "--minutes", "10", "--time-step", "0.002",

@@ -229,6 +229,7 @@ def test_partial_to_dict_names_builtin_defaults_it_cannot_inspect():
     assert d["container"] == "builtins:dict" and d["n"] == 2
 
 
+@pytest.mark.posix  # file modes
 def test_atomic_write_uses_ordinary_permissions_unless_asked(tmp_path):
     import os
     import stat
@@ -294,8 +295,9 @@ print(faults() - f0)
 """
 
 
-@pytest.mark.skipif(not (sys.platform.startswith("linux") and os.confstr("CS_GNU_LIBC_VERSION")),
-                    reason="the allocator settings exist with glibc on Linux only")
+@pytest.mark.linux  # glibc's allocator settings, counted in page faults by the resource module
+@pytest.mark.skipif(sys.platform.startswith("linux") and not os.confstr("CS_GNU_LIBC_VERSION"),
+                    reason="the allocator settings exist with glibc only")
 def test_reuse_freed_memory_stops_page_faults_of_repeated_large_allocations_and_the_trainer_applies_it():
     def faults(mode: str) -> int:
         out = subprocess.run([sys.executable, "-c", _FAULTS_CHILD, mode], capture_output=True, text=True,

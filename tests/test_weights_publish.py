@@ -9,7 +9,6 @@ the training loop.
 from __future__ import annotations
 
 import os
-import signal
 import sys
 import threading
 import time
@@ -18,10 +17,10 @@ from typing import Any
 
 import gymnasium
 import numpy as np
+import process_support
 import pytest
 import torch
 
-from tmrl.distributed import weights as weights_mod
 from tmrl.distributed.weights import WeightsInstaller, move_over, replace_file
 from tmrl.networking import RolloutWorker
 from tmrl.spaces import describe_spaces
@@ -179,7 +178,7 @@ def test_broadcasts_never_wait_for_the_network_and_the_newest_gets_through(tmp_p
     actor = run.agent.get_actor()
     assert len(actor.to_bytes()) > 1_000_000
     net = trainer.interface._link._proc.proc
-    os.kill(net.pid, signal.SIGSTOP)
+    process_support.freeze(net.pid)
     try:
         def broadcast_ten() -> None:
             for _ in range(10):
@@ -192,7 +191,7 @@ def test_broadcasts_never_wait_for_the_network_and_the_newest_gets_through(tmp_p
         thread.join(20)
         assert not thread.is_alive(), "a broadcast waited for the stopped network process"
     finally:
-        os.kill(net.pid, signal.SIGCONT)
+        process_support.thaw(net.pid)
     assert trainer.interface.flush_broadcasts(30)
     assert trainer.interface._publisher.replaced >= 5  # waiting ones were replaced, not queued
     newest = actor.to_bytes()
@@ -223,7 +222,7 @@ def test_a_failed_send_is_raised_by_the_next_broadcast_and_close_sends_the_last(
     run = other._load_or_create()
     assert other.interface.flush_broadcasts(30)
     net = other.interface._link._proc.proc
-    os.kill(net.pid, signal.SIGKILL)
+    process_support.kill(net.pid)
     net.wait(10)
     other.interface.broadcast_model(run.agent.get_actor())  # handed over: fails on the publishing thread
     assert other.interface.flush_broadcasts(30)

@@ -24,8 +24,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = [pytest.mark.timeout(300),
-              pytest.mark.skipif(not sys.platform.startswith("linux"), reason="emulates Windows on Linux (/proc)")]
+pytestmark = [pytest.mark.timeout(300), pytest.mark.linux]  # emulates Windows on Linux (and reads /proc)
 
 HERE = Path(__file__).resolve().parent
 GONE_WITHIN = 10.0

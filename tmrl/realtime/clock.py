@@ -21,7 +21,10 @@ import threading
 import time
 from typing import Any, Generic, Protocol, TypeVar
 
-__all__ = ["Channel", "Clock", "FakeClock", "PerfCounterClock"]
+__all__ = ["Channel", "Clock", "FakeClock", "PerfCounterClock", "receive"]
+
+WAKE_EVERY = 0.2
+"""Longest single wait of :func:`receive`, in seconds: how late Ctrl-C may be on Windows."""
 
 T = TypeVar("T")
 
@@ -38,6 +41,21 @@ class Channel(Protocol[T]):
         Raises:
             queue.Empty: ``timeout`` seconds (real time) passed first.
         """
+
+
+def receive(channel: Channel[T]) -> T:
+    """The oldest item of ``channel``, however long it takes to come.
+
+    It waits in slices of :data:`WAKE_EVERY` seconds: on Windows, CPython 3.10 to 3.12 deliver
+    Ctrl-C to a thread blocked on a lock only once the wait ends, so one wait without a timeout
+    (a time step can wait 60 s for OpenPlanet's first frame) would hold Ctrl-C back as long.
+    Between two slices the ``KeyboardInterrupt`` is raised at once.
+    """
+    while True:
+        try:
+            return channel.get(timeout=WAKE_EVERY)
+        except queue.Empty:
+            continue
 
 
 class Clock(Protocol):

@@ -123,8 +123,8 @@ class DummyRCDrone:
         with self._cond:
             self._stopped = True
             self._cond.notify()
-        if self._thread is not threading.current_thread():
-            self._thread.join()
+        while self._thread is not threading.current_thread() and self._thread.is_alive():
+            self._thread.join(0.2)  # in slices: on Windows, Ctrl-C comes in between two
 
     def __enter__(self) -> DummyRCDrone:  # noqa: PYI034
         return self

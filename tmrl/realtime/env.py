@@ -54,7 +54,7 @@ from tmrl.realtime.benchmark import (
     StepObserver,
     make_benchmark,
 )
-from tmrl.realtime.clock import Clock, PerfCounterClock
+from tmrl.realtime.clock import Clock, PerfCounterClock, receive
 from tmrl.realtime.interface import CONFIG_KEYS, DEFAULT_CONFIG_DICT, RealTimeGymInterface
 from tmrl.realtime.runner import (  # re-exported: their home was this module
     CallInterface,
@@ -321,7 +321,7 @@ class RealTimeEnv(gymnasium.Env):
         if not self._INTERFACE_ON_WORKER:
             return fn(self._interface)
         self._jobs.put(CallInterface(fn))
-        result = self._results.get()
+        result = receive(self._results)
         if isinstance(result, Raised):
             raise result.error
         return result.value
@@ -377,7 +377,7 @@ class RealTimeEnv(gymnasium.Env):
     def _join_thread(self) -> None:
         """Wait until the running time step (if any) has captured its observation and ended."""
         if self._in_flight:
-            self._result = self._results.get()
+            self._result = receive(self._results)
             self._in_flight = False
             self._clock.sleep_until(self._t_end)
 
@@ -494,7 +494,7 @@ class RealTimeEnv(gymnasium.Env):
                     self.time_step_timeout,
                 )
             )
-            self._result = self._results.get()
+            self._result = receive(self._results)
             self._in_flight = False
         else:
             self._join_thread()
