@@ -32,15 +32,27 @@ HAS_GPU = torch.cuda.is_available()
 
 
 def test_auto_is_the_gpu_when_there_is_one_and_cpu_is_always_cpu():
-    assert resolve_device("auto") == ("cuda" if HAS_GPU else "cpu")
+    mps = torch.backends.mps.is_available()
+    assert resolve_device("auto") == ("cuda" if HAS_GPU else "mps" if mps else "cpu")
     assert resolve_device("cpu") == resolve_device(" CPU ") == "cpu"
 
 
-@pytest.mark.parametrize("name", ["gpu", "cuda:x", "mps", ""])
+@pytest.mark.parametrize("name", ["gpu", "cuda:x", "metal", ""])
 def test_an_unknown_device_is_one_line_naming_the_option_and_the_choices(name):
     with pytest.raises(UserError) as err:
         resolve_device(name, option="--train-device")
-    assert "\n" not in str(err.value) and "--train-device" in str(err.value) and "auto, cpu, cuda, cuda:N" in str(err.value)
+    assert "\n" not in str(err.value) and "--train-device" in str(err.value)
+    assert "auto, cpu, cuda, cuda:N, mps" in str(err.value)
+
+
+def test_mps_is_apples_gpu_where_there_is_one_and_one_line_elsewhere():
+    if torch.backends.mps.is_available():  # a Mac whose PyTorch has Metal
+        assert resolve_device("mps", option="--train-device") == "mps"
+        return
+    with pytest.raises(UserError) as err:
+        resolve_device("mps", option="--train-device")
+    text = str(err.value)
+    assert "\n" not in text and text.startswith("--train-device mps: PyTorch") and "use --train-device cpu" in text
 
 
 def test_a_gpu_this_machine_lacks_is_one_line_naming_the_option_and_the_fix():
