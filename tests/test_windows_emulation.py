@@ -8,8 +8,8 @@ Every process of the run (the demo, its three roles, their three network process
 
 The demo must still finish with exit 0, its weights and PNGs written, no role dead, nothing of the
 run left; killed outright, its processes must still all go, with the run folder, within 10 s.
-The processes of a run are found through their environment (``TMPDIR``, a folder of the test's):
-this needs Linux's /proc, as the emulation itself needs Linux.
+The processes of a run are found through their environment (``TMPDIR``, a folder of the test's,
+with psutil). The emulation itself needs Linux: the module is marked ``linux``.
 """
 
 from __future__ import annotations
@@ -23,31 +23,12 @@ import time
 from pathlib import Path
 
 import pytest
+from process_support import marked
 
-pytestmark = [pytest.mark.timeout(300), pytest.mark.linux]  # emulates Windows on Linux (and reads /proc)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.linux]  # emulates Windows on Linux
 
 HERE = Path(__file__).resolve().parent
 GONE_WITHIN = 10.0
-
-
-def _processes(marker: str) -> list[int]:
-    """Live processes (not zombies) whose environment holds ``marker``."""
-    needle = marker.encode()
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit() or int(entry) == os.getpid():
-            continue
-        try:
-            with open(f"/proc/{entry}/environ", "rb") as f:
-                if needle not in f.read():
-                    continue
-            with open(f"/proc/{entry}/stat") as f:
-                if f.read().rsplit(")", 1)[1].split()[0] == "Z":
-                    continue
-        except OSError:
-            continue
-        found.append(int(entry))
-    return found
 
 
 class EmulatedRun:
@@ -78,7 +59,7 @@ class EmulatedRun:
         return "".join(self.lines)
 
     def left(self) -> tuple[list[int], list[str]]:
-        return _processes(str(self.tmpdir)), sorted(p.name for p in self.tmpdir.glob("tmrl-*"))
+        return marked(str(self.tmpdir)), sorted(p.name for p in self.tmpdir.glob("tmrl-*"))
 
     def wait_gone(self, within: float) -> float:
         t0 = time.monotonic()
@@ -91,7 +72,7 @@ class EmulatedRun:
             time.sleep(0.05)
 
     def kill_everything(self) -> None:
-        for pid in _processes(str(self.tmpdir)):
+        for pid in marked(str(self.tmpdir)):
             try:
                 os.kill(pid, 9)
             except ProcessLookupError:
