@@ -272,6 +272,16 @@ def test_a_trainer_killed_and_restarted_gets_every_batch_it_had_not_acknowledged
     assert sorted(first + second) == list(range(n))  # nothing lost, nothing acknowledged delivered again
 
 
+def test_the_local_server_drops_a_vanished_client_within_a_minute(tmp_path, made):
+    """The nats-server tmrl starts pings its clients often enough to drop one whose machine
+    vanished (no FIN, no RST) within a minute, as the tlspyo relay's keepalive does."""
+    store = tmp_path / "store"
+    _relay(made, store_dir=store)
+    conf = json.loads((store / "nats-server.conf").read_text())
+    interval = float(str(conf["ping_interval"]).rstrip("s"))
+    assert interval * (int(conf["ping_max"]) + 1) <= 60, conf
+
+
 def test_a_killed_nats_server_is_restarted_and_the_links_reconnect(tmp_path, made):
     store = tmp_path / "store"
     relay = _relay(made, store_dir=store)

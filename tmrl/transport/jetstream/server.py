@@ -125,6 +125,10 @@ class NatsRelay:
             "port": port or -1,
             "server_name": "tmrl",
             "max_payload": int(max_payload),
+            # A client whose machine vanished is dropped within about 45 s (the default, 2 minutes
+            # and two pings, takes 6): every role notices a vanished peer within a minute.
+            "ping_interval": "15s",
+            "ping_max": 2,
             "jetstream": {"store_dir": str(folder / "jetstream")},
             "authorization": {"users": users_block(users, stream, bucket)},
         }
