@@ -480,3 +480,41 @@ def test_a_save_removes_the_temporaries_a_killed_save_left(tmp_path):
     assert not any(f.exists() for f in left)
     assert all(f.exists() for f in mine)
     assert load_checkpoint(path, training_cls()).epoch == training.epoch
+
+
+def test_a_checkpoint_held_for_a_moment_by_another_process_still_loads_and_saves(tmp_path, monkeypatch):
+    """Windows: an antivirus or a backup tool that has a checkpoint file open makes opening,
+    replacing or removing it fail for a moment (PermissionError). Loading and saving wait for it;
+    neither calls the checkpoint corrupt nor loses it."""
+    import builtins
+    import os
+
+    from tmrl import platform
+
+    monkeypatch.setattr(platform, "BUSY_DELAYS", (0.0,) * 6)
+    cls = training_cls()
+    training = trained(cls)
+    path = tmp_path / "ckpt"
+    save_checkpoint(training, path)
+    real_open, real_replace, real_unlink = builtins.open, os.replace, os.unlink
+    calls: dict[tuple[str, str], int] = {}
+
+    def flaky(kind, real):
+        def call(target, *args, **kwargs):  # every other call on each checkpoint file is refused
+            key = (kind, str(target))
+            calls[key] = calls.get(key, 0) + 1
+            if str(target).startswith(str(path)) and calls[key] % 2 == 1:
+                raise PermissionError(13, "being used by another process (emulated)", str(target))
+            return real(target, *args, **kwargs)
+        return call
+
+    monkeypatch.setattr(builtins, "open", flaky("open", real_open))
+    restored = load_checkpoint(path, cls)
+    assert (restored.epoch, restored.total_updates) == (training.epoch, training.total_updates)
+    monkeypatch.setattr(os, "replace", flaky("replace", real_replace))
+    monkeypatch.setattr(os, "unlink", flaky("unlink", real_unlink))
+    restored.epoch += 1
+    save_checkpoint(restored, path)
+    assert any(kind == "replace" and n >= 2 for (kind, _), n in calls.items())  # refused, then retried
+    monkeypatch.undo()
+    assert load_checkpoint(path, cls).epoch == training.epoch + 1

@@ -161,7 +161,11 @@ def _check_file(folder: Path, record: dict[str, Any]) -> Path:
             f"checkpoint {folder} is incomplete: {path.name} is missing; restore the folder from a "
             "backup or delete it to start over"
         )
-    crc, size = _crc_of_file(path)
+    try:  # retried while another process (an antivirus, a backup tool) holds it: Windows
+        crc, size = platform.when_free(_crc_of_file, path, what=str(path))
+    except platform.FileBusy as err:
+        raise CheckpointError(f"checkpoint file {path} cannot be read: {err}; close what holds it and start "
+                              "again") from None
     if size != record["size"]:
         raise CheckpointError(
             f"checkpoint file {path} is truncated ({size} bytes, expected {record['size']}); restore "
@@ -604,7 +608,11 @@ def load_checkpoint(path: str | os.PathLike[str], training: Any) -> Any:
     instance = _build(training)
     state_path = _check_file(folder, header["state"])
     try:
-        state = torch.load(state_path, map_location="cpu", weights_only=True)
+        data = platform.read_bytes(state_path)  # retried while another process holds it (Windows)
+    except OSError as err:
+        raise CheckpointError(f"checkpoint file {state_path} cannot be read ({_one_line(err)})") from None
+    try:
+        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 (torch raises several types for bad files)
         raise CheckpointError(f"checkpoint file {state_path} is corrupt ({_one_line(err)})") from None
     try:
