@@ -144,6 +144,13 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "DROQ": ("DROQ", "class", 4),
     "CROSSQ": ("CROSSQ", "class", 1),
     "TQC": ("TQC", "class", 1),
+    "BRO": ("BRO", "class", 2),
+    "BRO-UTD2-CAP-R250": ("BRO", "demo", 2),
+    "BRO-UTD4-CAP-R250": ("BRO", "demo", 4),
+    "BRO-UTD8-CAP-R250": ("BRO", "demo", 8),
+    "BRO-B0-UTD4-CAP-R250": ("BRO", "demo", 4),
+    "BRO-W128-UTD4-CAP-R250": ("BRO", "demo", 4),
+    "BRO-B2-UTD4-CAP-R250": ("BRO", "demo", 4),
 }
 
 #: The agents a run compares unless ``--agents`` says otherwise: tmrl's SAC, the demo's real-time
@@ -161,7 +168,9 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ",
 #: dropout, under SAC's update), ``policy_every`` (critic updates per policy update of a REDQ-SAC
 #: or DroQ base; otherwise the update ratio, the papers' once per environment step), ``redq_n``
 #: (a REDQ-SAC base's number of critics, ``ALG.REDQ_N``; otherwise the paper's 10), ``n_step``
-#: (the ``-NS`` screens: critics that regress on ``n``-step returns, :func:`_n_step_targets`).
+#: (the ``-NS`` screens: critics that regress on ``n``-step returns, :func:`_n_step_targets`),
+#: ``agent`` (more keyword arguments of the agent: the BRO screens' ``pessimism``, ``critic_width``,
+#: ``critic_blocks``).
 DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD4-LR3": {"lr": 3e-4},
     "SAC-UTD4-FA": {"alpha": 0.01, "learn_entropy_coef": False},
@@ -183,6 +192,12 @@ DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "REDQSAC-UTD4-CAP-R250": {"start_steps": 250, "policy_every": 1, "alpha_max": 0.01},
     "REDQSAC-UTD8-CAP-R250": {"start_steps": 250, "policy_every": 1, "alpha_max": 0.01},
     "REDQSAC-UTD4-CAP-NS3-R250": {"start_steps": 250, "policy_every": 1, "alpha_max": 0.01, "n_step": 3},
+    "BRO-UTD2-CAP-R250": {"start_steps": 250, "alpha_max": 0.01},
+    "BRO-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01},
+    "BRO-UTD8-CAP-R250": {"start_steps": 250, "alpha_max": 0.01},
+    "BRO-B0-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"pessimism": 0.0}},
+    "BRO-W128-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"critic_width": 128}},
+    "BRO-B2-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"critic_blocks": 2}},
 }
 
 #: Uniformly random environment steps before training (tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING),
@@ -309,6 +324,7 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int, device:
             kwargs["model_cls"] = functools.partial(_lidar_model("DROQ"), dropout_rate=0.0)
         if v["redq_n"] is not None:
             kwargs["n"] = v["redq_n"]
+        kwargs.update(v.get("agent", {}))
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = policy_every
     agent = cls(*spaces, device, **kwargs)

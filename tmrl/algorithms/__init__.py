@@ -1,6 +1,7 @@
 """Training algorithms: SAC (:mod:`tmrl.algorithms.sac`), REDQ-SAC (:mod:`tmrl.algorithms.redq`),
 DroQ (:mod:`tmrl.algorithms.droq`), TQC (:mod:`tmrl.algorithms.tqc`), CrossQ
-(:mod:`tmrl.algorithms.crossq`) and DrQ (:mod:`tmrl.algorithms.drq`, image observations only).
+(:mod:`tmrl.algorithms.crossq`), DrQ (:mod:`tmrl.algorithms.drq`, image observations only) and BRO
+(:mod:`tmrl.algorithms.bro`).
 
 ``ALG.ALGORITHM`` in ``config.json`` names one of them; :func:`agent_class` maps that name to
 the class.
@@ -8,6 +9,7 @@ the class.
 
 from __future__ import annotations
 
+from tmrl.algorithms.bro import BROAgent
 from tmrl.algorithms.crossq import CrossQAgent
 from tmrl.algorithms.droq import DroQAgent
 from tmrl.algorithms.drq import DrQAgent
@@ -18,10 +20,10 @@ from tmrl.config.schema import AGENT_CLASSES
 from tmrl.errors import UserError
 
 __all__ = [
-    "ALGORITHMS", "CrossQAgent", "DrQAgent", "DroQAgent", "REDQSACAgent", "SACAgent", "SpinupSacAgent", "TQCAgent", "agent_class",
+    "ALGORITHMS", "BROAgent", "CrossQAgent", "DrQAgent", "DroQAgent", "REDQSACAgent", "SACAgent", "SpinupSacAgent", "TQCAgent", "agent_class",
 ]
 
-_CLASSES = {cls.__name__: cls for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, CrossQAgent, DrQAgent)}
+_CLASSES = {cls.__name__: cls for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, CrossQAgent, DrQAgent, BROAgent)}
 ALGORITHMS: dict[str, type] = {name: _CLASSES[cls_name] for name, cls_name in AGENT_CLASSES.items()}
 """Values of ``ALG.ALGORITHM`` and the agents they select (the names come from the settings
 table, :data:`tmrl.config.schema.AGENT_CLASSES`)."""
@@ -31,13 +33,14 @@ def agent_class(name: str) -> type:
     """The training agent class for a config's ``ALG.ALGORITHM``.
 
     Args:
-        name: ``"SAC"``, ``"REDQSAC"``, ``"DROQ"``, ``"TQC"``, ``"CROSSQ"`` or ``"DRQ"``; case, ``-`` and ``_`` are ignored
+        name: ``"SAC"``, ``"REDQSAC"``, ``"DROQ"``, ``"TQC"``, ``"CROSSQ"``, ``"DRQ"`` or ``"BRO"``; case, ``-`` and ``_`` are ignored
             (``"redq-sac"`` works).
 
     Returns:
         The class: :class:`~tmrl.algorithms.sac.SACAgent`, :class:`~tmrl.algorithms.redq.REDQSACAgent`,
         :class:`~tmrl.algorithms.droq.DroQAgent`, :class:`~tmrl.algorithms.tqc.TQCAgent`,
-        :class:`~tmrl.algorithms.crossq.CrossQAgent` or :class:`~tmrl.algorithms.drq.DrQAgent`.
+        :class:`~tmrl.algorithms.crossq.CrossQAgent`, :class:`~tmrl.algorithms.drq.DrQAgent` or
+        :class:`~tmrl.algorithms.bro.BROAgent`.
 
     Raises:
         UserError: unknown algorithm name.

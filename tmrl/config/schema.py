@@ -95,7 +95,7 @@ RTGYM_INTERFACES = (
 progress), the built-in simulated track (same three observations), any Gymnasium environment
 (``ENV.GYM_ID``), and the real-time simulated drone of :mod:`tmrl.realtime`."""
 
-ALGORITHMS = ("SAC", "REDQSAC", "DROQ", "TQC", "CROSSQ", "DRQ")
+ALGORITHMS = ("SAC", "REDQSAC", "DROQ", "TQC", "CROSSQ", "DRQ", "BRO")
 """Values of ``ALG.ALGORITHM``."""
 
 PASSWORD_PLACEHOLDER = "YourRandomPasswordHere"
@@ -114,7 +114,7 @@ ON_DEVICE_MODES = ("auto", "on", "off")
 """Values of ``MEMORY_ON_DEVICE`` (the built-in memories' ``on_device``, :mod:`tmrl.memory.resident`)."""
 
 AGENT_CLASSES = {"SAC": "SACAgent", "REDQSAC": "REDQSACAgent", "DROQ": "DroQAgent", "TQC": "TQCAgent",
-                 "CROSSQ": "CrossQAgent", "DRQ": "DrQAgent"}
+                 "CROSSQ": "CrossQAgent", "DRQ": "DrQAgent", "BRO": "BROAgent"}
 """The agent class each value of ``ALG.ALGORITHM`` selects (:data:`tmrl.algorithms.ALGORITHMS`)."""
 
 _MIB = 1024 * 1024
@@ -128,7 +128,8 @@ def _agents(arg: str, class_default: Any) -> dict[str, Any]:
 _ALG = Section(
     {
         "ALGORITHM": Choice("SAC", "training algorithm (SAC: SACAgent, REDQSAC: REDQSACAgent, DROQ: DroQAgent, "
-                            "TQC: TQCAgent, CROSSQ: CrossQAgent, DRQ: DrQAgent, image interfaces only)", ALGORITHMS),
+                            "TQC: TQCAgent, CROSSQ: CrossQAgent, DRQ: DrQAgent, image interfaces only, BRO: BROAgent)",
+                            ALGORITHMS),
         "LEARN_ENTROPY_COEF": Bool(False, "learn the entropy coefficient (SAC v2) instead of keeping ALPHA fixed",
                                    **_agents("learn_entropy_coef", True)),
         "LR_ACTOR": Number(1e-05, "learning rate of the actor", min=0, min_open=True, **_agents("lr_actor", 1e-3)),
@@ -160,6 +161,17 @@ _ALG = Section(
                              class_default=25),
         "TQC_DROP_PER_CRITIC": Int(2, "largest target quantiles dropped per TQC critic (below TQC_QUANTILES)", min=0,
                                    feeds=("TQCAgent.drop_per_critic",), class_default=2),
+        "BRO_N": Int(2, "number of BRO critics", min=1, feeds=("BROAgent.n",), class_default=2),
+        "BRO_QUANTILES": Int(25, "quantiles output by each BRO critic", min=1, feeds=("BROAgent.n_quantiles",),
+                             class_default=25),
+        "BRO_PESSIMISM": Number(1.0, "BRO's beta: the target and the actor read the critics' per-quantile mean minus "
+                                     "this many standard deviations (0: optimistic; 1 with two critics: their "
+                                     "minimum)", min=0, feeds=("BROAgent.pessimism",), class_default=1.0),
+        "BRO_CRITIC_WIDTH": Int(256, "hidden width of each BRO critic (BroNet; the paper: 512, for a GPU)", min=1,
+                                feeds=("BROAgent.critic_width",), class_default=256),
+        "BRO_CRITIC_BLOCKS": Int(1, "residual blocks of each BRO critic (BroNet: Linear, LayerNorm, ReLU, Linear, "
+                                    "LayerNorm, plus the input)", min=0, feeds=("BROAgent.critic_blocks",),
+                                 class_default=1),
         "CROSSQ_POLICY_DELAY": Int(3, "CrossQ critic updates for each actor update", min=1,
                                    feeds=("CrossQAgent.policy_delay",), class_default=3),
         "CROSSQ_CRITIC_WIDTH": Int(1024, "width of the two hidden layers of each CrossQ critic (the paper: 2048, "

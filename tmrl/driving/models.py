@@ -32,6 +32,7 @@ from tmrl.actor import TorchActorModule
 from tmrl.algorithms.crossq import CrossQActorCritic
 from tmrl.algorithms.droq import DroQMLPActorCritic
 from tmrl.algorithms.tqc import TQCActorCritic
+from tmrl.algorithms.bro import BROActorCritic
 from tmrl.errors import UserError
 from tmrl.models import (
     EnsembleQFunction,
@@ -55,6 +56,7 @@ __all__ = [
     "LidarDroQActorCritic",
     "LidarQFunctions",
     "LidarTQCActorCritic",
+    "LidarBROActorCritic",
     "REDQCNNActorCritic",
     "ScaledCritic",
     "SquashedGaussianCNNActor",
@@ -653,12 +655,27 @@ class LidarCrossQActorCritic(CrossQActorCritic):
         _wire_lidar(self, observation_space, action_space, hidden_sizes, activation)
 
 
+class LidarBROActorCritic(BROActorCritic):
+    """BRO's actor-critic (:class:`~tmrl.algorithms.bro.BROActorCritic`) for lidar observations:
+    :class:`LidarActor` and BroNet quantile critics on inputs scaled by :func:`lidar_obs_scales`.
+    Arguments as :class:`~tmrl.algorithms.bro.BROActorCritic`'s.
+    """
+
+    def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
+                 activation: Callable[[], nn.Module] = nn.ReLU, n: int = 2, n_quantiles: int = 25,
+                 critic_width: int = 256, critic_blocks: int = 1) -> None:
+        super().__init__(observation_space, action_space, hidden_sizes, activation, n=n, n_quantiles=n_quantiles,
+                         critic_width=critic_width, critic_blocks=critic_blocks)
+        _wire_lidar(self, observation_space, action_space, hidden_sizes, activation)
+
+
 LIDAR_MODELS: dict[str, type] = {
     "SAC": LidarActorCritic,
     "REDQSAC": LidarActorCritic,
     "DROQ": LidarDroQActorCritic,
     "TQC": LidarTQCActorCritic,
     "CROSSQ": LidarCrossQActorCritic,
+    "BRO": LidarBROActorCritic,
 }
 """The actor-critic each ``ALG.ALGORITHM`` trains on the lidar interfaces (``SIMLIDAR``,
 ``SIMLIDARPROGRESS``, ``TM20LIDAR``, ``TM20LIDARPROGRESS``); the actor of each is a
