@@ -285,3 +285,48 @@ def test_profiling_is_a_context_manager_that_logs_only_when_enabled(caplog):
         sorted(range(1000), key=lambda x: -x)
     (line,) = [r.getMessage() for r in caplog.records if "profile of the block" in r.getMessage()]
     assert "cumulative" in line
+
+
+# --- a trainer that cannot keep the ratio says so ---------------------------------------------------
+
+
+def test_a_trainer_behind_the_asked_ratio_says_so_once_in_the_log_and_in_every_round_line(caplog):
+    """Workers that send ten samples per update to a setting that asks four updates per sample:
+    the trainer never waits, so each round is behind, the round line says by how much, and the
+    log warns once (not once per round)."""
+    from tmrl.metrics import format_row
+
+    training = make_training(max_training_steps_per_env_step=4.0, rounds=3, steps=10, start_training=0,
+                             update_buffer_interval=1)
+    interface = FakeInterface([], endless=10)
+    interface.training = training
+    with caplog.at_level(logging.WARNING, logger="tmrl.training_offline"):
+        rows = training.run_epoch(interface)
+    assert len(rows) == 3
+    for row in rows:
+        assert row["behind"] is True and row["updates_per_sample_asked"] == 4.0
+        assert row["updates_per_sample"] == pytest.approx(0.1, abs=0.02)
+        assert f"behind: {row['updates_per_sample']:.2f} of 4 upd/smp" in format_row(row)
+    warnings = [r.getMessage() for r in caplog.records if "behind" in r.getMessage()]
+    assert len(warnings) == 1, warnings
+    assert "4 asked" in warnings[0] and "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP" in warnings[0]
+
+
+def test_a_trainer_that_keeps_the_ratio_is_not_behind(caplog):
+    """One sample per pull and four updates asked per sample: the ratio binds (the trainer waits
+    for samples), so no round is behind, no line says so and nothing is logged."""
+    from tmrl.metrics import format_row
+
+    training = make_training(max_training_steps_per_env_step=4.0, rounds=4, steps=12, start_training=8,
+                             update_buffer_interval=100)
+    interface = FakeInterface([], endless=1)
+    interface.training = training
+    with caplog.at_level(logging.WARNING, logger="tmrl.training_offline"):
+        rows = training.run_epoch(interface)
+    assert [row["behind"] for row in rows] == [False] * 4
+    # the 8 samples before training allow 32 updates; from then on each sample arrives when the
+    # ratio asks for it (the first round also holds the samples received before training started)
+    fed = [row["updates_per_sample"] for row in rows[1:] if row["updates_per_sample"] is not None]
+    assert fed and all(v == pytest.approx(4.0, rel=0.1) for v in fed), fed
+    assert not any("behind" in format_row(row) for row in rows)
+    assert not [r for r in caplog.records if "behind" in r.getMessage()]

@@ -98,6 +98,11 @@ def format_row(row: Mapping[str, Any]) -> str:
         )
         if isinstance(row.get(key), (int, float)) and row[key] > 0
     )
+    if row.get("behind") is True:  # the trainer cannot keep the ratio the setting asks for
+        done = row.get("updates_per_sample")
+        done_text = "-" if done is None else f"{float(done):.2f}"
+        behind = f"behind: {done_text} of {_fmt(row.get('updates_per_sample_asked'))} upd/smp"
+        alarms = f"{alarms} {behind}" if alarms else behind
     if alarms:
         parts.append(alarms)
     return " | ".join(parts)

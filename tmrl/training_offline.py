@@ -34,6 +34,13 @@ logger = logging.getLogger(__name__)
 
 _WAIT_LOG_INTERVAL_S = 30.0
 
+BEHIND_FRACTION = 0.9
+"""A round that does fewer than this fraction of the updates per sample asked, without waiting,
+is behind (:meth:`TrainingOffline._fell_behind`)."""
+
+BEHIND_IDLE_FRACTION = 0.05
+"""A round idle (waiting for samples) for more than this fraction of its time kept up."""
+
 
 def _mean_rows(rows: list[dict[str, Any]]) -> dict[str, float]:
     """Mean of each numeric metric over a round's training steps (NaN and None skipped).
@@ -110,6 +117,9 @@ class RoundMetrics:
         memory_errors: sample batches the memory refused, so far.
         counters: the interface's ``counters()`` (``rejected_batches``...), when it has them.
         stopped: :meth:`TrainingOffline.stop` cut the round short.
+        updates_per_sample_asked: the setting's ratio (``max_training_steps_per_env_step``).
+        behind: the trainer fell behind that ratio in this round: it never waited for samples, and
+            did fewer than :data:`BEHIND_FRACTION` of the updates the round's samples asked for.
     """
 
     epoch: int
@@ -134,6 +144,13 @@ class RoundMetrics:
     memory_errors: int = 0
     counters: dict[str, Any] = field(default_factory=dict)
     stopped: bool = False
+    updates_per_sample_asked: float | None = None
+    behind: bool = False
+
+    @property
+    def updates_per_sample(self) -> float | None:
+        """``updates / samples`` of the round (None for a round that received none)."""
+        return self.updates / self.samples if self.samples > 0 else None
 
     @property
     def updates_per_second(self) -> float:
@@ -149,7 +166,8 @@ class RoundMetrics:
         """The round as one flat row of metrics, as :meth:`TrainingOffline.run_epoch` returns and
         logs it: ``epoch``, ``round``, ``rounds``, the totals, the episode statistics, the times,
         ``updates_per_second``, ``samples_per_second``, the agent's means, ``skipped_updates``,
-        ``restored_states``, ``memory_errors`` and the counters."""
+        ``restored_states``, ``memory_errors``, ``updates_per_sample`` (done),
+        ``updates_per_sample_asked``, ``behind`` and the counters."""
         row: dict[str, Any] = {
             "epoch": self.epoch,
             "round": self.round,
@@ -172,6 +190,9 @@ class RoundMetrics:
         row["skipped_updates"] = self.skipped_updates
         row["restored_states"] = self.restored_states
         row["memory_errors"] = self.memory_errors
+        row["updates_per_sample"] = self.updates_per_sample
+        row["updates_per_sample_asked"] = self.updates_per_sample_asked
+        row["behind"] = self.behind
         row.update(self.counters)
         return row
 
@@ -341,6 +362,7 @@ class TrainingOffline:
             raise UserError("TrainingOffline max_env_steps_per_training_step must be >= 0 (0: no limit), got "
                             f"{self.max_env_steps_per_training_step}")
         self.memory_errors = 0
+        self._said_behind = False
         self._memory_error_log = RateLimitedLog(logger, logging.WARNING, 60.0)
         self.memory = self.memory_cls(nb_steps=self.steps, device=self.device)
         if isinstance(self.env_cls, tuple):
@@ -637,6 +659,9 @@ class TrainingOffline:
     ) -> RoundMetrics:
         round_time = time.perf_counter() - t0
         counters = getattr(interface, "counters", None)
+        updates, samples = self.total_updates - updates_before, self._round_samples
+        asked = float(self.max_training_steps_per_env_step)
+        behind = self._fell_behind(updates, samples, asked, clock.idle, round_time)
         return RoundMetrics(
             epoch=self.epoch,
             round=rnd,
@@ -652,15 +677,38 @@ class TrainingOffline:
             idle_time=clock.idle,
             sampling_time=clock.sampling,
             training_time=clock.training,
-            updates=self.total_updates - updates_before,
-            samples=self._round_samples,
+            updates=updates,
+            samples=samples,
             agent=_mean_rows(rows),
             skipped_updates=int(getattr(self.agent, "skipped_updates", 0)),
             restored_states=self.restored_states,
             memory_errors=self.memory_errors,
             counters=dict(counters()) if callable(counters) else {},  # rejected_batches... (networking)
             stopped=stopped,
+            updates_per_sample_asked=asked,
+            behind=behind,
         )
+
+    def _fell_behind(self, updates: int, samples: int, asked: float, idle: float, round_time: float) -> bool:
+        """Whether a round fell behind the ratio the setting asks for, said once in the log (the
+        round lines carry it each time): the trainer trained the whole round without waiting for
+        samples (at most :data:`BEHIND_IDLE_FRACTION` of it idle) and still did fewer than
+        :data:`BEHIND_FRACTION` of ``asked`` updates per sample received in it. In real time the
+        workers do not wait for the trainer, so such a round trains on fewer updates per sample
+        than the setting's figures were measured with."""
+        if samples <= 0 or asked <= 0 or idle > BEHIND_IDLE_FRACTION * round_time:
+            return False
+        done = updates / samples
+        if done >= BEHIND_FRACTION * asked:
+            return False
+        if not self._said_behind:
+            self._said_behind = True
+            logger.warning(
+                "the trainer is behind: %.2f updates per sample done, %.4g asked (MAX_TRAINING_STEPS_PER_ENVIRONMENT_"
+                "STEP); it trains as fast as it can but the workers send samples faster. The round lines say "
+                "\"behind\" while it lasts; a cheaper setting (docs/simulator.md, \"Which agent\") or a faster "
+                "trainer keeps the ratio", done, asked)
+        return True
 
 
 @dataclass(eq=False)
