@@ -29,7 +29,8 @@ import pytest
 import torch
 from gymnasium import spaces
 
-from tmrl.algorithms import CrossQAgent, DroQAgent, DrQAgent, REDQSACAgent, SACAgent, TQCAgent
+from tmrl.algorithms import BROAgent, CrossQAgent, DroQAgent, DrQAgent, REDQSACAgent, SACAgent, TQCAgent
+from tmrl.algorithms.bro import BROActorCritic
 from tmrl.algorithms.crossq import CrossQActorCritic
 from tmrl.algorithms.droq import DroQMLPActorCritic
 from tmrl.algorithms.drq import DrQActorCritic
@@ -132,6 +133,9 @@ AGENTS: dict[str, Callable[..., SACAgent]] = {
     "TQC": lambda compile, device: TQCAgent(
         OBS, ACT, device, model_cls=partial(TQCActorCritic, hidden_sizes=HIDDEN, critic_hidden_sizes=HIDDEN), n=3,
         n_quantiles=5, drop_per_critic=1, compile=compile),
+    "BRO": lambda compile, device: BROAgent(
+        OBS, ACT, device, model_cls=partial(BROActorCritic, hidden_sizes=HIDDEN), n=2, n_quantiles=5,
+        critic_width=HIDDEN[0], critic_blocks=1, compile=compile),
     # SGD: the biases under CrossQ's batch normalisation have gradients that are zero up to
     # rounding, which Adam turns into steps of +-lr whose sign is the rounding's (a compiled
     # update rounds differently); SGD keeps such a difference as small as the rounding
@@ -201,7 +205,7 @@ def test_the_key_defaults_to_off_and_feeds_the_agents():
     assert cfg["ALG"]["COMPILE"] == "off"
     assert schema.COMPILE_MODES == ("off", "compile", "cudagraph")
     cfg["ALG"]["COMPILE"] = "compile"
-    for cls in ("SACAgent", "REDQSACAgent", "DroQAgent", "TQCAgent", "CrossQAgent", "DrQAgent"):
+    for cls in ("SACAgent", "REDQSACAgent", "DroQAgent", "TQCAgent", "CrossQAgent", "DrQAgent", "BROAgent"):
         assert schema.arguments(cfg, cls)["compile"] == "compile"
 
 

@@ -27,7 +27,8 @@ import pytest
 import torch
 from gymnasium import spaces
 
-from tmrl.algorithms import CrossQAgent, DroQAgent, DrQAgent, REDQSACAgent, SACAgent, TQCAgent
+from tmrl.algorithms import BROAgent, CrossQAgent, DroQAgent, DrQAgent, REDQSACAgent, SACAgent, TQCAgent
+from tmrl.algorithms.bro import BROActorCritic
 from tmrl.algorithms.crossq import CrossQActorCritic
 from tmrl.algorithms.droq import DroQMLPActorCritic
 from tmrl.algorithms.drq import DrQActorCritic
@@ -60,6 +61,8 @@ AGENTS: dict[str, Callable[..., SACAgent]] = {
                                    q_updates_per_policy_update=2, compile=c, **ALPHA),
     "TQC": lambda d, c: TQCAgent(OBS, ACT, d, model_cls=partial(TQCActorCritic, hidden_sizes=H, critic_hidden_sizes=H),
                                  n=2, n_quantiles=5, compile=c, **ALPHA),
+    "BRO": lambda d, c: BROAgent(OBS, ACT, d, model_cls=partial(BROActorCritic, hidden_sizes=H), n=2, n_quantiles=5,
+                                 critic_width=H[0], compile=c, **ALPHA),
     "CROSSQ": lambda d, c: CrossQAgent(OBS, ACT, d, model_cls=partial(CrossQActorCritic, hidden_sizes=H),
                                        critic_width=16, policy_delay=2, renorm_warmup_steps=2, compile=c, **ALPHA),
     "DRQ": lambda d, c: DrQAgent(DRQ_OBS, DRQ_ACT, d, model_cls=partial(DrQActorCritic, **DRQ_SIZES), image_pad=2,
