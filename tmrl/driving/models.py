@@ -31,6 +31,7 @@ from torch import nn
 from tmrl.actor import TorchActorModule
 from tmrl.algorithms.crossq import CrossQActorCritic
 from tmrl.algorithms.droq import DroQMLPActorCritic
+from tmrl.algorithms.simbav2 import SimbaV2ActorCritic
 from tmrl.algorithms.tqc import TQCActorCritic
 from tmrl.errors import UserError
 from tmrl.models import (
@@ -54,6 +55,7 @@ __all__ = [
     "LidarCrossQActorCritic",
     "LidarDroQActorCritic",
     "LidarQFunctions",
+    "LidarSimbaV2ActorCritic",
     "LidarTQCActorCritic",
     "REDQCNNActorCritic",
     "ScaledCritic",
@@ -650,6 +652,21 @@ class LidarCrossQActorCritic(CrossQActorCritic):
         super().__init__(observation_space, action_space, hidden_sizes, activation, n=n,
                          critic_hidden_sizes=critic_hidden_sizes, bn_momentum=bn_momentum,
                          renorm_warmup_steps=renorm_warmup_steps, critic_input_norm=critic_input_norm)
+        _wire_lidar(self, observation_space, action_space, hidden_sizes, activation)
+
+
+class LidarSimbaV2ActorCritic(SimbaV2ActorCritic):
+    """SimbaV2's actor-critic (:class:`~tmrl.algorithms.simbav2.SimbaV2ActorCritic`) for lidar
+    observations: :class:`LidarActor` (SAC's MLP actor of ``hidden_sizes``, the workers' policy)
+    and hyperspherical distributional critics on inputs scaled by :func:`lidar_obs_scales`.
+    Arguments as :class:`~tmrl.algorithms.simbav2.SimbaV2ActorCritic`'s.
+    """
+
+    def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
+                 activation: Callable[[], nn.Module] = nn.ReLU, n: int = 2, n_atoms: int = 101, v_max: float = 5.0,
+                 critic_width: int = 128, critic_blocks: int = 1) -> None:
+        super().__init__(observation_space, action_space, hidden_sizes, activation, n=n, n_atoms=n_atoms,
+                         v_max=v_max, critic_width=critic_width, critic_blocks=critic_blocks)
         _wire_lidar(self, observation_space, action_space, hidden_sizes, activation)
 
 
