@@ -151,6 +151,9 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "BRO-B0-UTD4-CAP-R250": ("BRO", "demo", 4),
     "BRO-W128-UTD4-CAP-R250": ("BRO", "demo", 4),
     "BRO-B2-UTD4-CAP-R250": ("BRO", "demo", 4),
+    "SIMBAV2": ("SIMBAV2", "class", 2),
+    "SIMBAV2-UTD2-CAP-R250": ("SIMBAV2", "demo", 2),
+    "SIMBAV2-UTD4-CAP-R250": ("SIMBAV2", "demo", 4),
 }
 
 #: The agents a run compares unless ``--agents`` says otherwise: tmrl's SAC, the demo's real-time
@@ -198,6 +201,8 @@ DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "BRO-B0-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"pessimism": 0.0}},
     "BRO-W128-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"critic_width": 128}},
     "BRO-B2-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"critic_blocks": 2}},
+    "SIMBAV2-UTD2-CAP-R250": {"start_steps": 250, "alpha_max": 0.01},
+    "SIMBAV2-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01},
 }
 
 #: Uniformly random environment steps before training (tmrl's ENVIRONMENT_STEPS_BEFORE_TRAINING),

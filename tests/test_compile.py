@@ -31,6 +31,7 @@ from gymnasium import spaces
 
 from tmrl.algorithms import BROAgent, CrossQAgent, DroQAgent, DrQAgent, REDQSACAgent, SACAgent, TQCAgent
 from tmrl.algorithms.bro import BROActorCritic
+from tmrl.algorithms.simbav2 import SimbaV2Agent, SimbaV2ActorCritic
 from tmrl.algorithms.crossq import CrossQActorCritic
 from tmrl.algorithms.droq import DroQMLPActorCritic
 from tmrl.algorithms.drq import DrQActorCritic
@@ -136,6 +137,9 @@ AGENTS: dict[str, Callable[..., SACAgent]] = {
     "BRO": lambda compile, device: BROAgent(
         OBS, ACT, device, model_cls=partial(BROActorCritic, hidden_sizes=HIDDEN), n=2, n_quantiles=5,
         critic_width=HIDDEN[0], critic_blocks=1, compile=compile),
+    "SIMBAV2": lambda compile, device: SimbaV2Agent(
+        OBS, ACT, device, model_cls=partial(SimbaV2ActorCritic, hidden_sizes=HIDDEN), n=2, n_atoms=11,
+        critic_width=HIDDEN[0], critic_blocks=1, compile=compile),
     # SGD: the biases under CrossQ's batch normalisation have gradients that are zero up to
     # rounding, which Adam turns into steps of +-lr whose sign is the rounding's (a compiled
     # update rounds differently); SGD keeps such a difference as small as the rounding
@@ -205,7 +209,8 @@ def test_the_key_defaults_to_off_and_feeds_the_agents():
     assert cfg["ALG"]["COMPILE"] == "off"
     assert schema.COMPILE_MODES == ("off", "compile", "cudagraph")
     cfg["ALG"]["COMPILE"] = "compile"
-    for cls in ("SACAgent", "REDQSACAgent", "DroQAgent", "TQCAgent", "CrossQAgent", "DrQAgent", "BROAgent"):
+    for cls in ("SACAgent", "REDQSACAgent", "DroQAgent", "TQCAgent", "CrossQAgent", "DrQAgent", "BROAgent",
+                "SimbaV2Agent"):
         assert schema.arguments(cfg, cls)["compile"] == "compile"
 
 
@@ -399,8 +404,8 @@ def test_each_agent_compiled_gives_the_eager_parameters_over_10_updates(name: st
     st = compiled._compile_state
     assert st.mode == "compile", "the compiled update fell back to eager"
     # both kinds of update compiled and checked where an agent has both (DrQ and TQC update their
-    # policy at every update)
-    assert st.checked == ({True} if name in ("DRQ", "TQC") else {False, True})
+    # policy at every update, and BRO and SimbaV2 as TQC)
+    assert st.checked == ({True} if name in ("DRQ", "TQC", "BRO", "SIMBAV2") else {False, True})
     assert aot_eager.functions == len(compiled.COMPILED) and aot_eager.graphs >= len(compiled.COMPILED)
     assert_close(state(compiled), state(eager))
     assert compiled.guard.skipped == eager.guard.skipped == 0
@@ -487,7 +492,7 @@ def test_cuda_each_agent_compiled_gives_the_eager_parameters_over_50_updates(nam
     metrics = run(compiled, device="cuda")
     st = compiled._compile_state
     assert st.mode == mode, "the compiled update fell back to eager"
-    assert st.checked == ({True} if name in ("DRQ", "TQC") else {False, True})
+    assert st.checked == ({True} if name in ("DRQ", "TQC", "BRO", "SIMBAV2") else {False, True})
     assert_close(state(compiled), state(eager))
     assert compiled.guard.skipped == eager.guard.skipped == 0
     for key in ("loss_critic", "entropy_coef", "debug_q"):

@@ -329,7 +329,7 @@ def test_wrong_type_names_full_path_value_and_expectation(tmp_path):
         ({"BATCH_SIZE": True}, "BATCH_SIZE must be a positive integer, got true"),
         ({"BATCH_SIZE": 2.5}, "BATCH_SIZE must be a positive integer, got 2.5"),
         ({"ALG": {"GAMMA": 1.5}}, "ALG.GAMMA must be a number in [0, 1], got 1.5"),
-        ({"ALG": {"ALGORITHM": "PPO"}}, 'ALG.ALGORITHM must be one of "SAC", "REDQSAC", "DROQ", "TQC", "CROSSQ", "DRQ", "BRO", got "PPO"'),
+        ({"ALG": {"ALGORITHM": "PPO"}}, 'ALG.ALGORITHM must be one of "SAC", "REDQSAC", "DROQ", "TQC", "CROSSQ", "DRQ", "BRO", "SIMBAV2", got "PPO"'),
         ({"ALG": {"BETAS_ACTOR": [0.9]}}, "ALG.BETAS_ACTOR must be a list of 2 numbers in [0, 1), got [0.9]"),
         ({"ENV": {"RTGYM_INTERFACE": "TM2020"}}, 'ENV.RTGYM_INTERFACE must be one of "TM20FULL"'),
         ({"ENV": []}, "ENV must be an object (a dict of keys), got []"),

@@ -29,6 +29,7 @@ from gymnasium import spaces
 
 from tmrl.algorithms import BROAgent, CrossQAgent, DroQAgent, DrQAgent, REDQSACAgent, SACAgent, TQCAgent
 from tmrl.algorithms.bro import BROActorCritic
+from tmrl.algorithms.simbav2 import SimbaV2Agent, SimbaV2ActorCritic
 from tmrl.algorithms.crossq import CrossQActorCritic
 from tmrl.algorithms.droq import DroQMLPActorCritic
 from tmrl.algorithms.drq import DrQActorCritic
@@ -63,6 +64,8 @@ AGENTS: dict[str, Callable[..., SACAgent]] = {
                                  n=2, n_quantiles=5, compile=c, **ALPHA),
     "BRO": lambda d, c: BROAgent(OBS, ACT, d, model_cls=partial(BROActorCritic, hidden_sizes=H), n=2, n_quantiles=5,
                                  critic_width=H[0], compile=c, **ALPHA),
+    "SIMBAV2": lambda d, c: SimbaV2Agent(OBS, ACT, d, model_cls=partial(SimbaV2ActorCritic, hidden_sizes=H), n=2,
+                                         n_atoms=11, critic_width=H[0], compile=c, **ALPHA),
     "CROSSQ": lambda d, c: CrossQAgent(OBS, ACT, d, model_cls=partial(CrossQActorCritic, hidden_sizes=H),
                                        critic_width=16, policy_delay=2, renorm_warmup_steps=2, compile=c, **ALPHA),
     "DRQ": lambda d, c: DrQAgent(DRQ_OBS, DRQ_ACT, d, model_cls=partial(DrQActorCritic, **DRQ_SIZES), image_pad=2,

@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from tmrl.algorithms import ALGORITHMS, BROAgent, CrossQAgent, DroQAgent, DrQAgent, REDQSACAgent, SACAgent, TQCAgent
+from tmrl.algorithms import ALGORITHMS, BROAgent, SimbaV2Agent, CrossQAgent, DroQAgent, DrQAgent, REDQSACAgent, SACAgent, TQCAgent
 from tmrl.algorithms.sac import _OPTIMIZERS
 from tmrl.config import schema
 from tmrl.config.settings import NetSettings
@@ -23,7 +23,7 @@ from tmrl.training_offline import TorchTrainingOffline
 
 CLASSES = {
     cls.__name__: cls
-    for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, CrossQAgent, DrQAgent, BROAgent, TorchTrainingOffline,
+    for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, CrossQAgent, DrQAgent, BROAgent, SimbaV2Agent, TorchTrainingOffline,
                 GenericTorchMemory, Server, Trainer, RolloutWorker, Buffer)
 }
 
@@ -50,7 +50,7 @@ def test_every_fed_argument_exists_and_its_class_default_is_the_tables():
 def test_every_hyperparameter_of_the_agents_is_in_the_table():
     """An agent argument the config cannot set is a setting missing from the table."""
     not_settings = {"self", "observation_space", "action_space", "device", "model_cls", "fused"}
-    for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, DrQAgent, BROAgent):
+    for cls in (SACAgent, REDQSACAgent, DroQAgent, TQCAgent, DrQAgent, BROAgent, SimbaV2Agent):
         fed = set(schema.fed_arguments()[cls.__name__])
         assert set(_parameters(cls)) - not_settings == fed
 

@@ -552,7 +552,21 @@ class SACAgent(TrainingAgent):
         for opt in optimizers:
             opt.step()
         self._hold_alpha(held)
+        self._after_step(optimizers, g)
         return True
+
+    def _after_step(self, optimizers: list[torch.optim.Optimizer], guard: GuardedUpdate) -> None:
+        """Called after the optimizers of :meth:`_step` (and of the sequential order's actor
+        step) have stepped, only when they did (a finite update, or on the device any update:
+        ``guard`` puts back what it kept). Nothing for SAC; SimbaV2 projects its critics' weights
+        back onto the unit sphere here. A subclass that changes tensors other than the stepped
+        parameters, their optimizer state and the targets hands them to ``guard.keep`` before
+        changing them, so that a non-finite update decided on the device puts them back.
+
+        Args:
+            optimizers: the optimizers that just stepped.
+            guard: the update's non-finite guard.
+        """
 
     def _actor_step_after_critics(
         self, obs: Any, alpha: torch.Tensor, pi: torch.Tensor, logp_pi: torch.Tensor,
@@ -570,6 +584,7 @@ class SACAgent(TrainingAgent):
         if g.on_device:
             g.keep(stepped_tensors([self.pi_optimizer]))
         self.pi_optimizer.step()
+        self._after_step([self.pi_optimizer], g)
         return loss_actor
 
     def _metrics(

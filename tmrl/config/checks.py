@@ -28,7 +28,7 @@ def redq_subset_problem(n: int, m: int) -> str | None:
 
 def check_consistency(cfg: Mapping[str, Any]) -> None:
     """Checks that involve several keys of a complete, validated config: REDQ's ``REDQ_M`` within
-    ``REDQ_N``, the simultaneous update order of REDQ, DroQ, TQC, DrQ and BRO, TQC's dropped quantiles fewer
+    ``REDQ_N``, the simultaneous update order of REDQ, DroQ, TQC, DrQ, BRO and SimbaV2, TQC's dropped quantiles fewer
     than its quantiles, the two pacing ratios not blocking each other,
     ``act_in_obs`` for the simulator and TrackMania, grayscale images for ``SIMFULL``, a
     ``GYM_ID`` for ``GYM``.
@@ -43,7 +43,7 @@ def check_consistency(cfg: Mapping[str, Any]) -> None:
     problem = redq_subset_problem(alg["REDQ_N"], alg["REDQ_M"]) if alg["ALGORITHM"] == "REDQSAC" else None
     if problem:
         raise SchemaViolation("ALG.REDQ_M", problem)
-    if alg["ALGORITHM"] in ("REDQSAC", "DROQ", "TQC", "DRQ", "BRO") and alg["UPDATE_ORDER"] != "simultaneous":
+    if alg["ALGORITHM"] in ("REDQSAC", "DROQ", "TQC", "DRQ", "BRO", "SIMBAV2") and alg["UPDATE_ORDER"] != "simultaneous":
         raise SchemaViolation(
             "ALG.UPDATE_ORDER",
             f'ALG.UPDATE_ORDER must be "simultaneous" when ALG.ALGORITHM is {show(alg["ALGORITHM"])} (the '

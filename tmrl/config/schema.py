@@ -95,7 +95,7 @@ RTGYM_INTERFACES = (
 progress), the built-in simulated track (same three observations), any Gymnasium environment
 (``ENV.GYM_ID``), and the real-time simulated drone of :mod:`tmrl.realtime`."""
 
-ALGORITHMS = ("SAC", "REDQSAC", "DROQ", "TQC", "CROSSQ", "DRQ", "BRO")
+ALGORITHMS = ("SAC", "REDQSAC", "DROQ", "TQC", "CROSSQ", "DRQ", "BRO", "SIMBAV2")
 """Values of ``ALG.ALGORITHM``."""
 
 PASSWORD_PLACEHOLDER = "YourRandomPasswordHere"
@@ -114,7 +114,8 @@ ON_DEVICE_MODES = ("auto", "on", "off")
 """Values of ``MEMORY_ON_DEVICE`` (the built-in memories' ``on_device``, :mod:`tmrl.memory.resident`)."""
 
 AGENT_CLASSES = {"SAC": "SACAgent", "REDQSAC": "REDQSACAgent", "DROQ": "DroQAgent", "TQC": "TQCAgent",
-                 "CROSSQ": "CrossQAgent", "DRQ": "DrQAgent", "BRO": "BROAgent"}
+                 "CROSSQ": "CrossQAgent", "DRQ": "DrQAgent", "BRO": "BROAgent",
+                 "SIMBAV2": "SimbaV2Agent"}
 """The agent class each value of ``ALG.ALGORITHM`` selects (:data:`tmrl.algorithms.ALGORITHMS`)."""
 
 _MIB = 1024 * 1024
@@ -128,7 +129,7 @@ def _agents(arg: str, class_default: Any) -> dict[str, Any]:
 _ALG = Section(
     {
         "ALGORITHM": Choice("SAC", "training algorithm (SAC: SACAgent, REDQSAC: REDQSACAgent, DROQ: DroQAgent, "
-                            "TQC: TQCAgent, CROSSQ: CrossQAgent, DRQ: DrQAgent, image interfaces only, BRO: BROAgent)",
+                            "TQC: TQCAgent, CROSSQ: CrossQAgent, DRQ: DrQAgent, image interfaces only, BRO: BROAgent, SIMBAV2: SimbaV2Agent)",
                             ALGORITHMS),
         "LEARN_ENTROPY_COEF": Bool(False, "learn the entropy coefficient (SAC v2) instead of keeping ALPHA fixed",
                                    **_agents("learn_entropy_coef", True)),
@@ -172,6 +173,19 @@ _ALG = Section(
         "BRO_CRITIC_BLOCKS": Int(1, "residual blocks of each BRO critic (BroNet: Linear, LayerNorm, ReLU, Linear, "
                                     "LayerNorm, plus the input)", min=0, feeds=("BROAgent.critic_blocks",),
                                  class_default=1),
+        "SIMBAV2_N": Int(2, "number of SimbaV2 critics", min=1, feeds=("SimbaV2Agent.n",), class_default=2),
+        "SIMBAV2_ATOMS": Int(101, "atoms of the support of each SimbaV2 critic's return distribution", min=2,
+                             feeds=("SimbaV2Agent.n_atoms",), class_default=101),
+        "SIMBAV2_V_MAX": Number(5.0, "the SimbaV2 support is [-SIMBAV2_V_MAX, SIMBAV2_V_MAX] (returns after the reward "
+                                     "scaling)", min=0, min_open=True, feeds=("SimbaV2Agent.v_max",), class_default=5.0),
+        "SIMBAV2_CRITIC_WIDTH": Int(128, "width of each SimbaV2 critic's hidden vectors (the paper: 512, for a GPU)",
+                                    min=1, feeds=("SimbaV2Agent.critic_width",), class_default=128),
+        "SIMBAV2_CRITIC_BLOCKS": Int(1, "residual blocks of each SimbaV2 critic", min=0,
+                                     feeds=("SimbaV2Agent.critic_blocks",), class_default=1),
+        "SIMBAV2_SCALE_REWARDS": Bool(True, "divide SimbaV2's rewards by a running estimate of the return's scale",
+                                      feeds=("SimbaV2Agent.scale_rewards",), class_default=True),
+        "SIMBAV2_REWARD_G_MAX": Number(5.0, "the largest scaled return SimbaV2's reward scaling allows", min=0,
+                                       min_open=True, feeds=("SimbaV2Agent.reward_g_max",), class_default=5.0),
         "CROSSQ_POLICY_DELAY": Int(3, "CrossQ critic updates for each actor update", min=1,
                                    feeds=("CrossQAgent.policy_delay",), class_default=3),
         "CROSSQ_CRITIC_WIDTH": Int(1024, "width of the two hidden layers of each CrossQ critic (the paper: 2048, "

@@ -29,10 +29,11 @@ import torch
 from torch import nn
 
 from tmrl.actor import TorchActorModule
+from tmrl.algorithms.bro import BROActorCritic
 from tmrl.algorithms.crossq import CrossQActorCritic
 from tmrl.algorithms.droq import DroQMLPActorCritic
+from tmrl.algorithms.simbav2 import SimbaV2ActorCritic
 from tmrl.algorithms.tqc import TQCActorCritic
-from tmrl.algorithms.bro import BROActorCritic
 from tmrl.errors import UserError
 from tmrl.models import (
     EnsembleQFunction,
@@ -55,6 +56,7 @@ __all__ = [
     "LidarCrossQActorCritic",
     "LidarDroQActorCritic",
     "LidarQFunctions",
+    "LidarSimbaV2ActorCritic",
     "LidarTQCActorCritic",
     "LidarBROActorCritic",
     "REDQCNNActorCritic",
@@ -669,6 +671,21 @@ class LidarBROActorCritic(BROActorCritic):
         _wire_lidar(self, observation_space, action_space, hidden_sizes, activation)
 
 
+class LidarSimbaV2ActorCritic(SimbaV2ActorCritic):
+    """SimbaV2's actor-critic (:class:`~tmrl.algorithms.simbav2.SimbaV2ActorCritic`) for lidar
+    observations: :class:`LidarActor` (SAC's MLP actor of ``hidden_sizes``, the workers' policy)
+    and hyperspherical distributional critics on inputs scaled by :func:`lidar_obs_scales`.
+    Arguments as :class:`~tmrl.algorithms.simbav2.SimbaV2ActorCritic`'s.
+    """
+
+    def __init__(self, observation_space: Any, action_space: Any, hidden_sizes: Sequence[int] = (256, 256),
+                 activation: Callable[[], nn.Module] = nn.ReLU, n: int = 2, n_atoms: int = 101, v_max: float = 5.0,
+                 critic_width: int = 128, critic_blocks: int = 1) -> None:
+        super().__init__(observation_space, action_space, hidden_sizes, activation, n=n, n_atoms=n_atoms,
+                         v_max=v_max, critic_width=critic_width, critic_blocks=critic_blocks)
+        _wire_lidar(self, observation_space, action_space, hidden_sizes, activation)
+
+
 LIDAR_MODELS: dict[str, type] = {
     "SAC": LidarActorCritic,
     "REDQSAC": LidarActorCritic,
@@ -676,11 +693,13 @@ LIDAR_MODELS: dict[str, type] = {
     "TQC": LidarTQCActorCritic,
     "CROSSQ": LidarCrossQActorCritic,
     "BRO": LidarBROActorCritic,
+    "SIMBAV2": LidarSimbaV2ActorCritic,
 }
 """The actor-critic each ``ALG.ALGORITHM`` trains on the lidar interfaces (``SIMLIDAR``,
 ``SIMLIDARPROGRESS``, ``TM20LIDAR``, ``TM20LIDARPROGRESS``); the actor of each is a
 :class:`LidarActor`, the policy the workers run. The agent passes its own model arguments (REDQ's
-``n``, DroQ's ``dropout_rate``, TQC's ``n`` and ``n_quantiles``, CrossQ's critic sizes)."""
+``n``, DroQ's ``dropout_rate``, TQC's ``n`` and ``n_quantiles``, CrossQ's, BRO's and SimbaV2's critic
+sizes)."""
 
 
 def lidar_model_cls(algorithm: str) -> type:
