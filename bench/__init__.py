@@ -18,5 +18,6 @@ BENCHMARKS = (
     "realtime_jitter",
     "first_lap",
     "chaos",
+    "update_cost",
 )
 """The benchmarks, as modules of this package with a ``main(argv)``."""

@@ -151,6 +151,7 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "BRO-B0-UTD4-CAP-R250": ("BRO", "demo", 4),
     "BRO-W128-UTD4-CAP-R250": ("BRO", "demo", 4),
     "BRO-B2-UTD4-CAP-R250": ("BRO", "demo", 4),
+    "BRO-W128-UTD8-CAP-R250": ("BRO", "demo", 8),
     "SIMBAV2": ("SIMBAV2", "class", 2),
     "SIMBAV2-UTD2-CAP-R250": ("SIMBAV2", "demo", 2),
     "SIMBAV2-UTD4-CAP-R250": ("SIMBAV2", "demo", 4),
@@ -201,6 +202,7 @@ DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "BRO-B0-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"pessimism": 0.0}},
     "BRO-W128-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"critic_width": 128}},
     "BRO-B2-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"critic_blocks": 2}},
+    "BRO-W128-UTD8-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"critic_width": 128}},
     "SIMBAV2-UTD2-CAP-R250": {"start_steps": 250, "alpha_max": 0.01},
     "SIMBAV2-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01},
 }
