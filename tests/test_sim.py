@@ -620,17 +620,18 @@ def test_demo_in_real_time_on_a_gpu_trains_the_benchmark_s_recommendation(tmp_pa
     assert DEMO_OVERRIDES["REDQSAC-UTD8-CAP-R250"] == {"start_steps": gpu["start_training"], "policy_every": 1,
                                                       "alpha_max": gpu["alpha_max"]}
     # when it applies: real time, lidar, a CUDA trainer, no agent chosen; what the user gives wins
-    assert demo.demo_setting("SIMLIDAR", True, "cuda", None, None) == ("REDQSAC", 250, True)
-    assert demo.demo_setting("SIMLIDARPROGRESS", True, "cuda:1", None, 400) == ("REDQSAC", 400, True)
-    assert demo.demo_setting("SIMLIDAR", True, "cuda", "SAC", None) == ("SAC", 1000, False)
-    assert demo.demo_setting("SIMLIDAR", True, "cpu", None, None) == ("SAC", 1000, False)
-    assert demo.demo_setting("SIMLIDAR", False, "cuda", None, None) == ("SAC", 1000, False)
-    assert demo.demo_setting("SIMFULL", True, "cuda", None, None) == ("SAC", 1000, False)
+    assert demo.demo_setting("SIMLIDAR", True, "cuda", None, None) == ("REDQSAC", 250, "gpu")
+    assert demo.demo_setting("SIMLIDARPROGRESS", True, "cuda:1", None, 400) == ("REDQSAC", 400, "gpu")
+    assert demo.demo_setting("SIMLIDAR", True, "cuda", "SAC", None) == ("SAC", 1000, None)
+    assert demo.demo_setting("SIMLIDAR", True, "mps", None, None) == ("SAC", 1000, None)
+    assert demo.demo_setting("SIMLIDAR", False, "cuda", None, None) == ("SAC", 1000, None)
+    assert demo.demo_setting("SIMFULL", True, "cuda", None, None) == ("SAC", 1000, None)
     # the parent hands it to its roles, and a role applies it before it builds the trainer
     args = demo._parse(["--realtime"])
     args.interface, args.track, args.algorithm, args.start_training = "SIMLIDAR", "oval", "REDQSAC", 250
-    cmd = demo._role_command("trainer", args, tmp_path, 1234, "cuda", True)
-    assert "--gpu-setting" in cmd and "--gpu-setting" not in demo._role_command("trainer", args, tmp_path, 1, "cpu", False)
+    cmd = demo._role_command("trainer", args, tmp_path, 1234, "cuda", "gpu")
+    assert cmd[-2:] == ["--setting", "gpu"] and "--setting" not in demo._role_command("trainer", args, tmp_path, 1,
+                                                                                        "cpu", None)
     seen = {}
     monkeypatch.setattr(demo, "_run_role", lambda *a: seen.update(settings=dict(demo.DEMO_SETTINGS), args=a))
     saved = dict(demo.DEMO_SETTINGS)
@@ -648,5 +649,43 @@ def test_demo_in_real_time_on_a_gpu_trains_the_benchmark_s_recommendation(tmp_pa
     agent = training.keywords["training_agent_cls"](env.observation_space, env.action_space, "cpu")
     assert isinstance(agent, REDQSACAgent) and agent.q_updates_per_policy_update == 1
     assert agent.learn_entropy_coef and float(agent.alpha) == pytest.approx(0.2) and agent.alpha_max == 0.01
-    # and the CPU's setting is left as it was
+    # and the demo's own setting is left as it was
     assert "alpha_max" not in demo.DEMO_SETTINGS and demo.DEMO_SETTINGS["algorithm"] == "SAC"
+
+
+def test_demo_in_real_time_on_a_cpu_trains_the_benchmark_s_cpu_recommendation(tmp_path, monkeypatch):
+    from bench.track_learning import DEMO_OVERRIDES, VARIANTS
+    from tmrl.algorithms import agent_class
+    from tmrl.sim import demo
+
+    cpu = demo.CPU_REALTIME_SETTINGS
+    label = cpu["label"]
+    # what the demo measured its setting from: the benchmark's variant of that label
+    assert VARIANTS[label] == (cpu["algorithm"], "demo", cpu["realtime_max_training_steps_per_env_step"])
+    assert DEMO_OVERRIDES[label].get("start_steps") == cpu["start_training"]
+    assert DEMO_OVERRIDES[label].get("alpha_max") == cpu["alpha_max"]
+    assert DEMO_OVERRIDES[label].get("agent", {}) == cpu.get("agent_kwargs", {})
+    # when it applies: real time, lidar, a CPU trainer, no agent chosen
+    assert demo.demo_setting("SIMLIDAR", True, "cpu", None, None) == (cpu["algorithm"], 250, "cpu")
+    assert demo.demo_setting("SIMLIDAR", True, "cpu", "SAC", None) == ("SAC", 1000, None)
+    assert demo.demo_setting("SIMLIDAR", False, "cpu", None, None) == ("SAC", 1000, None)
+    args = demo._parse(["--realtime"])
+    args.interface, args.track, args.algorithm, args.start_training = "SIMLIDAR", "oval", cpu["algorithm"], 250
+    cmd = demo._role_command("trainer", args, tmp_path, 1234, "cpu", "cpu")
+    seen = {}
+    monkeypatch.setattr(demo, "_run_role", lambda *a: seen.update(settings=dict(demo.DEMO_SETTINGS)))
+    saved = dict(demo.DEMO_SETTINGS)
+    try:
+        assert demo._role_main(demo._parse(cmd[3:] + ["--port", "1234"])) == 0
+        training = demo._training_cls("SIMLIDAR", "oval", tmp_path, realtime=True)
+    finally:
+        demo.DEMO_SETTINGS.clear()
+        demo.DEMO_SETTINGS.update(saved)
+    assert seen["settings"]["algorithm"] == cpu["algorithm"] and seen["settings"]["start_training"] == 250
+    assert training.keywords["max_training_steps_per_env_step"] == cpu["realtime_max_training_steps_per_env_step"]
+    env = demo._make_env("SIMLIDAR", "oval")
+    agent = training.keywords["training_agent_cls"](env.observation_space, env.action_space, "cpu")
+    assert isinstance(agent, agent_class(cpu["algorithm"])) and agent.alpha_max == cpu["alpha_max"]
+    assert agent.learn_entropy_coef and float(agent.alpha) == pytest.approx(cpu["realtime_alpha"])
+    for key, value in cpu.get("agent_kwargs", {}).items():
+        assert getattr(agent, key) == value

@@ -41,7 +41,7 @@ from tmrl.config.schema import ALGORITHMS
 from tmrl.errors import UserError
 from tmrl.util import atomic_write_bytes
 
-__all__ = ["DEMO_SETTINGS", "GPU_REALTIME_SETTINGS", "main"]
+__all__ = ["CPU_REALTIME_SETTINGS", "DEMO_SETTINGS", "GPU_REALTIME_SETTINGS", "REALTIME_SETTINGS", "main"]
 
 #: Training settings of the demo (SAC with a small replay memory, a fast update rhythm).
 DEMO_SETTINGS: dict[str, Any] = dict(
@@ -71,8 +71,20 @@ DEMO_SETTINGS: dict[str, Any] = dict(
 #: needs 160 ten-critic updates per second, which two CPU cores do not give (1.3 per sample there).
 GPU_REALTIME_SETTINGS: dict[str, Any] = {
     "algorithm": "REDQSAC", "realtime_max_training_steps_per_env_step": 8.0, "realtime_alpha": 0.2,
-    "realtime_learn_entropy_coef": True, "alpha_max": 0.01, "start_training": 250,
+    "realtime_learn_entropy_coef": True, "alpha_max": 0.01, "start_training": 250, "label": "REDQSAC-UTD8-CAP-R250",
 }
+
+#: The real-time setting on a CPU trainer, on lidar (``--realtime`` with the trainer on the CPU and
+#: no ``--algorithm``): the benchmark's setting that laps first in real time on a CPU,
+#: ``CPU_SETTING_LABEL`` below (docs/benchmarks.md, "A lap in fewer steps with less compute").
+CPU_REALTIME_SETTINGS: dict[str, Any] = {
+    "algorithm": "BRO", "realtime_max_training_steps_per_env_step": 4.0, "realtime_alpha": 0.2,
+    "realtime_learn_entropy_coef": True, "alpha_max": 0.01, "start_training": 250,
+    "agent_kwargs": {"critic_width": 128}, "label": "BRO-W128-UTD4-CAP-R250",
+}
+
+#: The real-time settings by trainer: ``--realtime``, lidar, no ``--algorithm``.
+REALTIME_SETTINGS: dict[str, dict[str, Any]] = {"gpu": GPU_REALTIME_SETTINGS, "cpu": CPU_REALTIME_SETTINGS}
 
 _INTERFACES = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
 # Seconds the roles get to stop after the parent's stop request, all together, before they are ended.
@@ -246,6 +258,7 @@ def _agent_cls(interface: str, algorithm: str, realtime: bool = False) -> Any:
     Counting.__name__ = Counting.__qualname__ = f"Counting{base.__name__}"
     mode = "realtime_" if realtime else ""
     extra = {"alpha_max": s["alpha_max"]} if s.get("alpha_max") is not None else {}
+    extra.update(s.get("agent_kwargs") or {})
     return partial(Counting, model_cls=model_cls, gamma=s["gamma"], polyak=s["polyak"], alpha=s[mode + "alpha"],
                    lr_actor=s["lr"], lr_critic=s["lr"], lr_entropy=s["lr"],
                    learn_entropy_coef=s[mode + "learn_entropy_coef"], target_entropy=None, **extra)
@@ -426,21 +439,22 @@ def _number(kind: type, minimum: float, strict: bool) -> Any:
 
 
 def _role_command(role: str, args: argparse.Namespace, workdir: Path, port: int, device: str,
-                  gpu_setting: bool) -> list[str]:
+                  setting: str | None) -> list[str]:
     """The command line of one of the demo's processes (settings resolved by the parent)."""
     cmd = [sys.executable, "-m", "tmrl.sim.demo", "--role", role, "--interface", args.interface,
            "--track", str(args.track), "--workdir", str(workdir), "--port", str(port),
            "--start-training", str(args.start_training), "--algorithm", args.algorithm, "--device", device]
     cmd += ["--realtime"] if args.realtime else []
-    cmd += ["--gpu-setting"] if gpu_setting else []
+    cmd += ["--setting", setting] if setting else []
     return cmd
 
 
 def demo_setting(interface: str, realtime: bool, device: str, algorithm: str | None,
-                 start_training: int | None) -> tuple[str, int, bool]:
-    """The demo's agent and samples before training, and whether :data:`GPU_REALTIME_SETTINGS`
-    applies: in real time, on lidar, with the trainer on a CUDA device and no ``--algorithm`` given.
-    What the user gave wins.
+                 start_training: int | None) -> tuple[str, int, str | None]:
+    """The demo's agent and samples before training, and which of :data:`REALTIME_SETTINGS`
+    applies: in real time, on lidar and with no ``--algorithm`` given, :data:`GPU_REALTIME_SETTINGS`
+    with the trainer on a CUDA device, :data:`CPU_REALTIME_SETTINGS` on the CPU (another device,
+    Apple's ``mps``, keeps the demo's SAC: not measured there). What the user gave wins.
 
     Args:
         interface: the demo's interface.
@@ -450,11 +464,13 @@ def demo_setting(interface: str, realtime: bool, device: str, algorithm: str | N
         start_training: ``--start-training``, or ``None``.
 
     Returns:
-        ``(algorithm, start_training, gpu_setting)``.
+        ``(algorithm, start_training, setting)``, ``setting`` ``"gpu"``, ``"cpu"`` or None.
     """
-    gpu = realtime and algorithm is None and str(device).startswith("cuda") and interface != "SIMFULL"
-    base = GPU_REALTIME_SETTINGS if gpu else DEMO_SETTINGS
-    return (algorithm or base["algorithm"], int(start_training or base["start_training"]), gpu)
+    setting = None
+    if realtime and algorithm is None and interface != "SIMFULL":
+        setting = "gpu" if str(device).startswith("cuda") else "cpu" if str(device) == "cpu" else None
+    base = REALTIME_SETTINGS[setting] if setting else DEMO_SETTINGS
+    return (algorithm or base["algorithm"], int(start_training or base["start_training"]), setting)
 
 
 def _parse(argv: Sequence[str]) -> argparse.Namespace:
@@ -472,13 +488,13 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
                    help="stop after this many environment steps (0: no limit)")
     p.add_argument("--out", default="tmrl_demo", help="output folder (default ./tmrl_demo)")
     p.add_argument("--start-training", type=_number(int, 1, False), default=None,
-                   help="environment steps collected before training starts (default 1000; 250 with the GPU "
-                        "real-time setting)")
+                   help="environment steps collected before training starts (default 1000; 250 with the "
+                        "real-time settings)")
     # DRQ (images only, slow on a CPU) is trained through a config, not the demo.
     p.add_argument("--algorithm", type=str.upper, choices=[a for a in ALGORITHMS if a != "DRQ"], default=None,
-                   help=f"training agent (default {DEMO_SETTINGS['algorithm']}; {GPU_REALTIME_SETTINGS['algorithm']} "
-                        "at up to 8 updates per sample with --realtime, lidar and the trainer on a GPU); SIMFULL takes "
-                        "SAC or REDQSAC only")
+                   help=f"training agent (default {DEMO_SETTINGS['algorithm']}; with --realtime and lidar "
+                        f"{CPU_REALTIME_SETTINGS['label']} on a CPU trainer, {GPU_REALTIME_SETTINGS['label']} on a GPU); "
+                        "SIMFULL takes SAC or REDQSAC only")
     p.add_argument("--threads", type=_number(int, 1, False),
                    help="PyTorch threads of the trainer and the worker (default 1 each; TMRL_THREADS)")
     p.add_argument("--device", default="auto",
@@ -487,7 +503,7 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
                         "on the CPU")
     p.add_argument("--realtime", action="store_true",
                    help="run the simulator in real time through tmrl.realtime (20 steps/s) instead of fast mode")
-    p.add_argument("--gpu-setting", action="store_true", help=argparse.SUPPRESS)  # set by the demo for its roles
+    p.add_argument("--setting", choices=tuple(REALTIME_SETTINGS), help=argparse.SUPPRESS)  # set by the demo for its roles
     p.add_argument("--role", choices=("server", "trainer", "worker"), help=argparse.SUPPRESS)
     p.add_argument("--workdir", help=argparse.SUPPRESS)
     p.add_argument("--port", type=int, help=argparse.SUPPRESS)
@@ -506,8 +522,8 @@ def _role_main(args: argparse.Namespace) -> int:
     # before it is watched, even in a role started with SIGINT ignored (`nohup ... &`).
     signal.signal(signal.SIGINT, signal.default_int_handler)
     lifeline = platform.watch_lifeline(on_orphaned=lambda: platform.remove_tree(workdir))
-    if args.gpu_setting:
-        DEMO_SETTINGS.update(GPU_REALTIME_SETTINGS)
+    if args.setting:
+        DEMO_SETTINGS.update(REALTIME_SETTINGS[args.setting])
     DEMO_SETTINGS["start_training"] = max(1, int(args.start_training or DEMO_SETTINGS["start_training"]))
     DEMO_SETTINGS["algorithm"] = args.algorithm or DEMO_SETTINGS["algorithm"]
     try:
@@ -558,7 +574,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from tmrl.util import resolve_device
 
     device = resolve_device(args.device, "--device")  # a device this machine lacks: one line, nothing started
-    args.algorithm, args.start_training, gpu_setting = demo_setting(
+    args.algorithm, args.start_training, setting = demo_setting(
         args.interface, args.realtime, device, args.algorithm, args.start_training)
     # A configuration mistake is reported before anything starts. The demo writes nothing into the
     # data folder (its roles keep their files in the run folder): no config.json is created there.
@@ -577,7 +593,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     def start(role: str) -> platform.Child:
         log = open(workdir / f"{role}.log", "wb")
         logs.append(log)
-        cmd = _role_command(role, args, workdir, port, device, gpu_setting)
+        cmd = _role_command(role, args, workdir, port, device, setting)
         # A process group of its own: Ctrl-C in the terminal reaches the demo only, which stops the
         # roles in order through their lifelines; a role stops by itself when the demo dies.
         proc = platform.Child(cmd, env=env, stdout=log, stderr=log)
@@ -586,8 +602,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     budget = args.minutes * 60.0
     tty = sys.stdout.isatty()
-    agent = (f"{args.algorithm} at up to {GPU_REALTIME_SETTINGS['realtime_max_training_steps_per_env_step']:g} "
-             "updates per sample, the GPU setting" if gpu_setting else args.algorithm)
+    agent = args.algorithm
+    if setting:
+        chosen = REALTIME_SETTINGS[setting]
+        agent = (f"{args.algorithm} at up to {chosen['realtime_max_training_steps_per_env_step']:g} updates per sample, "
+                 f"the {setting.upper()} setting {chosen['label']}")
     print(f"tmrl demo: {args.interface} on track {args.track} ({'real time' if args.realtime else 'fast mode'}, {agent}, "
           f"trainer on {device}), budget {args.minutes:g} min"
           f"{f' or {args.steps} steps' if args.steps else ''}; Ctrl-C stops early. Run folder: {workdir}", flush=True)
