@@ -678,3 +678,35 @@ def torch_device(device):
     import torch
 
     return torch.device(device).type
+
+
+def test_the_recommended_trackmania_templates_build_the_agents_the_benchmark_measured():
+    """config_tm20lidar_cpu.json and _gpu.json, as shipped, build the agent of the benchmark variant
+    each names (tmrl.config.generate.TM_CPU_SETTING, TM_GPU_SETTING): same class, ratio, random
+    steps, hyperparameters and critic sizes."""
+    import gymnasium
+
+    from tmrl.algorithms import agent_class
+    from tmrl.config import loader
+    from tmrl.config.generate import TM_CPU_SETTING, TM_GPU_SETTING
+    from tmrl.config.schema import AGENT_CLASSES, arguments
+
+    env = gymnasium.make("Pendulum-v1")
+    spaces = (env.observation_space, env.action_space)
+
+    def settings(agent):
+        keys = ("lr_actor", "lr_critic", "lr_entropy", "gamma", "polyak", "alpha", "learn_entropy_coef",
+                "target_entropy", "alpha_max", "n", "m", "q_updates_per_policy_update", "n_quantiles", "pessimism",
+                "critic_width", "critic_blocks")
+        betas = [g["betas"] for opt in (agent.pi_optimizer, agent.q_optimizer) for g in opt.param_groups]
+        return {k: getattr(agent, k, None) for k in keys} | {"betas": betas, "type": type(agent).__name__}
+
+    for name, label in (("config_tm20lidar_cpu.json", TM_CPU_SETTING), ("config_tm20lidar_gpu.json", TM_GPU_SETTING)):
+        cfg = loader.load_config(REPO / "config" / name)
+        assert cfg["ENV"]["RTGYM_INTERFACE"] == "TM20LIDAR", name
+        assert cfg["MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP"] == tl.VARIANTS[label][2], name
+        assert cfg["ENVIRONMENT_STEPS_BEFORE_TRAINING"] == tl.start_steps_of(label), name
+        alg = cfg["ALG"]["ALGORITHM"]
+        assert alg == tl.VARIANTS[label][0], name
+        built = agent_class(alg)(*spaces, "cpu", **arguments(cfg, AGENT_CLASSES[alg]))
+        assert settings(built) == settings(tl._agent(label, spaces, "pendulum", tl.VARIANTS[label][2])), name

@@ -101,10 +101,37 @@ def _sim_example(interface: str, **env: Any) -> dict[str, Any]:
     }
 
 
+# The benchmark's recommendations for TrackMania's lidar (docs/trackmania.md, "Recommended training
+# settings"; bench/track_learning.py names the variant each was measured as): one for a trainer on
+# a CPU, one for a trainer on a GPU. The rest is the TrackMania file's.
+_RECOMMENDED_ALG: dict[str, Any] = {
+    **_GENERIC_ALG,
+    "ALPHA_MAX": 0.01,
+}
+_TM_LIDAR_ENV: dict[str, Any] = {"RTGYM_INTERFACE": "TM20LIDAR", "WINDOW_WIDTH": 958, "WINDOW_HEIGHT": 488}
+TM_CPU_SETTING = "BRO-W128-UTD4-CAP-R250"
+"""The ``track_learning`` variant ``config_tm20lidar_cpu.json`` trains."""
+TM_GPU_SETTING = "REDQSAC-UTD8-CAP-R250"
+"""The ``track_learning`` variant ``config_tm20lidar_gpu.json`` trains."""
+
 EXAMPLES: dict[str, dict[str, Any]] = {
     "config_tm20lidar.json": {
         "RUN_NAME": "SAC_4_LIDAR_pretrained",
-        "ENV": {"RTGYM_INTERFACE": "TM20LIDAR", "WINDOW_WIDTH": 958, "WINDOW_HEIGHT": 488},
+        "ENV": _TM_LIDAR_ENV,
+    },
+    "config_tm20lidar_cpu.json": {
+        "RUN_NAME": "BRO_LIDAR_cpu",
+        "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 4.0,
+        "ENVIRONMENT_STEPS_BEFORE_TRAINING": 250,
+        "ALG": {**_RECOMMENDED_ALG, "ALGORITHM": "BRO", "BRO_CRITIC_WIDTH": 128},
+        "ENV": _TM_LIDAR_ENV,
+    },
+    "config_tm20lidar_gpu.json": {
+        "RUN_NAME": "REDQ_LIDAR_gpu",
+        "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 8.0,
+        "ENVIRONMENT_STEPS_BEFORE_TRAINING": 250,
+        "ALG": {**_RECOMMENDED_ALG, "ALGORITHM": "REDQSAC", "REDQ_Q_UPDATES_PER_POLICY_UPDATE": 1},
+        "ENV": _TM_LIDAR_ENV,
     },
     "config_gym_pendulum.json": {
         "RUN_NAME": "pendulum_sac",
