@@ -78,9 +78,9 @@ GPU_REALTIME_SETTINGS: dict[str, Any] = {
 #: no ``--algorithm``): the benchmark's setting that laps first in real time on a CPU,
 #: ``CPU_SETTING_LABEL`` below (docs/benchmarks.md, "A lap in fewer steps with less compute").
 CPU_REALTIME_SETTINGS: dict[str, Any] = {
-    "algorithm": "BRO", "realtime_max_training_steps_per_env_step": 4.0, "realtime_alpha": 0.2,
+    "algorithm": "BRO", "realtime_max_training_steps_per_env_step": 8.0, "realtime_alpha": 0.2,
     "realtime_learn_entropy_coef": True, "alpha_max": 0.01, "start_training": 250,
-    "agent_kwargs": {"critic_width": 128}, "label": "BRO-W128-UTD4-CAP-R250",
+    "agent_kwargs": {"critic_width": 128}, "label": "BRO-W128-UTD8-CAP-R250",
 }
 
 #: The real-time settings by trainer: ``--realtime``, lidar, no ``--algorithm``.
