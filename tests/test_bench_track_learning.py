@@ -433,7 +433,7 @@ def test_the_settings_docs_trackmania_gives_are_the_ones_the_benchmark_measured(
     from tmrl.config import loader
     from tmrl.config.schema import AGENT_CLASSES, arguments
 
-    measured = {"SAC": "SAC-UTD4-FA", "REDQSAC": "REDQSAC-UTD8-CAP-R250"}
+    measured = {"SAC": "SAC-UTD4-FA", "REDQSAC": "REDQSAC-UTD8-CAP-R250", "BRO": "BRO-W128-UTD8-CAP-R250"}
     doc = (REPO / "docs" / "trackmania.md").read_text(encoding="utf-8")
     fragments = [json.loads("{" + b + "}") for b in re.findall(r"```json\n(.*?)```", doc, re.DOTALL)
                  if '"ALGORITHM"' in b and '"DRQ"' not in b]  # DrQ: the pixel test below
@@ -444,7 +444,8 @@ def test_the_settings_docs_trackmania_gives_are_the_ones_the_benchmark_measured(
 
     def settings(agent):
         keys = ("lr_actor", "lr_critic", "lr_entropy", "gamma", "polyak", "alpha", "learn_entropy_coef",
-                "target_entropy", "alpha_max", "n", "m", "q_updates_per_policy_update")
+                "target_entropy", "alpha_max", "n", "m", "q_updates_per_policy_update", "n_quantiles", "pessimism",
+                "critic_width", "critic_blocks")
         betas = [g["betas"] for opt in (agent.pi_optimizer, agent.q_optimizer) for g in opt.param_groups]
         return {k: getattr(agent, k, None) for k in keys} | {"betas": betas, "type": type(agent).__name__}
 
