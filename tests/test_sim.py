@@ -624,6 +624,7 @@ def test_demo_in_real_time_on_a_gpu_trains_the_benchmark_s_recommendation(tmp_pa
     assert demo.demo_setting("SIMLIDARPROGRESS", True, "cuda:1", None, 400) == ("REDQSAC", 400, "gpu")
     assert demo.demo_setting("SIMLIDAR", True, "cuda", "SAC", None) == ("SAC", 1000, None)
     assert demo.demo_setting("SIMLIDAR", True, "mps", None, None) == ("SAC", 1000, None)
+    assert demo.demo_setting("SIMLIDAR", True, "cpu", None, None) == ("SAC", 1000, None)
     assert demo.demo_setting("SIMLIDAR", False, "cuda", None, None) == ("SAC", 1000, None)
     assert demo.demo_setting("SIMFULL", True, "cuda", None, None) == ("SAC", 1000, None)
     # the parent hands it to its roles, and a role applies it before it builds the trainer
@@ -653,25 +654,23 @@ def test_demo_in_real_time_on_a_gpu_trains_the_benchmark_s_recommendation(tmp_pa
     assert "alpha_max" not in demo.DEMO_SETTINGS and demo.DEMO_SETTINGS["algorithm"] == "SAC"
 
 
-def test_demo_in_real_time_on_a_cpu_trains_the_benchmark_s_cpu_recommendation(tmp_path, monkeypatch):
+def test_demo_in_real_time_on_a_cpu_keeps_sac_and_bro_s_setting_matches_the_benchmark(tmp_path, monkeypatch):
+    """On a CPU the demo's SAC lapped first in real time, so it stays; BRO's setting, kept for a
+    role that is given it, is the benchmark's BRO-W128-UTD8-CAP-R250."""
     from bench.track_learning import DEMO_OVERRIDES, VARIANTS
     from tmrl.algorithms import agent_class
     from tmrl.sim import demo
 
-    cpu = demo.CPU_REALTIME_SETTINGS
-    label = cpu["label"]
-    # what the demo measured its setting from: the benchmark's variant of that label
-    assert VARIANTS[label] == (cpu["algorithm"], "demo", cpu["realtime_max_training_steps_per_env_step"])
-    assert DEMO_OVERRIDES[label].get("start_steps") == cpu["start_training"]
-    assert DEMO_OVERRIDES[label].get("alpha_max") == cpu["alpha_max"]
-    assert DEMO_OVERRIDES[label].get("agent", {}) == cpu.get("agent_kwargs", {})
-    # when it applies: real time, lidar, a CPU trainer, no agent chosen
-    assert demo.demo_setting("SIMLIDAR", True, "cpu", None, None) == (cpu["algorithm"], 250, "cpu")
-    assert demo.demo_setting("SIMLIDAR", True, "cpu", "SAC", None) == ("SAC", 1000, None)
-    assert demo.demo_setting("SIMLIDAR", False, "cpu", None, None) == ("SAC", 1000, None)
+    assert demo.demo_setting("SIMLIDAR", True, "cpu", None, None) == ("SAC", 1000, None)
+    bro = demo.CPU_REALTIME_SETTINGS
+    label = bro["label"]
+    assert VARIANTS[label] == (bro["algorithm"], "demo", bro["realtime_max_training_steps_per_env_step"])
+    assert DEMO_OVERRIDES[label].get("start_steps") == bro["start_training"]
+    assert DEMO_OVERRIDES[label].get("alpha_max") == bro["alpha_max"]
+    assert DEMO_OVERRIDES[label].get("agent", {}) == bro.get("agent_kwargs", {})
     args = demo._parse(["--realtime"])
-    args.interface, args.track, args.algorithm, args.start_training = "SIMLIDAR", "oval", cpu["algorithm"], 250
-    cmd = demo._role_command("trainer", args, tmp_path, 1234, "cpu", "cpu")
+    args.interface, args.track, args.algorithm, args.start_training = "SIMLIDAR", "oval", bro["algorithm"], 250
+    cmd = demo._role_command("trainer", args, tmp_path, 1234, "cpu", "bro-cpu")
     seen = {}
     monkeypatch.setattr(demo, "_run_role", lambda *a: seen.update(settings=dict(demo.DEMO_SETTINGS)))
     saved = dict(demo.DEMO_SETTINGS)
@@ -681,11 +680,11 @@ def test_demo_in_real_time_on_a_cpu_trains_the_benchmark_s_cpu_recommendation(tm
     finally:
         demo.DEMO_SETTINGS.clear()
         demo.DEMO_SETTINGS.update(saved)
-    assert seen["settings"]["algorithm"] == cpu["algorithm"] and seen["settings"]["start_training"] == 250
-    assert training.keywords["max_training_steps_per_env_step"] == cpu["realtime_max_training_steps_per_env_step"]
+    assert seen["settings"]["algorithm"] == bro["algorithm"] and seen["settings"]["start_training"] == 250
+    assert training.keywords["max_training_steps_per_env_step"] == bro["realtime_max_training_steps_per_env_step"]
     env = demo._make_env("SIMLIDAR", "oval")
     agent = training.keywords["training_agent_cls"](env.observation_space, env.action_space, "cpu")
-    assert isinstance(agent, agent_class(cpu["algorithm"])) and agent.alpha_max == cpu["alpha_max"]
-    assert agent.learn_entropy_coef and float(agent.alpha) == pytest.approx(cpu["realtime_alpha"])
-    for key, value in cpu.get("agent_kwargs", {}).items():
+    assert isinstance(agent, agent_class(bro["algorithm"])) and agent.alpha_max == bro["alpha_max"]
+    assert agent.learn_entropy_coef and float(agent.alpha) == pytest.approx(bro["realtime_alpha"])
+    for key, value in bro.get("agent_kwargs", {}).items():
         assert getattr(agent, key) == value

@@ -706,8 +706,8 @@ class TrainingOffline:
             logger.warning(
                 "the trainer is behind: %.2f updates per sample done, %.4g asked (MAX_TRAINING_STEPS_PER_ENVIRONMENT_"
                 "STEP); it trains as fast as it can but the workers send samples faster. The round lines say "
-                "\"behind\" while it lasts; a cheaper setting (docs/simulator.md, \"Which agent\") or a faster "
-                "trainer keeps the ratio", done, asked)
+                "\"behind\" while it lasts; a cheaper setting (docs/benchmarks.md compares their cost per step) or a "
+                "faster trainer keeps the ratio", done, asked)
         return True
 
 

@@ -109,7 +109,7 @@ _RECOMMENDED_ALG: dict[str, Any] = {
     "ALPHA_MAX": 0.01,
 }
 _TM_LIDAR_ENV: dict[str, Any] = {"RTGYM_INTERFACE": "TM20LIDAR", "WINDOW_WIDTH": 958, "WINDOW_HEIGHT": 488}
-TM_CPU_SETTING = "BRO-W128-UTD8-CAP-R250"
+TM_CPU_SETTING = "SAC-UTD4-FA"
 """The ``track_learning`` variant ``config_tm20lidar_cpu.json`` trains."""
 TM_GPU_SETTING = "REDQSAC-UTD8-CAP-R250"
 """The ``track_learning`` variant ``config_tm20lidar_gpu.json`` trains."""
@@ -120,10 +120,10 @@ EXAMPLES: dict[str, dict[str, Any]] = {
         "ENV": _TM_LIDAR_ENV,
     },
     "config_tm20lidar_cpu.json": {
-        "RUN_NAME": "BRO_LIDAR_cpu",
-        "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 8.0,
-        "ENVIRONMENT_STEPS_BEFORE_TRAINING": 250,
-        "ALG": {**_RECOMMENDED_ALG, "ALGORITHM": "BRO", "BRO_CRITIC_WIDTH": 128},
+        "RUN_NAME": "SAC_LIDAR_cpu",
+        "MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP": 4.0,
+        "ENVIRONMENT_STEPS_BEFORE_TRAINING": 1000,
+        "ALG": {**_GENERIC_ALG, "ALGORITHM": "SAC", "ALPHA": 0.01, "LEARN_ENTROPY_COEF": False},
         "ENV": _TM_LIDAR_ENV,
     },
     "config_tm20lidar_gpu.json": {
