@@ -55,7 +55,12 @@ after 250 random steps, and ``REDQSAC-N5-UTD4-R250`` the same with five critics 
 coefficient held at or under 0.01 once it has fallen there, ``REDQSAC-UTD8-CAP-R250`` the same at
 8 updates per step, ``REDQSAC-UTD4-CAP-NS3-R250`` the same at 4 with three-step returns in the
 critics' target; ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
-``TQC`` use their class defaults (their papers'), each with the lidar model of its kind. The
+``TQC`` use their class defaults (their papers'), each with the lidar model of its kind; ``BRO`` and
+``SIMBAV2`` too (at 2 updates per step, BRO-fast's ratio), and the ``BRO-*-CAP-R250`` and
+``SIMBAV2-*-CAP-R250`` screens are those agents at the capped screens' settings (learning rates
+1e-3, the coefficient learned from 0.2 and held at or under 0.01, 250 random steps) at the ratio
+their name gives, ``-W128`` with critics 128 wide, ``-B0`` with BRO's optimistic target
+(pessimism 0), ``-B2`` with two residual blocks. The
 update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
 compares :data:`DEFAULT_AGENTS` unless ``--agents`` names others. Budgets per track are in
 :data:`PROFILES`: on ``classic`` every run drives its whole budget, so that best laps compare at an
