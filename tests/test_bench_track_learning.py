@@ -442,13 +442,6 @@ def test_the_settings_docs_trackmania_gives_are_the_ones_the_benchmark_measured(
     env = gymnasium.make("Pendulum-v1")
     spaces = (env.observation_space, env.action_space)
 
-    def settings(agent):
-        keys = ("lr_actor", "lr_critic", "lr_entropy", "gamma", "polyak", "alpha", "learn_entropy_coef",
-                "target_entropy", "alpha_max", "n", "m", "q_updates_per_policy_update", "n_quantiles", "pessimism",
-                "critic_width", "critic_blocks")
-        betas = [g["betas"] for opt in (agent.pi_optimizer, agent.q_optimizer) for g in opt.param_groups]
-        return {k: getattr(agent, k, None) for k in keys} | {"betas": betas, "type": type(agent).__name__}
-
     for fragment in fragments:
         alg = fragment["ALG"]["ALGORITHM"]
         label = measured[alg]
@@ -457,7 +450,8 @@ def test_the_settings_docs_trackmania_gives_are_the_ones_the_benchmark_measured(
         assert cfg["MAX_TRAINING_STEPS_PER_ENVIRONMENT_STEP"] == tl.VARIANTS[label][2], label
         assert cfg["ENVIRONMENT_STEPS_BEFORE_TRAINING"] == tl.start_steps_of(label), label
         built = agent_class(alg)(*spaces, "cpu", **arguments(cfg, AGENT_CLASSES[alg]))
-        assert settings(built) == settings(tl._agent(label, spaces, "pendulum", tl.VARIANTS[label][2])), label
+        measured_agent = tl._agent(label, spaces, "pendulum", tl.VARIANTS[label][2])
+        assert _measured_settings(built) == _measured_settings(measured_agent), label
 
 
 # --- from pixels (--interface SIMFULL) ---------------------------------------------------------------
@@ -695,13 +689,6 @@ def test_the_recommended_trackmania_templates_build_the_agents_the_benchmark_mea
     env = gymnasium.make("Pendulum-v1")
     spaces = (env.observation_space, env.action_space)
 
-    def settings(agent):
-        keys = ("lr_actor", "lr_critic", "lr_entropy", "gamma", "polyak", "alpha", "learn_entropy_coef",
-                "target_entropy", "alpha_max", "n", "m", "q_updates_per_policy_update", "n_quantiles", "pessimism",
-                "critic_width", "critic_blocks")
-        betas = [g["betas"] for opt in (agent.pi_optimizer, agent.q_optimizer) for g in opt.param_groups]
-        return {k: getattr(agent, k, None) for k in keys} | {"betas": betas, "type": type(agent).__name__}
-
     for name, label in (("config_tm20lidar_cpu.json", TM_CPU_SETTING), ("config_tm20lidar_gpu.json", TM_GPU_SETTING)):
         cfg = loader.load_config(REPO / "config" / name)
         assert cfg["ENV"]["RTGYM_INTERFACE"] == "TM20LIDAR", name
@@ -710,4 +697,14 @@ def test_the_recommended_trackmania_templates_build_the_agents_the_benchmark_mea
         alg = cfg["ALG"]["ALGORITHM"]
         assert alg == tl.VARIANTS[label][0], name
         built = agent_class(alg)(*spaces, "cpu", **arguments(cfg, AGENT_CLASSES[alg]))
-        assert settings(built) == settings(tl._agent(label, spaces, "pendulum", tl.VARIANTS[label][2])), name
+        measured_agent = tl._agent(label, spaces, "pendulum", tl.VARIANTS[label][2])
+        assert _measured_settings(built) == _measured_settings(measured_agent), name
+
+
+def _measured_settings(agent):
+    """What makes two agents the same measured setting: hyperparameters, critic sizes, betas, class."""
+    keys = ("lr_actor", "lr_critic", "lr_entropy", "gamma", "polyak", "alpha", "learn_entropy_coef",
+            "target_entropy", "alpha_max", "n", "m", "q_updates_per_policy_update", "n_quantiles", "pessimism",
+            "critic_width", "critic_blocks")
+    betas = [g["betas"] for opt in (agent.pi_optimizer, agent.q_optimizer) for g in opt.param_groups]
+    return {k: getattr(agent, k, None) for k in keys} | {"betas": betas, "type": type(agent).__name__}
