@@ -12,7 +12,6 @@ import gymnasium
 import numpy as np
 import pytest
 import torch
-from torch import nn
 
 from tmrl.algorithms import BROAgent, agent_class
 from tmrl.algorithms.bro import BROActorCritic, BroNet, BroNetBlock, BroNetQuantileCritic

@@ -14,7 +14,7 @@ def test_update_cost_prints_each_variant_against_the_reference_and_keeps_a_recor
     proc = subprocess.run(
         [sys.executable, "-m", "bench", "update_cost", "--agents", "BRO-UTD4-CAP-R250,SAC-UTD4-FA", "--rounds", "2",
          "--updates", "6", "--warmup", "1", "--batch-size", "32"],
-        cwd=ROOT, capture_output=True, text=True, timeout=600)
+        cwd=ROOT, capture_output=True, text=True, timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
     lines = proc.stdout.splitlines()
     assert "processor" in lines[0] and "load" in lines[0]
