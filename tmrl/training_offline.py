@@ -38,9 +38,6 @@ BEHIND_FRACTION = 0.9
 """A round that does fewer than this fraction of the updates per sample asked, without waiting,
 is behind (:meth:`TrainingOffline._fell_behind`)."""
 
-BEHIND_IDLE_FRACTION = 0.05
-"""A round idle (waiting for samples) for more than this fraction of its time kept up."""
-
 
 def _mean_rows(rows: list[dict[str, Any]]) -> dict[str, float]:
     """Mean of each numeric metric over a round's training steps (NaN and None skipped).
@@ -118,8 +115,11 @@ class RoundMetrics:
         counters: the interface's ``counters()`` (``rejected_batches``...), when it has them.
         stopped: :meth:`TrainingOffline.stop` cut the round short.
         updates_per_sample_asked: the setting's ratio (``max_training_steps_per_env_step``).
-        behind: the trainer fell behind that ratio in this round: it never waited for samples, and
-            did fewer than :data:`BEHIND_FRACTION` of the updates the round's samples asked for.
+        behind: the trainer fell behind that ratio in this round: the ratio never made it wait for
+            samples, and it did fewer than :data:`BEHIND_FRACTION` of the updates the round's
+            samples asked for.
+        updates_per_sample: ``updates`` per sample received in the round once training had
+            started (None when it received none).
     """
 
     epoch: int
@@ -146,11 +146,7 @@ class RoundMetrics:
     stopped: bool = False
     updates_per_sample_asked: float | None = None
     behind: bool = False
-
-    @property
-    def updates_per_sample(self) -> float | None:
-        """``updates / samples`` of the round (None for a round that received none)."""
-        return self.updates / self.samples if self.samples > 0 else None
+    updates_per_sample: float | None = None
 
     @property
     def updates_per_second(self) -> float:
@@ -355,7 +351,7 @@ class TrainingOffline:
         self.max_wait_s: float | None = None
         self._stop = threading.Event()
         self._default_logger: MetricsLogger | None = None
-        self._round_samples = 0
+        self._round_samples = self._round_training_samples = self._round_ratio_waits = 0
         self._broadcast_at = 0  # total_updates at the last broadcast
         self.callbacks: list[TrainingCallback] = []
         if float(self.max_env_steps_per_training_step) < 0:
@@ -448,6 +444,8 @@ class TrainingOffline:
                 return 0
             self.total_samples += n
             self._round_samples += n
+            if self.total_updates > 0:
+                self._round_training_samples += n
         return n
 
     def _memory_refused(self, n: int) -> None:
@@ -515,6 +513,8 @@ class TrainingOffline:
             # both sides could wait for each other.
             self._broadcast(interface)
         waiting_to_start = self.total_updates == 0
+        if not waiting_to_start:
+            self._round_ratio_waits += 1  # the ratio binds: the trainer keeps up with the samples
         if waiting_to_start:
             logger.info("waiting for samples: training starts after %d (%d received)",
                         max(int(self.start_training), 1), self.total_samples)
@@ -613,7 +613,7 @@ class TrainingOffline:
             when it was stopped before its first step.
         """
         t0 = time.perf_counter()
-        self._round_samples = 0
+        self._round_samples = self._round_training_samples = self._round_ratio_waits = 0
         updates_before = self.total_updates
         if not self.check_ratio(interface):
             return None
@@ -661,7 +661,8 @@ class TrainingOffline:
         counters = getattr(interface, "counters", None)
         updates, samples = self.total_updates - updates_before, self._round_samples
         asked = float(self.max_training_steps_per_env_step)
-        behind = self._fell_behind(updates, samples, asked, clock.idle, round_time)
+        fed = self._round_training_samples
+        behind = self._fell_behind(updates, fed, asked, self._round_ratio_waits)
         return RoundMetrics(
             epoch=self.epoch,
             round=rnd,
@@ -687,16 +688,17 @@ class TrainingOffline:
             stopped=stopped,
             updates_per_sample_asked=asked,
             behind=behind,
+            updates_per_sample=updates / fed if fed > 0 else None,
         )
 
-    def _fell_behind(self, updates: int, samples: int, asked: float, idle: float, round_time: float) -> bool:
+    def _fell_behind(self, updates: int, samples: int, asked: float, ratio_waits: int) -> bool:
         """Whether a round fell behind the ratio the setting asks for, said once in the log (the
-        round lines carry it each time): the trainer trained the whole round without waiting for
-        samples (at most :data:`BEHIND_IDLE_FRACTION` of it idle) and still did fewer than
-        :data:`BEHIND_FRACTION` of ``asked`` updates per sample received in it. In real time the
-        workers do not wait for the trainer, so such a round trains on fewer updates per sample
-        than the setting's figures were measured with."""
-        if samples <= 0 or asked <= 0 or idle > BEHIND_IDLE_FRACTION * round_time:
+        round lines carry it each time): the ratio never made the trainer wait for samples in the
+        round (``ratio_waits``: the waits once training had started) and it still did fewer than
+        :data:`BEHIND_FRACTION` of ``asked`` updates per sample received since training started
+        (``samples``). In real time the workers do not wait for the trainer, so such a round trains
+        on fewer updates per sample than the setting's figures were measured with."""
+        if samples <= 0 or asked <= 0 or ratio_waits > 0:
             return False
         done = updates / samples
         if done >= BEHIND_FRACTION * asked:
