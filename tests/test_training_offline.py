@@ -330,3 +330,19 @@ def test_a_trainer_that_keeps_the_ratio_is_not_behind(caplog):
     assert fed and all(v == pytest.approx(4.0, rel=0.1) for v in fed), fed
     assert not any("behind" in format_row(row) for row in rows)
     assert not [r for r in caplog.records if "behind" in r.getMessage()]
+
+
+def test_a_round_that_waited_for_samples_is_not_behind_even_when_they_came_in_a_burst(caplog):
+    """Samples in bursts of 10, pulled only when the ratio of 4 binds: a round that waited for
+    samples then received a burst it had no time to train on did few updates per sample, yet it
+    kept up (it was the trainer that waited), so it is not behind."""
+    training = make_training(max_training_steps_per_env_step=4.0, rounds=8, steps=12, start_training=8,
+                             update_buffer_interval=100)
+    interface = FakeInterface([], endless=10)
+    interface.training = training
+    with caplog.at_level(logging.WARNING, logger="tmrl.training_offline"):
+        rows = training.run_epoch(interface)
+    burst = [row for row in rows if row["updates_per_sample"] is not None and row["updates_per_sample"] < 3.6]
+    assert burst, rows  # a round did receive a burst it could not train through
+    assert not any(row["behind"] for row in rows)
+    assert not [r for r in caplog.records if "behind" in r.getMessage()]
