@@ -60,7 +60,11 @@ critics' target; ``REDQSAC``, ``DROQ``, ``CROSSQ`` and
 ``SIMBAV2-*-CAP-R250`` screens are those agents at the capped screens' settings (learning rates
 1e-3, the coefficient learned from 0.2 and held at or under 0.01, 250 random steps) at the ratio
 their name gives, ``-W128`` with critics 128 wide, ``-B0`` with BRO's optimistic target
-(pessimism 0), ``-B2`` with two residual blocks. The
+(pessimism 0), ``-B2`` with two residual blocks, ``-NS3`` with three-step returns (the critics'
+targets of :func:`_n_step_targets`). ``SAC-W128-UTD4-CAP-R250`` and ``SAC-W128-UTD8-CAP-R250`` are
+SAC at the capped screens' settings with actor and critics 128 wide; ``REDQSAC-W64-UTD8-CAP-R250``
+and ``REDQSAC-W128-N5-UTD8-CAP-R250`` are ``REDQSAC-UTD8-CAP-R250`` with networks 64 wide, and 128
+wide with five critics (``hidden_sizes``: the cheaper updates a CPU trainer keeps up with). The
 update-to-data ratio of each variant is in :data:`VARIANTS` (``--utd`` overrides it for all); a run
 compares :data:`DEFAULT_AGENTS` unless ``--agents`` names others. Budgets per track are in
 :data:`PROFILES`: on ``classic`` every run drives its whole budget, so that best laps compare at an
@@ -157,6 +161,13 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
     "BRO-W128-UTD4-CAP-R250": ("BRO", "demo", 4),
     "BRO-B2-UTD4-CAP-R250": ("BRO", "demo", 4),
     "BRO-W128-UTD8-CAP-R250": ("BRO", "demo", 8),
+    "BRO-W128-UTD8-CAP-NS3-R250": ("BRO", "demo", 8),
+    "BRO-W128-UTD3-CAP-R250": ("BRO", "demo", 3),
+    "BRO-W128-UTD3-CAP-NS3-R250": ("BRO", "demo", 3),
+    "SAC-W128-UTD4-CAP-R250": ("SAC", "demo", 4),
+    "REDQSAC-W64-UTD8-CAP-R250": ("REDQSAC", "demo", 8),
+    "REDQSAC-W128-N5-UTD8-CAP-R250": ("REDQSAC", "demo", 8),
+    "SAC-W128-UTD8-CAP-R250": ("SAC", "demo", 8),
     "SIMBAV2": ("SIMBAV2", "class", 2),
     "SIMBAV2-UTD2-CAP-R250": ("SIMBAV2", "demo", 2),
     "SIMBAV2-UTD4-CAP-R250": ("SIMBAV2", "demo", 4),
@@ -179,7 +190,7 @@ DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ",
 #: (a REDQ-SAC base's number of critics, ``ALG.REDQ_N``; otherwise the paper's 10), ``n_step``
 #: (the ``-NS`` screens: critics that regress on ``n``-step returns, :func:`_n_step_targets`),
 #: ``agent`` (more keyword arguments of the agent: the BRO screens' ``pessimism``, ``critic_width``,
-#: ``critic_blocks``).
+#: ``critic_blocks``), ``hidden_sizes`` (the widths of the lidar model's actor and critics).
 DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "SAC-UTD4-LR3": {"lr": 3e-4},
     "SAC-UTD4-FA": {"alpha": 0.01, "learn_entropy_coef": False},
@@ -207,6 +218,14 @@ DEMO_OVERRIDES: dict[str, dict[str, Any]] = {
     "BRO-B0-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"pessimism": 0.0}},
     "BRO-W128-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"critic_width": 128}},
     "BRO-B2-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"critic_blocks": 2}},
+    "BRO-W128-UTD8-CAP-NS3-R250": {"start_steps": 250, "alpha_max": 0.01, "n_step": 3, "agent": {"critic_width": 128}},
+    "BRO-W128-UTD3-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"critic_width": 128}},
+    "BRO-W128-UTD3-CAP-NS3-R250": {"start_steps": 250, "alpha_max": 0.01, "n_step": 3, "agent": {"critic_width": 128}},
+    "SAC-W128-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "hidden_sizes": (128, 128)},
+    "REDQSAC-W64-UTD8-CAP-R250": {"start_steps": 250, "policy_every": 1, "alpha_max": 0.01, "hidden_sizes": (64, 64)},
+    "REDQSAC-W128-N5-UTD8-CAP-R250": {"start_steps": 250, "policy_every": 1, "alpha_max": 0.01, "redq_n": 5,
+                                      "hidden_sizes": (128, 128)},
+    "SAC-W128-UTD8-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "hidden_sizes": (128, 128)},
     "BRO-W128-UTD8-CAP-R250": {"start_steps": 250, "alpha_max": 0.01, "agent": {"critic_width": 128}},
     "SIMBAV2-UTD2-CAP-R250": {"start_steps": 250, "alpha_max": 0.01},
     "SIMBAV2-UTD4-CAP-R250": {"start_steps": 250, "alpha_max": 0.01},
@@ -336,6 +355,8 @@ def _agent(label: str, spaces: tuple[Any, Any], env_name: str, utd: int, device:
             kwargs["model_cls"] = functools.partial(_lidar_model("DROQ"), dropout_rate=0.0)
         if v["redq_n"] is not None:
             kwargs["n"] = v["redq_n"]
+        if v.get("hidden_sizes") is not None:  # the -W screens of SAC: actor and critics that wide
+            kwargs["model_cls"] = functools.partial(kwargs["model_cls"], hidden_sizes=tuple(v["hidden_sizes"]))
         kwargs.update(v.get("agent", {}))
     if alg in ("REDQSAC", "DROQ"):
         kwargs["q_updates_per_policy_update"] = policy_every
@@ -418,7 +439,9 @@ def _n_step_targets(agent: Any, memory: Any, n: int) -> None:
     def n_step_target(batch: Any, alpha: Any) -> Any:
         # gamma (1 - d) (Q_targ - alpha log pi) at o_{t+K}, rescaled to gamma^K
         bootstrap = target_value(batch._replace(rew=torch.zeros_like(batch.rew)), alpha)
-        return batch.rew.reshape(-1) + bootstrap * (discount["now"] / gamma)
+        # (B,) for SAC's value, (B, M) for a distributional critic's atoms
+        shape = (-1,) + (1,) * (bootstrap.dim() - 1)
+        return batch.rew.reshape(shape) + bootstrap * (discount["now"] / gamma).reshape(shape)
 
     memory.sample, agent.target_value = sample, n_step_target
 

@@ -89,6 +89,19 @@ def test_the_pessimistic_quantiles_are_mean_minus_beta_standard_deviations():
     assert tiny_agent(pessimism=0.0).policy_q(z).tolist() == [3.0]
 
 
+def test_three_critics_take_the_population_standard_deviation_and_two_the_same_in_closed_form():
+    """Three critics: quantiles 0, 3 and 6 have mean 3 and population deviation sqrt(6); beta 1
+    gives 3 - sqrt(6). Two critics (computed as ``mean - beta |a - b| / 2``) agree with
+    ``mean - beta std`` on random values."""
+    three = BROAgent(OBS, ACT, "cpu", n=3, n_quantiles=1, critic_width=3, critic_blocks=1, pessimism=1.0)
+    z3 = torch.tensor([[[0.0]], [[3.0]], [[6.0]]])
+    assert three._pessimistic(z3).item() == pytest.approx(3.0 - 6.0 ** 0.5)
+    z2 = torch.randn(2, 5, 3, generator=torch.Generator().manual_seed(0))
+    for beta in (0.3, 1.0, 2.0):
+        expected = z2.mean(0) - beta * z2.std(0, unbiased=False)
+        torch.testing.assert_close(tiny_agent(pessimism=beta)._pessimistic(z2), expected)
+
+
 def _batch(rew: float, terminated: float) -> Batch:
     obs = torch.tensor([[0.1, -0.2, 0.3]])
     return Batch(obs, torch.tensor([[0.5, -0.5]]), torch.tensor([rew]), obs * 2, torch.tensor([terminated]),

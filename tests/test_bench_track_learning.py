@@ -263,6 +263,17 @@ def test_the_n_step_screen_regresses_on_n_step_returns_cut_at_episode_ends():
     want = batch.rew + discount * (1 - batch.terminated) * (q2 - alpha * logp)
     assert torch.allclose(got, want, atol=1e-5)
     assert agent.fused_update is None
+    # a distributional critic's target atoms (B, M) take each transition's return and discount too
+    bro = tl._agent("BRO-W128-UTD8-CAP-NS3-R250", (env.observation_space, env.action_space), "pendulum", 8)
+    tl._n_step_targets(bro, memory, 3)
+    batch = memory.sample(np.array([slots[k] for k in cases]))
+    torch.manual_seed(0)
+    got = bro.target_value(batch, alpha)
+    torch.manual_seed(0)
+    a2, logp = bro.actor(batch.next_obs)
+    z = bro.target_q(batch.next_obs, a2)
+    want = batch.rew[:, None] + (discount * (1 - batch.terminated))[:, None] * (z - alpha * logp[:, None])
+    assert got.shape == z.shape == (len(cases), bro.n_quantiles) and torch.allclose(got, want, atol=1e-5)
 
 
 def test_variants_take_tmrls_random_start_unless_they_name_their_own(tmp_path, monkeypatch):

@@ -688,3 +688,48 @@ def test_demo_in_real_time_on_a_cpu_keeps_sac_and_bro_s_setting_matches_the_benc
     assert agent.learn_entropy_coef and float(agent.alpha) == pytest.approx(bro["realtime_alpha"])
     for key, value in bro.get("agent_kwargs", {}).items():
         assert getattr(agent, key) == value
+
+
+def test_an_explicit_setting_is_trained_whatever_the_device_and_refused_where_it_cannot_apply():
+    from tmrl.sim import demo
+
+    assert demo.demo_setting("SIMLIDAR", True, "cpu", None, None, "sac-w128") == ("SAC", 250, "sac-w128")
+    assert demo.demo_setting("SIMLIDAR", True, "cuda", None, 400, "bro-cpu") == ("BRO", 400, "bro-cpu")
+    for bad in [("SIMLIDAR", False, "cpu", None, None, "sac-w128"),  # fast mode
+                ("SIMLIDAR", True, "cpu", "SAC", None, "sac-w128"),  # an agent of its own
+                ("SIMFULL", True, "cpu", None, None, "sac-w128")]:  # images
+        with pytest.raises(UserError, match="--setting sac-w128"):
+            demo.demo_setting(*bad)
+
+
+def test_a_setting_s_narrower_network_is_the_trainer_s_and_the_worker_s(tmp_path):
+    """``sac-w128``: the trainer's actor and critics are 128 wide, and the worker builds the same
+    actor, so it loads the trainer's weights (a worker of the default width would refuse them)."""
+    import torch
+
+    from bench.track_learning import DEMO_OVERRIDES, VARIANTS
+    from tmrl.sim import demo
+
+    setting = demo.REALTIME_SETTINGS["sac-w128"]
+    # what it was measured as in fast mode: the benchmark's variant of that label
+    assert VARIANTS[setting["label"]] == ("SAC", "demo", setting["realtime_max_training_steps_per_env_step"])
+    assert DEMO_OVERRIDES[setting["label"]] == {"start_steps": setting["start_training"], "alpha_max": setting["alpha_max"],
+                                                "hidden_sizes": setting["hidden_sizes"]}
+    saved = dict(demo.DEMO_SETTINGS)
+    try:
+        demo.DEMO_SETTINGS.update(setting)
+        training = demo._training_cls("SIMLIDAR", "oval", tmp_path, realtime=True)
+        actor_cls = demo._worker_actor_cls("SIMLIDAR")
+    finally:
+        demo.DEMO_SETTINGS.clear()
+        demo.DEMO_SETTINGS.update(saved)
+    env = demo._make_env("SIMLIDAR", "oval")
+    spaces = (env.observation_space, env.action_space)
+    agent = training.keywords["training_agent_cls"](*spaces, "cpu")
+    assert training.keywords["max_training_steps_per_env_step"] == 8.0
+    widths = {m.out_features for m in agent.model.modules() if isinstance(m, torch.nn.Linear) and m.out_features > 3}
+    assert widths == {128}
+    worker_actor = actor_cls(*spaces)
+    worker_actor.load_state_dict(agent.get_actor().state_dict())  # same shapes
+    with pytest.raises(RuntimeError, match="size mismatch"):
+        demo._parts("SIMLIDAR")["actor_cls"](*spaces).load_state_dict(agent.get_actor().state_dict())

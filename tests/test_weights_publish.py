@@ -450,3 +450,82 @@ def test_the_newest_weights_count_every_version_they_stand_for(tmp_path, port_fa
     _broadcast_until_held(iface, worker, actor, [2.0, 3.0, 4.0])
     assert worker._take_newest(verbose=False) == 3 and worker.actor.bias == 4.0
     assert worker._take_newest(verbose=False) == 0  # nothing newer
+
+
+# --- 7. in real time the worker syncs inside an episode (sync_every) --------------------------------
+
+
+def _received(iface: Any, want: int, timeout: float = 30.0) -> int:
+    """Samples the trainer's interface has received, polled until ``want`` or the deadline."""
+    got, deadline = 0, time.monotonic() + timeout
+    while got < want and time.monotonic() < deadline:
+        got += len(iface.retrieve_buffer())
+        if got < want:
+            time.sleep(0.02)
+    return got
+
+
+@pytest.mark.parametrize("sync_every", [5, 0])
+def test_a_worker_that_syncs_every_few_steps_sends_and_takes_weights_inside_an_episode(
+        tmp_path, port_factory, closing, sync_every):
+    """One 20-step episode. At step 7 the trainer broadcasts new weights; at step 12 the trainer
+    has received the samples of steps 1 to 10 and the worker acts with those weights from step 11,
+    both before the episode ends. With ``sync_every=0`` (tmrl 0.7) neither happens until it ends."""
+    from test_networking import CountingEnv
+
+    seen: dict[str, Any] = {"actions": []}
+    port = port_factory()
+
+    class Env(CountingEnv):
+        def step(self, action):
+            seen["actions"].append(float(action[0]))
+            out = super().step(action)
+            if self.t == 7:
+                _broadcast_until_held(iface, worker, actor, [5.0])
+            if self.t == 12:
+                seen["received_by_12"] = _received(iface, 10, timeout=10.0 if sync_every else 1.0)
+            return out
+
+    closing.append(relay(port))
+    from tmrl.networking import TrainerInterface
+
+    iface = TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PW, security=None, header_size=10,
+                             keys_dir=str(tmp_path / "credentials"), model_path=str(tmp_path / "t.json"))
+    closing.append(iface)
+    worker = RolloutWorker(env_cls=Env, actor_module_cls=JsonActor, server_ip="127.0.0.1", server_port=port,
+                           password=PW, security=None, header_size=10, keys_dir=str(tmp_path / "credentials"),
+                           model_path=str(tmp_path / "w.json"), model_history=0, max_samples_per_episode=1000,
+                           sync_every=sync_every)
+    closing.append(worker)
+    actor = JsonActor(CountingEnv().observation_space, CountingEnv().action_space)
+    assert worker.wait_connected(30)
+    worker.collect_train_episode()
+    actions = seen["actions"]
+    assert len(actions) == 20 and actions[:10] == [0.0] * 10
+    if sync_every:
+        assert seen["received_by_12"] >= 10  # the reset and steps 1 to 10 were sent at step 10
+        assert actions[10:] == [5.0] * 10 and worker.weights_version == 1
+    else:
+        assert seen["received_by_12"] == 0
+        assert actions[10:] == [0.0] * 10 and worker.weights_version == 0
+
+
+def test_sync_every_must_not_be_negative(tmp_path):
+    from tmrl.errors import UserError
+
+    with pytest.raises(UserError, match="sync_every"):
+        RolloutWorker(env_cls=lambda: gymnasium.make("Pendulum-v1"), actor_module_cls=JsonActor, standalone=True,
+                      model_path=str(tmp_path / "w.json"), sync_every=-1)
+
+
+def test_worker_sync_steps_in_the_config_reaches_the_worker(tmp_path):
+    from tmrl.config.loader import deep_merge, validate
+    from tmrl.config.schema import defaults
+    from tmrl.config.settings import NetSettings
+
+    cfg = validate(deep_merge(defaults(), {"WORKER_SYNC_STEPS": 20}), source="a test")
+    settings = NetSettings.from_config(cfg, tmp_path)
+    make = {"env_cls": lambda: gymnasium.make("Pendulum-v1"), "actor_module_cls": JsonActor, "standalone": True,
+            "model_path": str(tmp_path / "w.json"), "settings": settings}
+    assert RolloutWorker(**make).sync_every == 20
+    assert RolloutWorker(**make, sync_every=0).sync_every == 0  # an argument wins over the config

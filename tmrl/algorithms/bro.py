@@ -235,6 +235,9 @@ class BROAgent(TQCAgent):
         (population: with two critics ``(mean - |a - b| / 2)``), ``(N, B, M) -> (B, M)``."""
         if z.shape[0] == 1 or self.pessimism == 0.0:
             return z.mean(0)
+        if z.shape[0] == 2:  # the same value in closed form: ``std`` is 8 % of an update on a CPU
+            a, b = z[0], z[1]
+            return 0.5 * (a + b) - (0.5 * self.pessimism) * (a - b).abs()
         return z.mean(0) - self.pessimism * z.std(0, unbiased=False)
 
     def target_q(self, next_obs: Any, next_act: torch.Tensor) -> torch.Tensor:

@@ -403,6 +403,10 @@ SCHEMA = Section(
                                       feeds=("TorchTrainingOffline.update_buffer_interval",), class_default=100),
         "SAVE_MODEL_EVERY": Int(0, "workers keep a copy of every N-th received model (0: none)", min=0,
                                 feeds=("RolloutWorker.model_history",)),
+        "WORKER_SYNC_STEPS": Int(0, "in a train episode, every N steps a worker sends the samples it has and takes the "
+                                    "newest weights without waiting (0: only between episodes, as tmrl 0.7); in real "
+                                    "time 20 (a second) keeps the policy and the trainer's samples fresh",
+                                 min=0, feeds=("RolloutWorker.sync_every",)),
         "MEMORY_SIZE": Int(1000000, "capacity of the replay memory, in samples", min=1,
                            feeds=("GenericTorchMemory.memory_size",), class_default=1000000),
         "BATCH_SIZE": Int(256, "training batch size", min=1, feeds=("GenericTorchMemory.batch_size",), class_default=256),

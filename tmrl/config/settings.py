@@ -41,6 +41,8 @@ class NetSettings:
         model_path_trainer: the trainer's weights file (from ``RUN_NAME``).
         model_path_save_history: prefix of the worker's saved weights history (from ``RUN_NAME``).
         model_history: keep every N-th received model, 0 for none (``SAVE_MODEL_EVERY``).
+        worker_sync_steps: a worker syncs every N steps of a train episode, 0 between episodes
+            only (``WORKER_SYNC_STEPS``).
         checkpoint_path: the trainer's checkpoint (from ``RUN_NAME``).
         allow_plain_tcp: plain TCP beyond this machine (``ALLOW_PLAIN_TCP``).
         allow_pickle: accept pickled messages (``ALLOW_PICKLE``).
@@ -84,6 +86,7 @@ class NetSettings:
     transport: str = "tlspyo"
     nats: Mapping[str, Any] = field(default_factory=dict)
     data_folder: Path | None = None
+    worker_sync_steps: int = 0
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], folder: Any = None) -> NetSettings:
@@ -127,6 +130,7 @@ class NetSettings:
             transport=cfg["TRANSPORT"],
             nats=dict(cfg["NATS"]),
             data_folder=paths.root,
+            worker_sync_steps=int(cfg["WORKER_SYNC_STEPS"]),
         )
 
     @classmethod

@@ -165,9 +165,14 @@ class RolloutWorker:
         security: ``"TLS"`` or ``None`` for plain TCP (``SECURITY``).
         keys_dir: folder holding the TLS certificate (``CREDENTIALS_DIRECTORY``).
         hostname: the name the server's certificate is checked against (``HOSTNAME``).
+        sync_every: in a train episode, every ``sync_every`` steps, send the samples collected so
+            far and load the newest weights if some arrived, without waiting (0: only between
+            episodes, as tmrl 0.7; ``WORKER_SYNC_STEPS``). In real time a policy that crawls for a
+            whole episode otherwise acts with weights, and leaves the trainer with samples, up to
+            an episode old.
 
     Raises:
-        UserError: bad connection settings (see :mod:`tmrl.transport`).
+        UserError: bad connection settings (see :mod:`tmrl.transport`), ``sync_every < 0``.
     """
 
     def __init__(
@@ -194,9 +199,14 @@ class RolloutWorker:
         hostname: str | None = None,
         *,
         settings: NetSettings | None = None,
+        sync_every: int | None = None,
     ):
         show_progress_on_console()
         cfg = _settings(settings)
+        sync_every = _given(sync_every, cfg.worker_sync_steps)
+        if int(sync_every) < 0:
+            raise UserError(f"sync_every must be 0 (between episodes only) or a number of steps, got {sync_every}")
+        self.sync_every = int(sync_every)
         self.obs_preprocessor = obs_preprocessor
         self.sample_compressor = sample_compressor
         self.env = env_cls()
@@ -437,6 +447,9 @@ class RolloutWorker:
             steps += 1
             if terminated or truncated or self._closed:
                 break
+            if self.sync_every and steps % self.sync_every == 0 and self._link is not None:
+                self.send_and_clear_buffer()
+                self.update_actor_weights(verbose=False)
         self.buffer.stat_train_return = ret
         self.buffer.stat_train_steps = steps
 

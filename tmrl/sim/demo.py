@@ -86,13 +86,29 @@ CPU_REALTIME_SETTINGS: dict[str, Any] = {
     "agent_kwargs": {"critic_width": 128}, "label": "BRO-W128-UTD8-CAP-R250",
 }
 
+#: SAC with actor and critics 128 wide (about half the time of an update 256 wide on a CPU) at up to 8
+#: updates per sample, its entropy coefficient learned from 0.2 and held at or under 0.01, 250
+#: random samples first (the benchmark's ``SAC-W128-UTD8-CAP-R250``): not a default. It lapped
+#: ``classic`` after 1,000 steps in fast mode (seed 0), but in real time on the 2-core development
+#: machine after 149 and 218 s of training and not in a third 5-minute run (docs/benchmarks.md).
+SAC_W128_REALTIME_SETTINGS: dict[str, Any] = {
+    "algorithm": "SAC", "realtime_max_training_steps_per_env_step": 8.0, "realtime_alpha": 0.2,
+    "realtime_learn_entropy_coef": True, "alpha_max": 0.01, "start_training": 250, "hidden_sizes": (128, 128),
+    "label": "SAC-W128-UTD8-CAP-R250",
+}
+
 #: The real-time settings by trainer: ``--realtime``, lidar, no ``--algorithm``. On a CPU the demo's
 #: own setting (SAC at 4 updates per sample, :data:`DEMO_SETTINGS`) lapped first in real time; on a
-#: GPU the one that laps first in steps. ``"bro-cpu"`` is :data:`CPU_REALTIME_SETTINGS`, chosen by
-#: nothing (a role can be given it).
-REALTIME_SETTINGS: dict[str, dict[str, Any]] = {"gpu": GPU_REALTIME_SETTINGS, "bro-cpu": CPU_REALTIME_SETTINGS}
+#: GPU the one that laps first in steps. ``"bro-cpu"`` (:data:`CPU_REALTIME_SETTINGS`) and
+#: ``"sac-w128"`` (:data:`SAC_W128_REALTIME_SETTINGS`) are chosen by nothing: ``--setting NAME``
+#: trains them, to measure them again.
+REALTIME_SETTINGS: dict[str, dict[str, Any]] = {"gpu": GPU_REALTIME_SETTINGS, "bro-cpu": CPU_REALTIME_SETTINGS,
+                                                 "sac-w128": SAC_W128_REALTIME_SETTINGS}
 
 _INTERFACES = ("SIMLIDAR", "SIMLIDARPROGRESS", "SIMFULL")
+#: In real time the worker sends its samples and takes the newest weights every second (20 steps),
+#: not only between episodes (:class:`~tmrl.distributed.RolloutWorker`'s ``sync_every``).
+REALTIME_SYNC_STEPS = 20
 # Seconds the roles get to stop after the parent's stop request, all together, before they are ended.
 _ROLES_GRACE = 7.0
 
@@ -244,6 +260,8 @@ def _agent_cls(interface: str, algorithm: str, realtime: bool = False) -> Any:
         model_cls = _parts(interface)["model_cls"]
     else:
         model_cls = lidar_model_cls(algorithm)
+        if s.get("hidden_sizes"):  # a setting's narrower actor and critics (the worker's actor too)
+            model_cls = partial(model_cls, hidden_sizes=tuple(s["hidden_sizes"]))
 
     class Counting(base):  # type: ignore[misc, valid-type]
         """The agent, publishing its number of updates (for the demo's status line)."""
@@ -268,6 +286,16 @@ def _agent_cls(interface: str, algorithm: str, realtime: bool = False) -> Any:
     return partial(Counting, model_cls=model_cls, gamma=s["gamma"], polyak=s["polyak"], alpha=s[mode + "alpha"],
                    lr_actor=s["lr"], lr_critic=s["lr"], lr_entropy=s["lr"],
                    learn_entropy_coef=s[mode + "learn_entropy_coef"], target_entropy=None, **extra)
+
+
+def _worker_actor_cls(interface: str) -> Any:
+    """The worker's actor: the interface's, as wide as the trainer's (a setting's ``hidden_sizes``)."""
+    actor_cls = _parts(interface)["actor_cls"]
+    if DEMO_SETTINGS.get("hidden_sizes") and interface != "SIMFULL":
+        from tmrl.util import partial
+
+        actor_cls = partial(actor_cls, hidden_sizes=tuple(DEMO_SETTINGS["hidden_sizes"]))
+    return actor_cls
 
 
 def _training_cls(interface: str, track: str, workdir: Path, realtime: bool = False, device: str = "cpu") -> Any:
@@ -325,12 +353,13 @@ def _run_role(role: str, interface: str, track: str, workdir: Path, port: int, p
             trainer.interface.close(STOP_TIMEOUT)
     elif role == "worker":
         parts = _parts(interface)
-        actor_cls = parts["actor_cls"]
+        actor_cls = _worker_actor_cls(interface)
         worker = RolloutWorker(
             env_cls=lambda: _stats_env(interface, track, workdir, realtime), actor_module_cls=actor_cls,
             sample_compressor=parts["sample_compressor"], obs_preprocessor=parts["obs_preprocessor"],
             server_ip="127.0.0.1", server_port=port, max_samples_per_episode=math.inf,
-            model_path=str(workdir / "weights_worker.tmod"), model_history=0, **common)
+            model_path=str(workdir / "weights_worker.tmod"), model_history=0,
+            sync_every=REALTIME_SYNC_STEPS if realtime else 0, **common)
         # Fast mode: the trainer's pace (sent with the weights) holds the worker back; real time:
         # the clock sets the pace, and the worker pauses between episodes only.
         try:
@@ -456,7 +485,7 @@ def _role_command(role: str, args: argparse.Namespace, workdir: Path, port: int,
 
 
 def demo_setting(interface: str, realtime: bool, device: str, algorithm: str | None,
-                 start_training: int | None) -> tuple[str, int, str | None]:
+                 start_training: int | None, setting: str | None = None) -> tuple[str, int, str | None]:
     """The demo's agent and samples before training, and which of :data:`REALTIME_SETTINGS`
     applies: in real time, on lidar and with no ``--algorithm`` given, :data:`GPU_REALTIME_SETTINGS`
     with the trainer on a CUDA device; elsewhere the demo's own SAC (on a CPU it lapped first in real
@@ -468,12 +497,21 @@ def demo_setting(interface: str, realtime: bool, device: str, algorithm: str | N
         device: the trainer's resolved device (``"cpu"``, ``"cuda"``, ``"cuda:N"``).
         algorithm: ``--algorithm``, or ``None``.
         start_training: ``--start-training``, or ``None``.
+        setting: ``--setting``: one of :data:`REALTIME_SETTINGS` by name, whatever the device, or
+            ``None``.
 
     Returns:
-        ``(algorithm, start_training, setting)``, ``setting`` ``"gpu"`` or None.
+        ``(algorithm, start_training, setting)``, ``setting`` a key of :data:`REALTIME_SETTINGS`
+        or None.
+
+    Raises:
+        UserError: ``--setting`` with ``--algorithm``, on images, or without ``--realtime``.
     """
-    setting = None
-    if realtime and algorithm is None and interface != "SIMFULL" and str(device).startswith("cuda"):
+    if setting is not None:
+        if algorithm is not None or interface == "SIMFULL" or not realtime:
+            raise UserError(f"--setting {setting} is a real-time setting on lidar that names its agent: use it with "
+                            "--realtime, without --algorithm and without SIMFULL")
+    elif realtime and algorithm is None and interface != "SIMFULL" and str(device).startswith("cuda"):
         setting = "gpu"
     base = REALTIME_SETTINGS[setting] if setting else DEMO_SETTINGS
     return (algorithm or base["algorithm"], int(start_training or base["start_training"]), setting)
@@ -508,7 +546,9 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
                         "on the CPU")
     p.add_argument("--realtime", action="store_true",
                    help="run the simulator in real time through tmrl.realtime (20 steps/s) instead of fast mode")
-    p.add_argument("--setting", choices=tuple(REALTIME_SETTINGS), help=argparse.SUPPRESS)  # set by the demo for its roles
+    p.add_argument("--setting", choices=tuple(REALTIME_SETTINGS),
+                   help="with --realtime: train one of the measured real-time settings by name (docs/benchmarks.md; "
+                        "default: the CPU's or the GPU's, by the trainer's device)")
     p.add_argument("--role", choices=("server", "trainer", "worker"), help=argparse.SUPPRESS)
     p.add_argument("--workdir", help=argparse.SUPPRESS)
     p.add_argument("--port", type=int, help=argparse.SUPPRESS)
@@ -580,7 +620,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     device = resolve_device(args.device, "--device")  # a device this machine lacks: one line, nothing started
     args.algorithm, args.start_training, setting = demo_setting(
-        args.interface, args.realtime, device, args.algorithm, args.start_training)
+        args.interface, args.realtime, device, args.algorithm, args.start_training, args.setting)
     # A configuration mistake is reported before anything starts. The demo writes nothing into the
     # data folder (its roles keep their files in the run folder): no config.json is created there.
     load_config()
