@@ -174,8 +174,9 @@ VARIANTS: dict[str, tuple[str, str, int]] = {
 }
 
 #: The agents a run compares unless ``--agents`` says otherwise: tmrl's SAC, the demo's real-time
-#: setting and the papers' agents (the other variants are the ratio, learning-rate and entropy study).
-DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "REDQSAC", "DROQ", "CROSSQ", "TQC")
+#: settings on a CPU (``--algorithm SAC``'s, and the default's since 2026-12-02) and the papers' agents (the other variants are the ratio, learning-rate and entropy study).
+DEFAULT_AGENTS: tuple[str, ...] = ("SAC-TMRL", "SAC-UTD4-FA", "SAC-W128-UTD8-CAP-R250", "REDQSAC", "DROQ", "CROSSQ",
+                                   "TQC")
 
 #: How a ``demo`` variant departs from its base: SAC at the demo's learning rates, gamma and polyak
 #: with an entropy coefficient learned from 0.2 toward SAC's ``-act_dim`` (the demo's in fast mode,

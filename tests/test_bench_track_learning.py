@@ -306,14 +306,17 @@ def test_variants_take_tmrls_random_start_unless_they_name_their_own(tmp_path, m
 
 
 def test_the_demos_real_time_setting_is_a_default_agent_of_the_benchmark():
-    """What ``--demo --realtime`` trains is what a plain benchmark run measures as ``SAC-UTD4-FA``."""
+    """What ``--demo --realtime --algorithm SAC`` trains (the CPU's real-time default until
+    2026-12-02) is what a plain benchmark run measures as ``SAC-UTD4-FA``; the CPU's real-time
+    default since, ``SAC-W128-UTD8-CAP-R250``, is a default agent too (tests/test_sim.py compares
+    its settings)."""
     import gymnasium
 
     from tmrl.sim.demo import DEMO_SETTINGS as S
 
     env = gymnasium.make("Pendulum-v1")
     agent = tl._agent("SAC-UTD4-FA", (env.observation_space, env.action_space), "pendulum", 4)
-    assert "SAC-UTD4-FA" in tl.DEFAULT_AGENTS
+    assert "SAC-UTD4-FA" in tl.DEFAULT_AGENTS and "SAC-W128-UTD8-CAP-R250" in tl.DEFAULT_AGENTS
     assert (S["algorithm"], S["realtime_max_training_steps_per_env_step"]) == (tl.VARIANTS["SAC-UTD4-FA"][0],
                                                                                tl.VARIANTS["SAC-UTD4-FA"][2])
     assert (agent.lr_actor, agent.lr_critic, agent.gamma, float(agent.alpha), agent.learn_entropy_coef) == \

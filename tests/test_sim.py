@@ -624,7 +624,7 @@ def test_demo_in_real_time_on_a_gpu_trains_the_benchmark_s_recommendation(tmp_pa
     assert demo.demo_setting("SIMLIDARPROGRESS", True, "cuda:1", None, 400) == ("REDQSAC", 400, "gpu")
     assert demo.demo_setting("SIMLIDAR", True, "cuda", "SAC", None) == ("SAC", 1000, None)
     assert demo.demo_setting("SIMLIDAR", True, "mps", None, None) == ("SAC", 1000, None)
-    assert demo.demo_setting("SIMLIDAR", True, "cpu", None, None) == ("SAC", 1000, None)
+    assert demo.demo_setting("SIMLIDAR", True, "cpu", None, None) == ("SAC", 250, "sac-w128")
     assert demo.demo_setting("SIMLIDAR", False, "cuda", None, None) == ("SAC", 1000, None)
     assert demo.demo_setting("SIMFULL", True, "cuda", None, None) == ("SAC", 1000, None)
     # the parent hands it to its roles, and a role applies it before it builds the trainer
@@ -654,14 +654,19 @@ def test_demo_in_real_time_on_a_gpu_trains_the_benchmark_s_recommendation(tmp_pa
     assert "alpha_max" not in demo.DEMO_SETTINGS and demo.DEMO_SETTINGS["algorithm"] == "SAC"
 
 
-def test_demo_in_real_time_on_a_cpu_keeps_sac_and_bro_s_setting_matches_the_benchmark(tmp_path, monkeypatch):
-    """On a CPU the demo's SAC lapped first in real time, so it stays; BRO's setting, kept for a
-    role that is given it, is the benchmark's BRO-W128-UTD8-CAP-R250."""
+def test_demo_in_real_time_on_a_cpu_trains_sac_w128_and_bro_s_setting_matches_the_benchmark(tmp_path, monkeypatch):
+    """On a CPU the narrow SAC lapped first in real time, so it is the default there (the fast
+    mode, images and ``--algorithm`` keep the demo's SAC); BRO's setting, kept for ``--setting
+    bro-cpu``, is the benchmark's BRO-W128-UTD8-CAP-R250."""
     from bench.track_learning import DEMO_OVERRIDES, VARIANTS
     from tmrl.algorithms import agent_class
     from tmrl.sim import demo
 
-    assert demo.demo_setting("SIMLIDAR", True, "cpu", None, None) == ("SAC", 1000, None)
+    assert demo.demo_setting("SIMLIDAR", True, "cpu", None, None) == ("SAC", 250, "sac-w128")
+    assert demo.demo_setting("SIMLIDARPROGRESS", True, "cpu", None, None)[2] == "sac-w128"
+    assert demo.demo_setting("SIMLIDAR", True, "cpu", "SAC", None) == ("SAC", 1000, None)
+    assert demo.demo_setting("SIMLIDAR", False, "cpu", None, None) == ("SAC", 1000, None)
+    assert demo.demo_setting("SIMFULL", True, "cpu", None, None) == ("SAC", 1000, None)
     bro = demo.CPU_REALTIME_SETTINGS
     label = bro["label"]
     assert VARIANTS[label] == (bro["algorithm"], "demo", bro["realtime_max_training_steps_per_env_step"])

@@ -86,22 +86,24 @@ CPU_REALTIME_SETTINGS: dict[str, Any] = {
     "agent_kwargs": {"critic_width": 128}, "label": "BRO-W128-UTD8-CAP-R250",
 }
 
-#: SAC with actor and critics 128 wide (about half the time of an update 256 wide on a CPU) at up to 8
-#: updates per sample, its entropy coefficient learned from 0.2 and held at or under 0.01, 250
-#: random samples first (the benchmark's ``SAC-W128-UTD8-CAP-R250``): not a default. It lapped
-#: ``classic`` after 1,000 steps in fast mode (seed 0), but in real time on the 2-core development
-#: machine after 149 and 218 s of training and not in a third 5-minute run (docs/benchmarks.md).
+#: The real-time setting on a CPU trainer, on lidar (``--realtime`` with the trainer on the CPU and
+#: no ``--algorithm``): SAC with actor and critics 128 wide (about half the time of an update 256
+#: wide on a CPU) at up to 8 updates per sample, its entropy coefficient learned from 0.2 and held
+#: at or under 0.01, 250 random samples first (the benchmark's ``SAC-W128-UTD8-CAP-R250``). On the
+#: 2-core development machine it lapped ``classic`` in real time after 149 and 218 s of training and
+#: not in a third 5-minute run, at 67 to 70 updates per second, where the demo's own SAC (4 updates
+#: per sample, fixed coefficient, 1,000 random samples) lapped in none of three, at 34 to 37
+#: (2026-12-02, docs/benchmarks.md).
 SAC_W128_REALTIME_SETTINGS: dict[str, Any] = {
     "algorithm": "SAC", "realtime_max_training_steps_per_env_step": 8.0, "realtime_alpha": 0.2,
     "realtime_learn_entropy_coef": True, "alpha_max": 0.01, "start_training": 250, "hidden_sizes": (128, 128),
     "label": "SAC-W128-UTD8-CAP-R250",
 }
 
-#: The real-time settings by trainer: ``--realtime``, lidar, no ``--algorithm``. On a CPU the demo's
-#: own setting (SAC at 4 updates per sample, :data:`DEMO_SETTINGS`) lapped first in real time; on a
-#: GPU the one that laps first in steps. ``"bro-cpu"`` (:data:`CPU_REALTIME_SETTINGS`) and
-#: ``"sac-w128"`` (:data:`SAC_W128_REALTIME_SETTINGS`) are chosen by nothing: ``--setting NAME``
-#: trains them, to measure them again.
+#: The real-time settings by trainer: ``--realtime``, lidar, no ``--algorithm``. On a CPU the one
+#: that lapped first in real time there (``"sac-w128"``), on a GPU the one that laps first in steps
+#: (``"gpu"``). ``"bro-cpu"`` (:data:`CPU_REALTIME_SETTINGS`) is chosen by nothing: ``--setting
+#: NAME`` trains any of them, to measure them again.
 REALTIME_SETTINGS: dict[str, dict[str, Any]] = {"gpu": GPU_REALTIME_SETTINGS, "bro-cpu": CPU_REALTIME_SETTINGS,
                                                  "sac-w128": SAC_W128_REALTIME_SETTINGS}
 
@@ -488,8 +490,9 @@ def demo_setting(interface: str, realtime: bool, device: str, algorithm: str | N
                  start_training: int | None, setting: str | None = None) -> tuple[str, int, str | None]:
     """The demo's agent and samples before training, and which of :data:`REALTIME_SETTINGS`
     applies: in real time, on lidar and with no ``--algorithm`` given, :data:`GPU_REALTIME_SETTINGS`
-    with the trainer on a CUDA device; elsewhere the demo's own SAC (on a CPU it lapped first in real
-    time; Apple's ``mps`` was not measured). What the user gave wins.
+    with the trainer on a CUDA device and :data:`SAC_W128_REALTIME_SETTINGS` on the CPU; elsewhere
+    (fast mode, images, Apple's ``mps``, which was not measured) the demo's own SAC. What the user
+    gave wins.
 
     Args:
         interface: the demo's interface.
@@ -513,6 +516,8 @@ def demo_setting(interface: str, realtime: bool, device: str, algorithm: str | N
                             "--realtime, without --algorithm and without SIMFULL")
     elif realtime and algorithm is None and interface != "SIMFULL" and str(device).startswith("cuda"):
         setting = "gpu"
+    elif realtime and algorithm is None and interface != "SIMFULL" and str(device) == "cpu":
+        setting = "sac-w128"
     base = REALTIME_SETTINGS[setting] if setting else DEMO_SETTINGS
     return (algorithm or base["algorithm"], int(start_training or base["start_training"]), setting)
 
@@ -533,11 +538,12 @@ def _parse(argv: Sequence[str]) -> argparse.Namespace:
     p.add_argument("--out", default="tmrl_demo", help="output folder (default ./tmrl_demo)")
     p.add_argument("--start-training", type=_number(int, 1, False), default=None,
                    help="environment steps collected before training starts (default 1000; 250 with the "
-                        "GPU real-time setting)")
+                        "real-time settings)")
     # DRQ (images only, slow on a CPU) is trained through a config, not the demo.
     p.add_argument("--algorithm", type=str.upper, choices=[a for a in ALGORITHMS if a != "DRQ"], default=None,
-                   help=f"training agent (default {DEMO_SETTINGS['algorithm']}; with --realtime, lidar and the "
-                        f"trainer on a GPU {GPU_REALTIME_SETTINGS['label']}); SIMFULL takes SAC or REDQSAC only")
+                   help=f"training agent (default {DEMO_SETTINGS['algorithm']}; with --realtime and lidar, "
+                        f"{SAC_W128_REALTIME_SETTINGS['label']} on a CPU trainer and "
+                        f"{GPU_REALTIME_SETTINGS['label']} on a GPU); SIMFULL takes SAC or REDQSAC only")
     p.add_argument("--threads", type=_number(int, 1, False),
                    help="PyTorch threads of the trainer and the worker (default 1 each; TMRL_THREADS)")
     p.add_argument("--device", default="auto",
