@@ -290,18 +290,25 @@ def test_profiling_is_a_context_manager_that_logs_only_when_enabled(caplog):
 # --- a trainer that cannot keep the ratio says so ---------------------------------------------------
 
 
+def _behind_rounds(caplog: pytest.LogCaptureFixture, *, rounds: int, steps: int, start_training: int, update_buffer_interval: int,
+                   endless: int) -> list[dict]:
+    """The round rows of one epoch at 4 updates asked per sample, the workers sending ``endless``
+    samples per pull, with the trainer's warnings captured in ``caplog``."""
+    training = make_training(max_training_steps_per_env_step=4.0, rounds=rounds, steps=steps,
+                             start_training=start_training, update_buffer_interval=update_buffer_interval)
+    interface = FakeInterface([], endless=endless)
+    interface.training = training
+    with caplog.at_level(logging.WARNING, logger="tmrl.training_offline"):
+        return training.run_epoch(interface)
+
+
 def test_a_trainer_behind_the_asked_ratio_says_so_once_in_the_log_and_in_every_round_line(caplog):
     """Workers that send ten samples per update to a setting that asks four updates per sample:
     the trainer never waits, so each round is behind, the round line says by how much, and the
     log warns once (not once per round)."""
     from tmrl.metrics import format_row
 
-    training = make_training(max_training_steps_per_env_step=4.0, rounds=3, steps=10, start_training=0,
-                             update_buffer_interval=1)
-    interface = FakeInterface([], endless=10)
-    interface.training = training
-    with caplog.at_level(logging.WARNING, logger="tmrl.training_offline"):
-        rows = training.run_epoch(interface)
+    rows = _behind_rounds(caplog, rounds=3, steps=10, start_training=0, update_buffer_interval=1, endless=10)
     assert len(rows) == 3
     for row in rows:
         assert row["behind"] is True and row["updates_per_sample_asked"] == 4.0
@@ -317,12 +324,7 @@ def test_a_trainer_that_keeps_the_ratio_is_not_behind(caplog):
     for samples), so no round is behind, no line says so and nothing is logged."""
     from tmrl.metrics import format_row
 
-    training = make_training(max_training_steps_per_env_step=4.0, rounds=4, steps=12, start_training=8,
-                             update_buffer_interval=100)
-    interface = FakeInterface([], endless=1)
-    interface.training = training
-    with caplog.at_level(logging.WARNING, logger="tmrl.training_offline"):
-        rows = training.run_epoch(interface)
+    rows = _behind_rounds(caplog, rounds=4, steps=12, start_training=8, update_buffer_interval=100, endless=1)
     assert [row["behind"] for row in rows] == [False] * 4
     # the 8 samples before training allow 32 updates; from then on each sample arrives when the
     # ratio asks for it (the first round also holds the samples received before training started)
@@ -336,12 +338,7 @@ def test_a_round_that_waited_for_samples_is_not_behind_even_when_they_came_in_a_
     """Samples in bursts of 10, pulled only when the ratio of 4 binds: a round that waited for
     samples then received a burst it had no time to train on did few updates per sample, yet it
     kept up (it was the trainer that waited), so it is not behind."""
-    training = make_training(max_training_steps_per_env_step=4.0, rounds=8, steps=12, start_training=8,
-                             update_buffer_interval=100)
-    interface = FakeInterface([], endless=10)
-    interface.training = training
-    with caplog.at_level(logging.WARNING, logger="tmrl.training_offline"):
-        rows = training.run_epoch(interface)
+    rows = _behind_rounds(caplog, rounds=8, steps=12, start_training=8, update_buffer_interval=100, endless=10)
     burst = [row for row in rows if row["updates_per_sample"] is not None and row["updates_per_sample"] < 3.6]
     assert burst, rows  # a round did receive a burst it could not train through
     assert not any(row["behind"] for row in rows)

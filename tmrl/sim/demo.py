@@ -514,10 +514,8 @@ def demo_setting(interface: str, realtime: bool, device: str, algorithm: str | N
         if algorithm is not None or interface == "SIMFULL" or not realtime:
             raise UserError(f"--setting {setting} is a real-time setting on lidar that names its agent: use it with "
                             "--realtime, without --algorithm and without SIMFULL")
-    elif realtime and algorithm is None and interface != "SIMFULL" and str(device).startswith("cuda"):
-        setting = "gpu"
-    elif realtime and algorithm is None and interface != "SIMFULL" and str(device) == "cpu":
-        setting = "sac-w128"
+    elif realtime and algorithm is None and interface != "SIMFULL":
+        setting = "gpu" if str(device).startswith("cuda") else "sac-w128" if str(device) == "cpu" else None
     base = REALTIME_SETTINGS[setting] if setting else DEMO_SETTINGS
     return (algorithm or base["algorithm"], int(start_training or base["start_training"]), setting)
 
