@@ -529,3 +529,64 @@ def test_worker_sync_steps_in_the_config_reaches_the_worker(tmp_path):
             "model_path": str(tmp_path / "w.json"), "settings": settings}
     assert RolloutWorker(**make).sync_every == 20
     assert RolloutWorker(**make, sync_every=0).sync_every == 0  # an argument wins over the config
+
+
+# --- 8. in real time a test episode can feed the trainer too (run's test_samples) --------------------
+
+
+@pytest.mark.parametrize("test_samples", [True, False])
+def test_test_episodes_send_their_samples_only_when_asked(tmp_path, port_factory, closing, test_samples):
+    """Two train episodes with a test episode before the first (``test_episode_interval=2``). The
+    actor drives +1 when testing and -1 when training, and the reward is the action. With
+    ``test_samples`` the test episode's 21 samples reach the trainer before the first train
+    episode starts and count as a test episode; without (tmrl 0.7) only the 42 train samples do."""
+    from test_networking import CountingEnv
+
+    rewards: list[float] = []
+
+    def receive(want: int, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while len(rewards) < want and time.monotonic() < deadline:
+            rewards.extend(float(s[2]) for s in iface.retrieve_buffer().memory)
+            time.sleep(0.02)
+
+    class TwoFaced(JsonActor):
+        def act(self, obs: Any, test: bool = False) -> np.ndarray:
+            return np.array([1.0 if test else -1.0], np.float32)
+
+    class Env(CountingEnv):
+        resets = 0
+
+        def reset(self, **kwargs: Any) -> Any:
+            Env.resets += 1
+            if Env.resets == 2:  # the first train episode starts: what has the trainer got?
+                receive(21, timeout=10.0 if test_samples else 0.5)
+                seen["before_train"] = len(rewards)
+            return super().reset(**kwargs)
+
+    seen: dict[str, int] = {}
+    port = port_factory()
+    closing.append(relay(port))
+    from tmrl.networking import TrainerInterface
+
+    iface = TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PW, security=None, header_size=10,
+                             keys_dir=str(tmp_path / "credentials"), model_path=str(tmp_path / "t.json"))
+    closing.append(iface)
+    worker = RolloutWorker(env_cls=Env, actor_module_cls=TwoFaced, server_ip="127.0.0.1", server_port=port,
+                           password=PW, security=None, header_size=10, keys_dir=str(tmp_path / "credentials"),
+                           model_path=str(tmp_path / "w.json"), model_history=0, max_samples_per_episode=1000)
+    closing.append(worker)
+    assert worker.wait_connected(30)
+    _broadcast_until_held(iface, worker, TwoFaced(CountingEnv().observation_space, CountingEnv().action_space), [0.0])
+    Env.resets = 0
+    worker.run(test_episode_interval=2, nb_episodes=2, test_samples=test_samples)
+    receive(63 if test_samples else 42, timeout=30.0)
+    resets = [0.0]  # a reset sample's reward
+    if test_samples:
+        assert seen["before_train"] == 21
+        assert rewards == resets + [1.0] * 20 + (resets + [-1.0] * 20) * 2
+        assert worker.buffer.stat_test_return == 20.0 and worker.buffer.stat_test_steps == 20
+    else:
+        assert seen["before_train"] == 0
+        assert rewards == (resets + [-1.0] * 20) * 2
+    assert worker.buffer.stat_train_return == -20.0

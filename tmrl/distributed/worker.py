@@ -433,15 +433,21 @@ class RolloutWorker:
     def _steps(max_samples: float) -> Iterable[int]:
         return itertools.count() if max_samples == math.inf else range(int(max_samples))
 
-    def collect_train_episode(self, max_samples: float | None = None) -> None:
+    def collect_train_episode(self, max_samples: float | None = None, *, test: bool = False) -> None:
         """Run one train episode of at most ``max_samples`` steps into the buffer (cut episodes
-        end with ``truncated=True``) and record its return and length."""
+        end with ``truncated=True``) and record its return and length.
+
+        Args:
+            max_samples: most steps of the episode (default: ``max_samples_per_episode``).
+            test: act with the test (deterministic) policy and report the episode as a test one;
+                the samples are collected all the same (see :meth:`run`'s ``test_samples``).
+        """
         max_samples = self.max_samples_per_episode if max_samples is None else max_samples
         ret, steps = 0.0, 0
         obs, _ = self.reset(collect_samples=True)
         for i in self._steps(max_samples):
             obs, rew, terminated, truncated, _ = self.step(
-                obs, test=False, collect_samples=True, last_step=i == max_samples - 1
+                obs, test=test, collect_samples=True, last_step=i == max_samples - 1
             )
             ret += rew
             steps += 1
@@ -450,8 +456,10 @@ class RolloutWorker:
             if self.sync_every and steps % self.sync_every == 0 and self._link is not None:
                 self.send_and_clear_buffer()
                 self.update_actor_weights(verbose=False)
-        self.buffer.stat_train_return = ret
-        self.buffer.stat_train_steps = steps
+        if test:  # reported as the test episode it is
+            self.buffer.stat_test_return, self.buffer.stat_test_steps = ret, steps
+        else:
+            self.buffer.stat_train_return, self.buffer.stat_train_steps = ret, steps
 
     def run_episode(self, max_samples: float | None = None, train: bool = False) -> float:
         """Run one episode without recording samples (a test episode unless ``train``); record
@@ -493,6 +501,8 @@ class RolloutWorker:
         nb_episodes: float = math.inf,
         verbose: bool = True,
         expert: bool = False,
+        *,
+        test_samples: bool = False,
     ) -> None:
         """Collect train episodes, sending each to the server and loading new weights between
         episodes.
@@ -503,6 +513,9 @@ class RolloutWorker:
             nb_episodes: number of train episodes.
             verbose: log one line per episode at INFO level (DEBUG otherwise).
             expert: send samples but never load weights nor run test episodes.
+            test_samples: test episodes collect and send their samples like train episodes (and
+                sync every ``sync_every`` steps); ``False`` (tmrl 0.7) drops them. In real time a
+                test episode otherwise costs driving time that feeds the trainer nothing.
         """
         summary = EpisodeLog("expert" if expert else "train", level=logging.INFO if verbose else logging.DEBUG)
         for episode in self._steps(nb_episodes):
@@ -514,8 +527,13 @@ class RolloutWorker:
                 and episode % test_episode_interval == 0
                 and not self.crc_debug
             ):
-                ret = self.run_episode(self.max_samples_per_episode, train=False)
-                summary.test(ret, self.buffer.stat_test_steps)
+                if test_samples:
+                    self.collect_train_episode(self.max_samples_per_episode, test=True)
+                    self.send_and_clear_buffer()
+                    summary.test(self.buffer.stat_test_return, self.buffer.stat_test_steps)
+                else:
+                    ret = self.run_episode(self.max_samples_per_episode, train=False)
+                    summary.test(ret, self.buffer.stat_test_steps)
             sent_before = self.samples_sent
             self.collect_train_episode(self.max_samples_per_episode)
             self.send_and_clear_buffer()
