@@ -91,7 +91,8 @@ CPU_REALTIME_SETTINGS: dict[str, Any] = {
 #: wide on a CPU) at up to 8 updates per sample, its entropy coefficient learned from 0.2 and held
 #: at or under 0.01, 250 random samples first (the benchmark's ``SAC-W128-UTD8-CAP-R250``). On the
 #: 2-core development machine it lapped ``classic`` in real time after 149 and 218 s of training and
-#: not in a third 5-minute run, at 67 to 79 updates per second, where the demo's own SAC (4 updates
+#: not in a third 5-minute run (after 109, 183 and 136 s in three that evening), at 67 to 85 updates
+#: per second, where the demo's own SAC (4 updates
 #: per sample, fixed coefficient, 1,000 random samples) lapped in none of three, at 34 to 37
 #: (2026-12-02, docs/benchmarks.md).
 SAC_W128_REALTIME_SETTINGS: dict[str, Any] = {
