@@ -390,21 +390,25 @@ def test_the_round_means_of_scalar_tensors_are_those_of_each_value_and_cost_one_
 # --- 6. the worker starts each episode with the newest weights it received --------------------------
 
 
-def _json_setup(tmp_path: Path, port: int, closing: list) -> tuple[Any, Any, Any]:
+def _json_setup(tmp_path: Path, port: int, closing: list, env_cls: Any = None, actor_cls: Any = None,
+                **worker_kwargs: Any) -> tuple[Any, Any, Any]:
+    """A relay, a trainer's interface and a connected-to-be worker (``CountingEnv`` and ``JsonActor``
+    unless given), and an actor of ``actor_cls`` for the trainer to broadcast."""
     from test_networking import CountingEnv
 
     from tmrl.networking import TrainerInterface
 
+    env_cls, actor_cls = env_cls or CountingEnv, actor_cls or JsonActor
     closing.append(relay(port))
     iface = TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PW, security=None, header_size=10,
                              keys_dir=str(tmp_path / "credentials"), model_path=str(tmp_path / "t.json"))
     closing.append(iface)
-    worker = RolloutWorker(env_cls=CountingEnv, actor_module_cls=JsonActor, server_ip="127.0.0.1",
+    worker = RolloutWorker(env_cls=env_cls, actor_module_cls=actor_cls, server_ip="127.0.0.1",
                            server_port=port, password=PW, security=None, header_size=10,
                            keys_dir=str(tmp_path / "credentials"), model_path=str(tmp_path / "w.json"),
-                           model_history=0, max_samples_per_episode=1000)
+                           model_history=0, max_samples_per_episode=1000, **worker_kwargs)
     closing.append(worker)
-    actor = JsonActor(CountingEnv().observation_space, CountingEnv().action_space)
+    actor = actor_cls(CountingEnv().observation_space, CountingEnv().action_space)
     return iface, worker, actor
 
 
@@ -486,18 +490,7 @@ def test_a_worker_that_syncs_every_few_steps_sends_and_takes_weights_inside_an_e
                 seen["received_by_12"] = _received(iface, 10, timeout=10.0 if sync_every else 1.0)
             return out
 
-    closing.append(relay(port))
-    from tmrl.networking import TrainerInterface
-
-    iface = TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PW, security=None, header_size=10,
-                             keys_dir=str(tmp_path / "credentials"), model_path=str(tmp_path / "t.json"))
-    closing.append(iface)
-    worker = RolloutWorker(env_cls=Env, actor_module_cls=JsonActor, server_ip="127.0.0.1", server_port=port,
-                           password=PW, security=None, header_size=10, keys_dir=str(tmp_path / "credentials"),
-                           model_path=str(tmp_path / "w.json"), model_history=0, max_samples_per_episode=1000,
-                           sync_every=sync_every)
-    closing.append(worker)
-    actor = JsonActor(CountingEnv().observation_space, CountingEnv().action_space)
+    iface, worker, actor = _json_setup(tmp_path, port, closing, Env, sync_every=sync_every)
     assert worker.wait_connected(30)
     worker.collect_train_episode()
     actions = seen["actions"]
@@ -565,19 +558,9 @@ def test_test_episodes_send_their_samples_only_when_asked(tmp_path, port_factory
             return super().reset(**kwargs)
 
     seen: dict[str, int] = {}
-    port = port_factory()
-    closing.append(relay(port))
-    from tmrl.networking import TrainerInterface
-
-    iface = TrainerInterface(server_ip="127.0.0.1", server_port=port, password=PW, security=None, header_size=10,
-                             keys_dir=str(tmp_path / "credentials"), model_path=str(tmp_path / "t.json"))
-    closing.append(iface)
-    worker = RolloutWorker(env_cls=Env, actor_module_cls=TwoFaced, server_ip="127.0.0.1", server_port=port,
-                           password=PW, security=None, header_size=10, keys_dir=str(tmp_path / "credentials"),
-                           model_path=str(tmp_path / "w.json"), model_history=0, max_samples_per_episode=1000)
-    closing.append(worker)
+    iface, worker, actor = _json_setup(tmp_path, port_factory(), closing, Env, TwoFaced)
     assert worker.wait_connected(30)
-    _broadcast_until_held(iface, worker, TwoFaced(CountingEnv().observation_space, CountingEnv().action_space), [0.0])
+    _broadcast_until_held(iface, worker, actor, [0.0])
     Env.resets = 0
     worker.run(test_episode_interval=2, nb_episodes=2, test_samples=test_samples)
     receive(63 if test_samples else 42, timeout=30.0)
